@@ -1,0 +1,45 @@
+// Physics constants and defaults of the PRISM prototype, in one place, with
+// units in the names. Sources: ../shared/DESIGN.md ("Geometry and defaults")
+// and the paper (Sec. II, III.A). Where DESIGN.md fixes what the paper leaves
+// open (lenslet arrangement, centre thickness), the comment says so.
+#pragma once
+
+namespace prism::defaults {
+
+// Geometry (z along the optical axis, lens plane at z = 0).
+inline constexpr double lens_to_sensor_mm = 18.5;   // lens plane to sensor
+inline constexpr double working_distance_mm = 5.0;  // lens plane to scintillator face
+inline constexpr double volume_half_width_mm = 25.0;  // x, y in [-25, 25]
+inline constexpr double volume_depth_mm = 50.0;       // depth in [0, 50] from the face
+
+// Sensor: SVS-SHR661 with 2x2 binning (3.45 um native pixels).
+inline constexpr int sensor_width_px = 6696;
+inline constexpr int sensor_height_px = 4764;
+inline constexpr double pixel_um = 6.9;
+
+// Lenslets: 3 mm plano-convex N-BK7, seven focal lengths, six of each.
+inline constexpr double lenslet_diameter_mm = 3.0;
+inline constexpr double focal_lengths_mm[7] = {3.0, 4.5, 6.0, 7.5, 9.0, 12.0, 15.0};
+inline constexpr double glass_index_nbk7 = 1.5168;  // at 587.6 nm (LED at 570 nm)
+inline constexpr double edge_thickness_mm = 0.5;    // DESIGN.md: centre thickness = rim sag + 0.5 mm
+// Arrangement (DESIGN.md; the paper's figure is lost): 6 rows x 7 columns,
+// hex packed, focal index (column + 3 row) mod 7, centroid on the axis.
+inline constexpr int lenslet_rows = 6;
+inline constexpr int lenslet_columns = 7;
+inline constexpr double lenslet_pitch_mm = 4.0;
+
+// Source: the paper's isotropic emitter (Sec. II.C).
+inline constexpr double photons_emitted = 6280.0;
+
+// Effects, when a scene names them without parameters.
+inline constexpr double scintillator_index = 1.58;   // plastic scintillator (PVT)
+inline constexpr double holder_bore_mm = 2.0;        // bore behind the lens plane
+inline constexpr double detection_efficiency = 1.0;  // fill factor x PDE
+inline constexpr double dark_counts_per_pixel = 0.0; // expected dark counts per pixel per event
+
+// Analysis defaults, chosen by the convergence study (README, "Convergence").
+inline constexpr unsigned rays_per_lenslet = 16384;  // 128 x 128 strata
+inline constexpr unsigned analysis_binning = 8;      // 55.2 um analysis pixels
+inline constexpr double crlb_convergence_tol = 0.02; // relative, vs. 16x the rays
+
+}  // namespace prism::defaults

@@ -1,0 +1,213 @@
+#include "engine/forward.h"
+
+#include <algorithm>
+#include <cmath>
+
+#include "engine/shared_math.h"
+#include "engine/vk/error.h"
+#include "spv/fisher_reduce.spv.h"
+#include "spv/psf_splat.spv.h"
+#include "spv/trace_rays.spv.h"
+
+namespace prism {
+
+namespace {
+
+constexpr uint32_t kSplatGroup = 64;
+constexpr uint32_t kReduceChunk = 256 * 16;  // pixels per reduce workgroup (fisher_reduce.comp)
+constexpr uint32_t kPartialFloats = 16;
+
+template <size_t N> std::span<const uint32_t> spirv(const uint32_t (&code)[N]) { return {code, N}; }
+
+shared::Lenslet to_device(const OpticalSystem& sys, size_t i) {
+  const auto& l = sys.lenslets[i];
+  shared::Lenslet d{};
+  d.center_mm = glm::vec2(float(l.x_mm), float(l.y_mm));
+  d.radius_mm = float(0.5 * l.diameter_mm);
+  d.focal_mm = float(l.focal_mm);
+  d.curvature_radius_mm = float(sys.curvature_radius_mm(i));
+  d.thickness_mm = float(sys.center_thickness_mm(i));
+  d.sag_mm = float(sys.sag_mm(i));
+  d.glass_index = float(sys.glass_index);
+  return d;
+}
+
+}  // namespace
+
+double PixelImage::photons() const {
+  double s = 0;
+  for (size_t i = 0; i < data.size(); i += 4) s += data[i];
+  return s;
+}
+
+struct ForwardVulkan::Impl {
+  vk::Context& ctx;
+  OpticalSystem sys;
+  TraceSettings settings;
+  shared::TraceParams params{};
+  vk::Buffer lenses;
+  vk::Kernel splat;
+  vk::Kernel reduce;
+  uint32_t band_rows;       // grid rows per band
+  uint32_t sources_per_batch;
+
+  Impl(vk::Context& c, const OpticalSystem& s, const TraceSettings& t, const AnalysisGrid& grid, uint64_t budget)
+      : ctx(c),
+        sys(s),
+        settings(t),
+        lenses(c, s.lenslets.size() * sizeof(shared::Lenslet)),
+        splat(c, "psf_splat", spirv(spv_psf_splat), 3, sizeof(shared::TraceParams),
+              {uint32_t(s.lens_model == LensModel::real ? shared::LENS_REAL : shared::LENS_THIN),
+               uint32_t(s.effects.scintillator_refraction), uint32_t(s.effects.holder_vignetting)}),
+        reduce(c, "fisher_reduce", spirv(spv_fisher_reduce), 2, 3 * sizeof(uint32_t)) {
+    std::vector<shared::Lenslet> dev(s.lenslets.size());
+    for (size_t i = 0; i < dev.size(); ++i) dev[i] = to_device(s, i);
+    lenses.upload(std::span<const shared::Lenslet>(dev));
+
+    params.pixel_mm = float(grid.pixel_mm);
+    params.sensor_half_w_mm = float(0.5 * s.sensor_width_mm());
+    params.sensor_half_h_mm = float(0.5 * s.sensor_height_mm());
+    params.lens_to_sensor_mm = float(s.lens_to_sensor_mm);
+    params.working_distance_mm = float(s.working_distance_mm);
+    params.photons_per_sr = float(t.photons_emitted * s.effects.detection_efficiency / (4.0 * M_PI));
+    params.scint_index = float(s.effects.scintillator_index);
+    params.holder_bore_mm = float(s.effects.holder_bore_mm);
+    params.grid_w = grid.width;
+    params.grid_h = grid.height;
+    params.lens_count = uint32_t(s.lenslets.size());
+    params.strata = t.strata();
+
+    // One image buffer of at most maxStorageBufferRange and the budget: bands
+    // of rows when one image is larger, batches of sources when it is smaller.
+    uint64_t cap = std::min<uint64_t>(budget, c.max_storage_buffer_bytes());
+    uint64_t row_bytes = uint64_t(grid.width) * 16;
+    band_rows = uint32_t(std::min<uint64_t>(grid.height, cap / row_bytes));
+    if (band_rows == 0) throw vk::Error("one sensor row does not fit in a storage buffer");
+    uint64_t image_bytes = row_bytes * band_rows;
+    sources_per_batch = uint32_t(std::clamp<uint64_t>(cap / image_bytes, 1, 65535));
+  }
+
+  uint32_t bands() const { return (uint32_t(params.grid_h) + band_rows - 1) / band_rows; }
+
+  uint32_t splat_groups() const {
+    uint64_t total = uint64_t(params.strata) * params.strata * params.lens_count;
+    return uint32_t(std::min<uint64_t>((total + kSplatGroup - 1) / kSplatGroup, std::min(ctx.max_group_count_x(), 65535u)));
+  }
+};
+
+ForwardVulkan::ForwardVulkan(vk::Context& ctx, const OpticalSystem& sys, const TraceSettings& settings,
+                             uint64_t image_budget_bytes)
+    : grid_(AnalysisGrid::of(sys, settings.binning)) {
+  validate(sys);
+  impl_ = std::make_unique<Impl>(ctx, sys, settings, grid_, image_budget_bytes);
+}
+
+ForwardVulkan::~ForwardVulkan() = default;
+
+uint64_t ForwardVulkan::rays_per_source() const {
+  return uint64_t(impl_->params.strata) * impl_->params.strata * impl_->params.lens_count;
+}
+
+std::vector<FisherResult> ForwardVulkan::fisher(std::span<const glm::dvec3> theta) {
+  Impl& m = *impl_;
+  std::vector<FisherResult> out(theta.size());
+  last_kernel_ms_ = 0;
+  if (theta.empty()) return out;
+  const uint32_t batch = uint32_t(std::min<size_t>(m.sources_per_batch, theta.size()));
+  std::vector<glm::vec4> src(theta.size());
+  for (size_t i = 0; i < theta.size(); ++i) src[i] = glm::vec4(glm::vec3(theta[i]), 0.0f);
+  vk::Buffer sources(m.ctx, src.size() * sizeof(glm::vec4));
+  sources.upload(std::span<const glm::vec4>(src));
+  vk::Buffer images(m.ctx, uint64_t(batch) * grid_.width * m.band_rows * 16);
+  const uint32_t max_pixels = uint32_t(grid_.width) * m.band_rows;
+  const uint32_t max_chunks = (max_pixels + kReduceChunk - 1) / kReduceChunk;
+  vk::Buffer partials(m.ctx, uint64_t(batch) * max_chunks * kPartialFloats * sizeof(float));
+  vk::Stream stream(m.ctx);
+
+  for (uint32_t band = 0; band < m.bands(); ++band) {
+    shared::TraceParams p = m.params;
+    p.band_row0 = int(band * m.band_rows);
+    p.band_rows = int(std::min<uint32_t>(m.band_rows, uint32_t(grid_.height) - band * m.band_rows));
+    struct {
+      uint32_t pixels, chunks;
+      float dark;
+    } rp{uint32_t(grid_.width) * uint32_t(p.band_rows), 0, float(m.sys.effects.dark_counts_per_pixel)};
+    rp.chunks = (rp.pixels + kReduceChunk - 1) / kReduceChunk;
+    for (size_t first = 0; first < theta.size(); first += batch) {
+      p.source_offset = uint32_t(first);
+      p.source_count = uint32_t(std::min<size_t>(batch, theta.size() - first));
+      stream.fill_zero(images);
+      stream.barrier();
+      stream.dispatch(m.splat, {&m.lenses, &sources, &images}, &p, m.splat_groups(), p.source_count);
+      stream.barrier();
+      stream.dispatch(m.reduce, {&images, &partials}, &rp, rp.chunks, p.source_count);
+      last_kernel_ms_ += stream.submit();
+      auto part = partials.download<float>(size_t(p.source_count) * rp.chunks * kPartialFloats);
+      for (uint32_t s = 0; s < p.source_count; ++s) {
+        FisherResult& r = out[first + s];
+        for (uint32_t c = 0; c < rp.chunks; ++c) {
+          const float* q = &part[(size_t(s) * rp.chunks + c) * kPartialFloats];
+          r.photons += q[0];
+          for (int k = 0; k < 6; ++k) {
+            r.poisson[k] += q[1 + k];
+            r.binary[k] += q[7 + k];
+          }
+        }
+      }
+    }
+  }
+  return out;
+}
+
+PixelImage ForwardVulkan::psf(const glm::dvec3& theta) {
+  Impl& m = *impl_;
+  PixelImage img{grid_.width, grid_.height, grid_.pixel_mm, std::vector<float>(size_t(grid_.width) * grid_.height * 4)};
+  glm::vec4 src(glm::vec3(theta), 0.0f);
+  vk::Buffer sources(m.ctx, sizeof(glm::vec4));
+  sources.upload(&src, sizeof(src));
+  vk::Buffer images(m.ctx, uint64_t(grid_.width) * m.band_rows * 16);
+  vk::Stream stream(m.ctx);
+  last_kernel_ms_ = 0;
+  for (uint32_t band = 0; band < m.bands(); ++band) {
+    shared::TraceParams p = m.params;
+    p.band_row0 = int(band * m.band_rows);
+    p.band_rows = int(std::min<uint32_t>(m.band_rows, uint32_t(grid_.height) - band * m.band_rows));
+    p.source_offset = 0;
+    p.source_count = 1;
+    stream.fill_zero(images);
+    stream.barrier();
+    stream.dispatch(m.splat, {&m.lenses, &sources, &images}, &p, m.splat_groups(), 1);
+    last_kernel_ms_ += stream.submit();
+    images.download(&img.data[size_t(p.band_row0) * grid_.width * 4], uint64_t(p.band_rows) * grid_.width * 16);
+  }
+  return img;
+}
+
+std::vector<glm::vec3> trace_rays_vulkan(vk::Context& ctx, const OpticalSystem& sys, size_t lens_index,
+                                         std::span<const glm::vec3> origin_dir_pairs) {
+  size_t n = origin_dir_pairs.size() / 2;
+  if (n == 0) return {};
+  shared::Lenslet lens = to_device(sys, lens_index);
+  vk::Buffer lens_buf(ctx, sizeof(lens));
+  lens_buf.upload(&lens, sizeof(lens));
+  std::vector<glm::vec4> rays(2 * n);
+  for (size_t i = 0; i < 2 * n; ++i) rays[i] = glm::vec4(origin_dir_pairs[i], 0.0f);
+  vk::Buffer ray_buf(ctx, rays.size() * sizeof(glm::vec4));
+  ray_buf.upload(std::span<const glm::vec4>(rays));
+  vk::Buffer hit_buf(ctx, n * sizeof(glm::vec4));
+  vk::Kernel kernel(ctx, "trace_rays", spirv(spv_trace_rays), 3, 2 * sizeof(uint32_t),
+                    {uint32_t(sys.lens_model == LensModel::real ? shared::LENS_REAL : shared::LENS_THIN)});
+  struct {
+    float lens_to_sensor_mm;
+    uint32_t ray_count;
+  } push{float(sys.lens_to_sensor_mm), uint32_t(n)};
+  vk::Stream stream(ctx);
+  stream.dispatch(kernel, {&lens_buf, &ray_buf, &hit_buf}, &push, uint32_t((n + 63) / 64));
+  stream.submit();
+  auto hits = hit_buf.download<glm::vec4>(n);
+  std::vector<glm::vec3> out(n);
+  for (size_t i = 0; i < n; ++i) out[i] = glm::vec3(hits[i]);
+  return out;
+}
+
+}  // namespace prism

@@ -1,0 +1,56 @@
+// The forward model on the device: trace point sources through the lenslets,
+// splat b and db/dtheta into the analysis grid, reduce to Fisher information.
+// Sensors larger than one storage buffer are processed in bands of rows; many
+// sources share one dispatch.
+#pragma once
+#include <cstdint>
+#include <memory>
+#include <span>
+#include <vector>
+
+#include <glm/glm.hpp>
+
+#include "engine/fisher.h"
+#include "engine/optical_system.h"
+#include "engine/vk/compute.h"
+
+namespace prism {
+
+// Expected photons and their derivatives on the analysis grid: 4 floats per
+// pixel (b, db/dx, db/dy, db/ddepth), row-major.
+struct PixelImage {
+  int width = 0;
+  int height = 0;
+  double pixel_mm = 0;
+  std::vector<float> data;
+  float b(int col, int row) const { return data[4 * (size_t(row) * width + col)]; }
+  double photons() const;
+};
+
+class ForwardVulkan {
+ public:
+  ForwardVulkan(vk::Context& ctx, const OpticalSystem& sys, const TraceSettings& settings,
+                uint64_t image_budget_bytes = 256ull << 20);
+  ~ForwardVulkan();
+
+  // theta = (x_mm, y_mm, depth_mm) per source.
+  std::vector<FisherResult> fisher(std::span<const glm::dvec3> theta);
+  PixelImage psf(const glm::dvec3& theta);
+
+  double last_kernel_ms() const { return last_kernel_ms_; }  // device time of the last call
+  uint64_t rays_per_source() const;
+  const AnalysisGrid& grid() const { return grid_; }
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+  AnalysisGrid grid_;
+  double last_kernel_ms_ = 0;
+};
+
+// Trace explicit rays (origin, direction pairs) through one lenslet to the
+// sensor plane on the device; returns (x_mm, y_mm, ok) per ray.
+std::vector<glm::vec3> trace_rays_vulkan(vk::Context& ctx, const OpticalSystem& sys, size_t lens_index,
+                                         std::span<const glm::vec3> origin_dir_pairs);
+
+}  // namespace prism

@@ -1,0 +1,68 @@
+#include "engine/optical_system.h"
+
+#include <cmath>
+#include <stdexcept>
+
+namespace prism {
+
+const char* to_string(LensModel m) { return m == LensModel::real ? "real" : "thin"; }
+
+double OpticalSystem::sag_mm(size_t i) const {
+  double r = curvature_radius_mm(i);
+  double a = 0.5 * lenslets[i].diameter_mm;
+  return r - std::sqrt(r * r - a * a);
+}
+
+unsigned TraceSettings::strata() const {
+  unsigned s = unsigned(std::ceil(std::sqrt(double(rays_per_lenslet)) - 1e-9));
+  return s < 1 ? 1 : s;
+}
+
+AnalysisGrid AnalysisGrid::of(const OpticalSystem& sys, unsigned binning) {
+  if (binning < 1) throw std::invalid_argument("binning must be at least 1");
+  AnalysisGrid g;
+  g.width = int((sys.sensor_width_px + binning - 1) / binning);
+  g.height = int((sys.sensor_height_px + binning - 1) / binning);
+  g.pixel_mm = sys.pixel_um * binning * 1e-3;
+  return g;
+}
+
+void validate(const OpticalSystem& sys) {
+  auto fail = [](const std::string& field, const std::string& why) { throw std::invalid_argument(field + ": " + why); };
+  if (sys.lenslets.empty()) fail("lenslets", "at least one lenslet is needed");
+  if (!(sys.glass_index > 1.0)) fail("glass.index", "must be > 1");
+  if (!(sys.edge_thickness_mm >= 0)) fail("glass.edge_thickness_mm", "must be >= 0");
+  if (sys.sensor_width_px < 1 || sys.sensor_height_px < 1) fail("sensor", "width_px and height_px must be >= 1");
+  if (!(sys.pixel_um > 0)) fail("sensor.pixel_um", "must be > 0");
+  if (!(sys.lens_to_sensor_mm > 0)) fail("lens_to_sensor_mm", "must be > 0");
+  if (!(sys.working_distance_mm >= 0)) fail("working_distance_mm", "must be >= 0");
+  for (size_t i = 0; i < sys.lenslets.size(); ++i) {
+    const auto& l = sys.lenslets[i];
+    std::string at = "lenslets[" + std::to_string(i) + "]";
+    if (!(l.diameter_mm > 0)) fail(at + ".diameter_mm", "must be > 0");
+    if (!(l.focal_mm > 0)) fail(at + ".focal_mm", "must be > 0");
+    if (std::abs(l.x_mm) > 0.5 * sys.sensor_width_mm() || std::abs(l.y_mm) > 0.5 * sys.sensor_height_mm())
+      fail(at, "centre (" + std::to_string(l.x_mm) + ", " + std::to_string(l.y_mm) + ") mm lies off the sensor");
+    if (sys.lens_model == LensModel::real) {
+      double r = sys.curvature_radius_mm(i);
+      if (r < 0.5 * l.diameter_mm)
+        fail(at, "a plano-convex lens of diameter " + std::to_string(l.diameter_mm) + " mm cannot have f = " +
+                     std::to_string(l.focal_mm) + " mm with n = " + std::to_string(sys.glass_index) +
+                     " (R = f (n - 1) = " + std::to_string(r) + " mm is smaller than the aperture radius); use lens_model thin");
+      if (sys.center_thickness_mm(i) >= sys.lens_to_sensor_mm) fail(at, "lens is thicker than the lens-to-sensor distance");
+    }
+    for (size_t j = 0; j < i; ++j) {
+      const auto& m = sys.lenslets[j];
+      double d = std::hypot(l.x_mm - m.x_mm, l.y_mm - m.y_mm);
+      if (d < 0.5 * (l.diameter_mm + m.diameter_mm) - 1e-9)
+        fail(at, "overlaps lenslets[" + std::to_string(j) + "] (centres " + std::to_string(d) + " mm apart)");
+    }
+  }
+  const Effects& e = sys.effects;
+  if (e.scintillator_refraction && !(e.scintillator_index >= 1.0)) fail("effects.scintillator_refraction.index", "must be >= 1");
+  if (e.holder_vignetting && !(e.holder_bore_mm >= 0)) fail("effects.holder_vignetting.bore_mm", "must be >= 0");
+  if (!(e.detection_efficiency > 0 && e.detection_efficiency <= 1)) fail("effects.detection_efficiency.value", "must be in (0, 1]");
+  if (!(e.dark_counts_per_pixel >= 0)) fail("effects.dark_counts.per_pixel", "must be >= 0");
+}
+
+}  // namespace prism

@@ -1,0 +1,77 @@
+// What the engine needs to know of an optical design: lenslets, lens model,
+// sensor, distances and the effects to simulate. Scenes (host/scene.h) are
+// parsed into this; the engine never reads files.
+#pragma once
+#include <string>
+#include <vector>
+
+#include "engine/defaults.h"
+
+namespace prism {
+
+enum class LensModel { thin, real };
+const char* to_string(LensModel m);
+
+struct LensletGeometry {
+  double x_mm = 0;           // centre on the lens plane
+  double y_mm = 0;
+  double diameter_mm = defaults::lenslet_diameter_mm;
+  double focal_mm = 0;
+};
+
+// Effects beyond the plain model. Each is off unless a scene names it, and an
+// effect that is off is compiled out of the kernels (specialisation constants).
+struct Effects {
+  bool scintillator_refraction = false;
+  double scintillator_index = defaults::scintillator_index;
+  bool holder_vignetting = false;
+  double holder_bore_mm = defaults::holder_bore_mm;
+  double detection_efficiency = defaults::detection_efficiency;
+  double dark_counts_per_pixel = defaults::dark_counts_per_pixel;
+};
+
+struct OpticalSystem {
+  std::vector<LensletGeometry> lenslets;
+  LensModel lens_model = LensModel::real;
+  double glass_index = defaults::glass_index_nbk7;
+  double edge_thickness_mm = defaults::edge_thickness_mm;
+  int sensor_width_px = defaults::sensor_width_px;
+  int sensor_height_px = defaults::sensor_height_px;
+  double pixel_um = defaults::pixel_um;
+  double lens_to_sensor_mm = defaults::lens_to_sensor_mm;
+  double working_distance_mm = defaults::working_distance_mm;
+  Effects effects;
+
+  // Plano-convex geometry of lenslet i (real model): R = f (n - 1), the sag of
+  // the front face at the rim, and centre thickness = sag + edge thickness.
+  double curvature_radius_mm(size_t i) const { return lenslets[i].focal_mm * (glass_index - 1.0); }
+  double sag_mm(size_t i) const;
+  double center_thickness_mm(size_t i) const { return sag_mm(i) + edge_thickness_mm; }
+  double sensor_width_mm() const { return sensor_width_px * pixel_um * 1e-3; }
+  double sensor_height_mm() const { return sensor_height_px * pixel_um * 1e-3; }
+};
+
+// Analysis settings of one forward-model run.
+struct TraceSettings {
+  unsigned rays_per_lenslet = defaults::rays_per_lenslet;  // rounded up to a square number of strata
+  unsigned binning = defaults::analysis_binning;           // analyse on binning x binning sensor pixels
+  double photons_emitted = defaults::photons_emitted;
+
+  unsigned strata() const;
+  unsigned rays() const { return strata() * strata(); }
+};
+
+// The analysis grid: the sensor binned B x B (the last column/row may hang
+// over the sensor edge; hits beyond the physical sensor are dropped).
+struct AnalysisGrid {
+  int width = 0;
+  int height = 0;
+  double pixel_mm = 0;
+  static AnalysisGrid of(const OpticalSystem& sys, unsigned binning);
+};
+
+// Throws prism::SceneError-like std::invalid_argument naming the field when the
+// system cannot be traced (overlapping lenslets, impossible real lens, ...).
+void validate(const OpticalSystem& sys);
+
+}  // namespace prism

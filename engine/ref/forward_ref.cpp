@@ -1,0 +1,287 @@
+#include "engine/ref/forward_ref.h"
+
+#include <cmath>
+
+namespace prism::ref {
+
+namespace {
+
+// ---------------------------------------------------------------------------
+// Dual numbers in double: value and gradient over (x, y, depth).
+struct D {
+  double v = 0;
+  glm::dvec3 d{0.0};
+  D() = default;
+  D(double value) : v(value) {}  // NOLINT: constants convert implicitly
+  D(double value, glm::dvec3 grad) : v(value), d(grad) {}
+};
+D operator+(D a, D b) { return {a.v + b.v, a.d + b.d}; }
+D operator-(D a, D b) { return {a.v - b.v, a.d - b.d}; }
+D operator-(D a) { return {-a.v, -a.d}; }
+D operator*(D a, D b) { return {a.v * b.v, a.d * b.v + b.d * a.v}; }
+D operator/(D a, D b) { return {a.v / b.v, (a.d * b.v - b.d * a.v) / (b.v * b.v)}; }
+D sqrt(D a) {
+  double s = std::sqrt(a.v);
+  return {s, a.d / (2.0 * s)};
+}
+
+struct V3 {
+  D x, y, z;
+};
+V3 operator+(const V3& a, const V3& b) { return {a.x + b.x, a.y + b.y, a.z + b.z}; }
+V3 operator-(const V3& a, const V3& b) { return {a.x - b.x, a.y - b.y, a.z - b.z}; }
+V3 operator*(const V3& a, D s) { return {a.x * s, a.y * s, a.z * s}; }
+D dot(const V3& a, const V3& b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
+V3 unit(const V3& a) { return a * (D(1.0) / sqrt(dot(a, a))); }
+
+// Snell's law for unit direction i and unit normal n facing against i, index
+// ratio eta = n1 / n2. Empty on total internal reflection.
+std::optional<V3> snell(const V3& i, const V3& n, double eta) {
+  D cos_i = -dot(n, i);
+  D sin2_t = D(eta * eta) * (D(1.0) - cos_i * cos_i);
+  if (sin2_t.v >= 1.0) return std::nullopt;
+  D cos_t = sqrt(D(1.0) - sin2_t);
+  return i * D(eta) + n * (D(eta) * cos_i - cos_t);
+}
+
+bool within(const V3& p, double cx, double cy, double r) {
+  double dx = p.x.v - cx, dy = p.y.v - cy;
+  return dx * dx + dy * dy <= r * r;
+}
+
+struct Geometry {
+  double cx, cy, radius, focal, R, thickness, sag, n;
+};
+Geometry geometry(const OpticalSystem& sys, size_t i) {
+  const auto& l = sys.lenslets[i];
+  return {l.x_mm, l.y_mm, 0.5 * l.diameter_mm, l.focal_mm, sys.curvature_radius_mm(i), sys.center_thickness_mm(i),
+          sys.sag_mm(i), sys.glass_index};
+}
+
+// Propagate a ray from `o` along `dir` through lenslet g to the sensor plane.
+// Returns the landing point (x, y) or nothing when stopped.
+std::optional<std::pair<D, D>> propagate(const OpticalSystem& sys, const Geometry& g, V3 o, V3 dir) {
+  double bore = sys.effects.holder_vignetting ? sys.effects.holder_bore_mm : 0.0;
+  double L = sys.lens_to_sensor_mm;
+  if (sys.lens_model == LensModel::thin) {
+    D t = -o.z / dir.z;
+    V3 p = o + dir * t;
+    if (!within(p, g.cx, g.cy, g.radius)) return std::nullopt;
+    D sx = dir.x / dir.z - (p.x - D(g.cx)) / D(g.focal);
+    D sy = dir.y / dir.z - (p.y - D(g.cy)) / D(g.focal);
+    if (bore > 0 && !within(V3{p.x + sx * D(bore), p.y + sy * D(bore), D(bore)}, g.cx, g.cy, g.radius)) return std::nullopt;
+    return std::make_pair(p.x + sx * D(L), p.y + sy * D(L));
+  }
+  // Spherical front face: centre (cx, cy, R); first intersection from the source side.
+  V3 d = unit(dir);
+  V3 c{D(g.cx), D(g.cy), D(g.R)};
+  V3 oc = o - c;
+  D b = dot(oc, d);
+  D disc = b * b - (dot(oc, oc) - D(g.R * g.R));
+  if (disc.v <= 0) return std::nullopt;
+  D t = -b - sqrt(disc);
+  V3 p1 = o + d * t;
+  if (!within(p1, g.cx, g.cy, g.radius) || p1.z.v > g.sag) return std::nullopt;
+  auto d1 = snell(d, (p1 - c) * D(1.0 / g.R), 1.0 / g.n);  // outward normal faces the source
+  if (!d1) return std::nullopt;
+  // Flat back face.
+  D t2 = (D(g.thickness) - p1.z) / d1->z;
+  V3 p2 = p1 + *d1 * t2;
+  if (!within(p2, g.cx, g.cy, g.radius)) return std::nullopt;
+  auto d2 = snell(*d1, V3{D(0.0), D(0.0), D(-1.0)}, g.n);
+  if (!d2) return std::nullopt;
+  if (bore > g.thickness) {
+    D tb = D(bore - g.thickness) / d2->z;
+    if (!within(p2 + *d2 * tb, g.cx, g.cy, g.radius)) return std::nullopt;
+  }
+  D ts = D(L - g.thickness) / d2->z;
+  return std::make_pair(p2.x + d2->x * ts, p2.y + d2->y * ts);
+}
+
+// Same stratified, jittered aperture points as the device (the integer hash is
+// exact in both; the jitter is a multiple of 2^-24, exact in float and double).
+uint32_t hash_u32(uint32_t v) {
+  uint32_t state = v * 747796405u + 2891336453u;
+  uint32_t word = ((state >> ((state >> 28u) + 4u)) ^ state) * 277803737u;
+  return (word >> 22u) ^ word;
+}
+double hash_unit(uint32_t v) { return double(hash_u32(v) >> 8u) / 16777216.0; }
+glm::dvec2 unit_disk_sample(uint32_t lens, uint32_t sample, uint32_t strata) {
+  uint32_t i = sample % strata, j = sample / strata;
+  uint32_t key = (lens * 2654435761u) ^ (sample * 2246822519u);
+  double a = 2.0 * (double(i) + hash_unit(key)) / double(strata) - 1.0;
+  double b = 2.0 * (double(j) + hash_unit(key ^ 0x9e3779b9u)) / double(strata) - 1.0;
+  if (a == 0 && b == 0) return {0, 0};
+  double r, phi;
+  if (std::abs(a) > std::abs(b)) {
+    r = a;
+    phi = M_PI / 4 * (b / a);
+  } else {
+    r = b;
+    phi = M_PI / 2 - M_PI / 4 * (a / b);
+  }
+  return {r * std::cos(phi), r * std::sin(phi)};
+}
+
+// Scintillator face: find the radial distance rho on the face, from the point
+// below the source, such that the refracted ray reaches radial distance pr on
+// the aperture plane a height w above the face: pr = rho + w tan(theta_air),
+// sin(theta_air) = n sin(theta_scint). Newton on rho, run on duals.
+struct FacePath {
+  D rho_over_pr;  // q = s + (rho / pr) (p - s) laterally
+  D weight;       // Fresnel T * cos/L^2 inside * dA_face / dA_aperture
+};
+FacePath face_path(D h, D pr2, double w, double n) {
+  D pr = sqrt(pr2 + D(1e-30));
+  auto air_tan = [&](D rho) {
+    D L = sqrt(rho * rho + h * h);
+    D s = D(n) * rho / L;  // sin in air
+    return s / sqrt(D(1.0) - s * s);
+  };
+  // Start from the paraxial guess and keep rho below the critical angle.
+  D rho = pr * h / (h + D(n * w));
+  double rho_max = h.v / std::sqrt(n * n - 1.0);
+  for (int it = 0; it < 60; ++it) {
+    D L = sqrt(rho * rho + h * h);
+    D s = D(n) * rho / L;
+    D c3 = (D(1.0) - s * s) * sqrt(D(1.0) - s * s);
+    D f = rho + D(w) * air_tan(rho) - pr;
+    D fp = D(1.0) + D(w * n) * h * h / (L * L * L * c3);
+    D next = rho - f / fp;
+    if (next.v >= rho_max) next = D(0.5) * (rho + D(rho_max));
+    if (next.v < 0) next = D(0.5) * rho;
+    rho = next;
+  }
+  D L = sqrt(rho * rho + h * h);
+  D sin_i = rho / L, cos_i = h / L;
+  D sin_t = D(n) * sin_i;
+  D cos_t = sqrt(D(1.0) - sin_t * sin_t);
+  D rs = (D(n) * cos_i - cos_t) / (D(n) * cos_i + cos_t);
+  D rp = (D(n) * cos_t - cos_i) / (D(n) * cos_t + cos_i);
+  D transmit = D(1.0) - D(0.5) * (rs * rs + rp * rp);
+  D dpr_drho = D(1.0) + D(w * n) * h * h / (L * L * L * (D(1.0) - sin_t * sin_t) * cos_t);
+  // Radial area map: dA_aperture / dA_face = (pr / rho) * dpr/drho.
+  D ratio = (pr.v < 1e-12) ? D(1.0) / (D(1.0) + D(w * n) / h) : rho / pr;
+  D area = ratio / dpr_drho;
+  return {ratio, transmit * cos_i / (L * L) * area};
+}
+
+SampleHit trace_sample_impl(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta,
+                            size_t lens, uint32_t sample) {
+  Geometry g = geometry(sys, lens);
+  glm::dvec2 u = unit_disk_sample(uint32_t(lens), sample, settings.strata());
+  double z_ap = sys.lens_model == LensModel::real ? g.sag : 0.0;
+  V3 p{D(g.cx + g.radius * u.x), D(g.cy + g.radius * u.y), D(z_ap)};
+  V3 s{D(theta.x, {1, 0, 0}), D(theta.y, {0, 1, 0}), D(-(theta.z + sys.working_distance_mm), {0, 0, -1})};
+  double per_sample = settings.photons_emitted * sys.effects.detection_efficiency / (4 * M_PI) * M_PI * g.radius *
+                      g.radius / double(settings.rays());
+  V3 origin = s;
+  D weight;
+  if (sys.effects.scintillator_refraction) {
+    double face_z = -sys.working_distance_mm;
+    D h = D(face_z) - s.z;
+    if (h.v < 1e-3) h = D(1e-3, h.d);
+    D ex = p.x - s.x, ey = p.y - s.y;
+    FacePath fp = face_path(h, ex * ex + ey * ey, z_ap - face_z, sys.effects.scintillator_index);
+    origin = V3{s.x + ex * fp.rho_over_pr, s.y + ey * fp.rho_over_pr, D(face_z)};
+    weight = fp.weight;
+  } else {
+    V3 r = p - s;
+    D len = sqrt(dot(r, r));
+    weight = r.z / (len * len * len);  // cos / r^2
+  }
+  weight = weight * D(per_sample);
+  SampleHit out;
+  auto hit = propagate(sys, g, origin, p - origin);
+  if (!hit) return out;
+  out.ok = true;
+  out.x_mm = hit->first.v;
+  out.y_mm = hit->second.v;
+  out.weight = weight.v;
+  out.dx = hit->first.d;
+  out.dy = hit->second.d;
+  out.dweight = weight.d;
+  return out;
+}
+
+}  // namespace
+
+double SparseImage::photons() const {
+  double s = 0;
+  for (const auto& [k, v] : pixels) s += v[0];
+  return s;
+}
+
+SampleHit trace_sample(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta, size_t lens,
+                       uint32_t sample) {
+  return trace_sample_impl(sys, settings, theta, lens, sample);
+}
+
+SparseImage psf(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta) {
+  validate(sys);
+  AnalysisGrid grid = AnalysisGrid::of(sys, settings.binning);
+  SparseImage img{grid.width, grid.height, {}};
+  double half_w = 0.5 * sys.sensor_width_mm(), half_h = 0.5 * sys.sensor_height_mm();
+  for (size_t l = 0; l < sys.lenslets.size(); ++l) {
+    for (uint32_t k = 0; k < settings.rays(); ++k) {
+      SampleHit h = trace_sample_impl(sys, settings, theta, l, k);
+      if (!h.ok || std::abs(h.x_mm) > half_w || std::abs(h.y_mm) > half_h) continue;
+      double u = (h.x_mm + half_w) / grid.pixel_mm - 0.5;
+      double v = (h.y_mm + half_h) / grid.pixel_mm - 0.5;
+      double iu = std::floor(u), iv = std::floor(v);
+      double fx = u - iu, fy = v - iv;
+      glm::dvec3 dfx = h.dx / grid.pixel_mm, dfy = h.dy / grid.pixel_mm;
+      // Each of the four taps: weight * a(fx) * b(fy) with its product rule.
+      for (int j = 0; j < 2; ++j)
+        for (int i = 0; i < 2; ++i) {
+          int col = int(iu) + i, row = int(iv) + j;
+          if (col < 0 || col >= grid.width || row < 0 || row >= grid.height) continue;
+          double a = i ? fx : 1 - fx, da_sign = i ? 1 : -1;
+          double b = j ? fy : 1 - fy, db_sign = j ? 1 : -1;
+          glm::dvec3 grad = h.dweight * a * b + h.weight * (da_sign * dfx * b + db_sign * dfy * a);
+          auto& px = img.pixels[int64_t(row) * grid.width + col];
+          px[0] += h.weight * a * b;
+          px[1] += grad.x;
+          px[2] += grad.y;
+          px[3] += grad.z;
+        }
+    }
+  }
+  return img;
+}
+
+FisherResult fisher_of(const SparseImage& image, double dark) {
+  FisherResult r;
+  for (const auto& [key, px] : image.pixels) {
+    r.photons += px[0];
+    double b = px[0] + dark;
+    if (!(b > 0)) continue;
+    double inv_p = 1.0 / b, inv_b = 1.0 / std::expm1(b);
+    const double g[3] = {px[1], px[2], px[3]};
+    int k = 0;
+    for (int i = 0; i < 3; ++i)
+      for (int j = i; j < 3; ++j, ++k) {
+        r.poisson[k] += g[i] * g[j] * inv_p;
+        r.binary[k] += g[i] * g[j] * inv_b;
+      }
+  }
+  // Pixels no ray reaches still hold dark counts but no information.
+  return r;
+}
+
+FisherResult fisher(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta) {
+  return fisher_of(psf(sys, settings, theta), sys.effects.dark_counts_per_pixel);
+}
+
+std::optional<glm::dvec2> trace_ray(const OpticalSystem& sys, size_t lens_index, const glm::dvec3& origin,
+                                    const glm::dvec3& direction) {
+  Geometry g = geometry(sys, lens_index);
+  OpticalSystem plain = sys;
+  plain.effects.holder_vignetting = false;
+  auto hit = propagate(plain, g, V3{D(origin.x), D(origin.y), D(origin.z)},
+                       V3{D(direction.x), D(direction.y), D(direction.z)});
+  if (!hit) return std::nullopt;
+  return glm::dvec2(hit->first.v, hit->second.v);
+}
+
+}  // namespace prism::ref

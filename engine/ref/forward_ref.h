@@ -1,0 +1,48 @@
+// Naive double-precision reference of the forward model. Written apart from
+// the device math (shaders/common) so the two cannot share a bug: its own dual
+// numbers (operator overloading), its own vector code, and its own formulation
+// of the scintillator-face path (radial Snell map instead of the shader's
+// implicit k). Only the choice of aperture sample points is common, because
+// both backends must trace the same rays to be compared pixel by pixel.
+#pragma once
+#include <array>
+#include <cstdint>
+#include <optional>
+#include <unordered_map>
+
+#include <glm/glm.hpp>
+
+#include "engine/fisher.h"
+#include "engine/optical_system.h"
+
+namespace prism::ref {
+
+// Expected photons and d/d(x, y, depth) per touched pixel, keyed by
+// row * grid_width + col: only the pixels rays reach are stored.
+struct SparseImage {
+  int width = 0;
+  int height = 0;
+  std::unordered_map<int64_t, std::array<double, 4>> pixels;
+  double photons() const;
+};
+
+SparseImage psf(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta);
+FisherResult fisher(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta);
+FisherResult fisher_of(const SparseImage& image, double dark_counts_per_pixel);
+
+// Landing point (x, y) on the sensor plane of one explicit ray through lenslet
+// `lens_index`, or nothing when an aperture or total internal reflection stops it.
+std::optional<glm::dvec2> trace_ray(const OpticalSystem& sys, size_t lens_index, const glm::dvec3& origin,
+                                    const glm::dvec3& direction);
+
+// Landing point, weight and their derivatives of aperture sample `sample` of
+// lenslet `lens` from source theta (for finite-difference checks).
+struct SampleHit {
+  bool ok = false;
+  double x_mm = 0, y_mm = 0, weight = 0;
+  glm::dvec3 dx{0}, dy{0}, dweight{0};  // d/d(x, y, depth)
+};
+SampleHit trace_sample(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta,
+                       size_t lens, uint32_t sample);
+
+}  // namespace prism::ref

@@ -1,0 +1,296 @@
+#include "engine/vk/compute.h"
+
+#include <chrono>
+#include <cstring>
+
+#include "engine/vk/error.h"
+
+namespace prism::vk {
+
+// ---------------------------------------------------------------------------
+// Buffer
+
+namespace {
+
+struct RawBuffer {
+  VkBuffer buffer = VK_NULL_HANDLE;
+  VkDeviceMemory memory = VK_NULL_HANDLE;
+  void* mapped = nullptr;
+};
+
+RawBuffer make_buffer(Context& ctx, uint64_t bytes, VkBufferUsageFlags usage, bool want_device_local) {
+  RawBuffer rb;
+  VkBufferCreateInfo bi{VK_STRUCTURE_TYPE_BUFFER_CREATE_INFO};
+  bi.size = bytes;
+  bi.usage = usage;
+  bi.sharingMode = VK_SHARING_MODE_EXCLUSIVE;
+  check(vkCreateBuffer(ctx.device(), &bi, nullptr, &rb.buffer), "vkCreateBuffer");
+  VkMemoryRequirements req;
+  vkGetBufferMemoryRequirements(ctx.device(), rb.buffer, &req);
+  const VkMemoryPropertyFlags host = VK_MEMORY_PROPERTY_HOST_VISIBLE_BIT | VK_MEMORY_PROPERTY_HOST_COHERENT_BIT;
+  const VkMemoryPropertyFlags local = VK_MEMORY_PROPERTY_DEVICE_LOCAL_BIT;
+  uint32_t type = UINT32_MAX;
+  if (want_device_local) {
+    type = ctx.find_memory_type(req.memoryTypeBits, local | host);
+    if (type == UINT32_MAX) type = ctx.find_memory_type(req.memoryTypeBits, local);
+  }
+  if (type == UINT32_MAX) type = ctx.find_memory_type(req.memoryTypeBits, host);
+  if (type == UINT32_MAX) throw Error("no memory type for a " + std::to_string(bytes) + "-byte buffer");
+  VkMemoryAllocateInfo ai{VK_STRUCTURE_TYPE_MEMORY_ALLOCATE_INFO};
+  ai.allocationSize = req.size;
+  ai.memoryTypeIndex = type;
+  VkResult r = vkAllocateMemory(ctx.device(), &ai, nullptr, &rb.memory);
+  if (r != VK_SUCCESS) {
+    vkDestroyBuffer(ctx.device(), rb.buffer, nullptr);
+    check(r, ("vkAllocateMemory of " + std::to_string(bytes >> 20) + " MiB").c_str());
+  }
+  check(vkBindBufferMemory(ctx.device(), rb.buffer, rb.memory, 0), "vkBindBufferMemory");
+  VkPhysicalDeviceMemoryProperties mp;
+  vkGetPhysicalDeviceMemoryProperties(ctx.physical(), &mp);
+  if ((mp.memoryTypes[type].propertyFlags & host) == host)
+    check(vkMapMemory(ctx.device(), rb.memory, 0, VK_WHOLE_SIZE, 0, &rb.mapped), "vkMapMemory");
+  return rb;
+}
+
+void destroy(Context& ctx, RawBuffer& rb) {
+  if (rb.mapped) vkUnmapMemory(ctx.device(), rb.memory);
+  vkDestroyBuffer(ctx.device(), rb.buffer, nullptr);
+  vkFreeMemory(ctx.device(), rb.memory, nullptr);
+}
+
+const VkBufferUsageFlags kStorage =
+    VK_BUFFER_USAGE_STORAGE_BUFFER_BIT | VK_BUFFER_USAGE_TRANSFER_SRC_BIT | VK_BUFFER_USAGE_TRANSFER_DST_BIT;
+const VkBufferUsageFlags kStaging = VK_BUFFER_USAGE_TRANSFER_SRC_BIT | VK_BUFFER_USAGE_TRANSFER_DST_BIT;
+
+}  // namespace
+
+Buffer::Buffer(Context& ctx, uint64_t bytes) : ctx_(ctx), bytes_(bytes) {
+  if (bytes == 0) throw Error("Buffer: zero-byte buffer requested");
+  if (bytes > ctx.max_storage_buffer_bytes())
+    throw Error("Buffer of " + std::to_string(bytes) + " bytes exceeds maxStorageBufferRange (" +
+                std::to_string(ctx.max_storage_buffer_bytes()) + ") of " + ctx.describe() + "; chunk the data");
+  RawBuffer rb = make_buffer(ctx, bytes, kStorage, true);
+  buffer_ = rb.buffer;
+  memory_ = rb.memory;
+  mapped_ = rb.mapped;
+}
+
+Buffer::~Buffer() {
+  RawBuffer rb{buffer_, memory_, mapped_};
+  destroy(ctx_, rb);
+}
+
+void Buffer::copy(VkBuffer src, VkBuffer dst, uint64_t src_off, uint64_t dst_off, uint64_t bytes) const {
+  VkCommandBufferAllocateInfo ai{VK_STRUCTURE_TYPE_COMMAND_BUFFER_ALLOCATE_INFO};
+  ai.commandPool = ctx_.command_pool();
+  ai.level = VK_COMMAND_BUFFER_LEVEL_PRIMARY;
+  ai.commandBufferCount = 1;
+  VkCommandBuffer cmd;
+  check(vkAllocateCommandBuffers(ctx_.device(), &ai, &cmd), "vkAllocateCommandBuffers");
+  VkCommandBufferBeginInfo bi{VK_STRUCTURE_TYPE_COMMAND_BUFFER_BEGIN_INFO};
+  bi.flags = VK_COMMAND_BUFFER_USAGE_ONE_TIME_SUBMIT_BIT;
+  vkBeginCommandBuffer(cmd, &bi);
+  VkBufferCopy region{src_off, dst_off, bytes};
+  vkCmdCopyBuffer(cmd, src, dst, 1, &region);
+  vkEndCommandBuffer(cmd);
+  VkSubmitInfo si{VK_STRUCTURE_TYPE_SUBMIT_INFO};
+  si.commandBufferCount = 1;
+  si.pCommandBuffers = &cmd;
+  check(vkQueueSubmit(ctx_.queue(), 1, &si, VK_NULL_HANDLE), "vkQueueSubmit (copy)");
+  check(vkQueueWaitIdle(ctx_.queue()), "vkQueueWaitIdle (copy)");
+  vkFreeCommandBuffers(ctx_.device(), ctx_.command_pool(), 1, &cmd);
+}
+
+void Buffer::upload(const void* data, uint64_t bytes, uint64_t offset) {
+  if (offset + bytes > bytes_) throw Error("Buffer::upload past the end of the buffer");
+  if (mapped_) {
+    std::memcpy(static_cast<char*>(mapped_) + offset, data, bytes);
+    return;
+  }
+  RawBuffer staging = make_buffer(ctx_, bytes, kStaging, false);
+  std::memcpy(staging.mapped, data, bytes);
+  copy(staging.buffer, buffer_, 0, offset, bytes);
+  destroy(ctx_, staging);
+}
+
+void Buffer::download(void* data, uint64_t bytes, uint64_t offset) const {
+  if (offset + bytes > bytes_) throw Error("Buffer::download past the end of the buffer");
+  if (mapped_) {
+    std::memcpy(data, static_cast<const char*>(mapped_) + offset, bytes);
+    return;
+  }
+  RawBuffer staging = make_buffer(ctx_, bytes, kStaging, false);
+  copy(buffer_, staging.buffer, offset, 0, bytes);
+  std::memcpy(data, staging.mapped, bytes);
+  destroy(ctx_, staging);
+}
+
+// ---------------------------------------------------------------------------
+// Kernel
+
+Kernel::Kernel(Context& ctx, std::string name, std::span<const uint32_t> spirv, uint32_t buffer_count,
+               uint32_t push_bytes, std::vector<uint32_t> specialisation)
+    : ctx_(ctx), name_(std::move(name)), buffer_count_(buffer_count), push_bytes_(push_bytes) {
+  std::vector<VkDescriptorSetLayoutBinding> bindings(buffer_count);
+  for (uint32_t i = 0; i < buffer_count; ++i)
+    bindings[i] = {i, VK_DESCRIPTOR_TYPE_STORAGE_BUFFER, 1, VK_SHADER_STAGE_COMPUTE_BIT, nullptr};
+  VkDescriptorSetLayoutCreateInfo li{VK_STRUCTURE_TYPE_DESCRIPTOR_SET_LAYOUT_CREATE_INFO};
+  li.bindingCount = buffer_count;
+  li.pBindings = bindings.data();
+  check(vkCreateDescriptorSetLayout(ctx.device(), &li, nullptr, &set_layout_), "vkCreateDescriptorSetLayout");
+
+  VkPushConstantRange range{VK_SHADER_STAGE_COMPUTE_BIT, 0, push_bytes};
+  VkPipelineLayoutCreateInfo pli{VK_STRUCTURE_TYPE_PIPELINE_LAYOUT_CREATE_INFO};
+  pli.setLayoutCount = 1;
+  pli.pSetLayouts = &set_layout_;
+  pli.pushConstantRangeCount = push_bytes ? 1 : 0;
+  pli.pPushConstantRanges = &range;
+  check(vkCreatePipelineLayout(ctx.device(), &pli, nullptr, &layout_), "vkCreatePipelineLayout");
+
+  VkShaderModuleCreateInfo mi{VK_STRUCTURE_TYPE_SHADER_MODULE_CREATE_INFO};
+  mi.codeSize = spirv.size_bytes();
+  mi.pCode = spirv.data();
+  VkShaderModule module;
+  check(vkCreateShaderModule(ctx.device(), &mi, nullptr, &module), ("vkCreateShaderModule " + name_).c_str());
+
+  std::vector<VkSpecializationMapEntry> entries(specialisation.size());
+  for (uint32_t i = 0; i < specialisation.size(); ++i) entries[i] = {i, uint32_t(i * sizeof(uint32_t)), sizeof(uint32_t)};
+  VkSpecializationInfo si{uint32_t(entries.size()), entries.data(), specialisation.size() * sizeof(uint32_t),
+                          specialisation.data()};
+  VkComputePipelineCreateInfo ci{VK_STRUCTURE_TYPE_COMPUTE_PIPELINE_CREATE_INFO};
+  ci.stage = {VK_STRUCTURE_TYPE_PIPELINE_SHADER_STAGE_CREATE_INFO};
+  ci.stage.stage = VK_SHADER_STAGE_COMPUTE_BIT;
+  ci.stage.module = module;
+  ci.stage.pName = "main";
+  ci.stage.pSpecializationInfo = specialisation.empty() ? nullptr : &si;
+  ci.layout = layout_;
+  VkResult r = vkCreateComputePipelines(ctx.device(), VK_NULL_HANDLE, 1, &ci, nullptr, &pipeline_);
+  vkDestroyShaderModule(ctx.device(), module, nullptr);
+  check(r, ("vkCreateComputePipelines " + name_).c_str());
+}
+
+Kernel::~Kernel() {
+  vkDestroyPipeline(ctx_.device(), pipeline_, nullptr);
+  vkDestroyPipelineLayout(ctx_.device(), layout_, nullptr);
+  vkDestroyDescriptorSetLayout(ctx_.device(), set_layout_, nullptr);
+}
+
+// ---------------------------------------------------------------------------
+// Stream
+
+Stream::Stream(Context& ctx, uint32_t max_dispatches) : ctx_(ctx), max_dispatches_(max_dispatches) {
+  VkCommandBufferAllocateInfo ai{VK_STRUCTURE_TYPE_COMMAND_BUFFER_ALLOCATE_INFO};
+  ai.commandPool = ctx.command_pool();
+  ai.level = VK_COMMAND_BUFFER_LEVEL_PRIMARY;
+  ai.commandBufferCount = 1;
+  check(vkAllocateCommandBuffers(ctx.device(), &ai, &cmd_), "vkAllocateCommandBuffers");
+  VkDescriptorPoolSize size{VK_DESCRIPTOR_TYPE_STORAGE_BUFFER, max_dispatches * 8};
+  VkDescriptorPoolCreateInfo pi{VK_STRUCTURE_TYPE_DESCRIPTOR_POOL_CREATE_INFO};
+  pi.maxSets = max_dispatches;
+  pi.poolSizeCount = 1;
+  pi.pPoolSizes = &size;
+  check(vkCreateDescriptorPool(ctx.device(), &pi, nullptr, &pool_), "vkCreateDescriptorPool");
+  if (ctx.timestamp_period_ns() > 0) {
+    VkQueryPoolCreateInfo qi{VK_STRUCTURE_TYPE_QUERY_POOL_CREATE_INFO};
+    qi.queryType = VK_QUERY_TYPE_TIMESTAMP;
+    qi.queryCount = 2 * max_dispatches;
+    check(vkCreateQueryPool(ctx.device(), &qi, nullptr, &queries_), "vkCreateQueryPool");
+  }
+  VkFenceCreateInfo fi{VK_STRUCTURE_TYPE_FENCE_CREATE_INFO};
+  check(vkCreateFence(ctx.device(), &fi, nullptr, &fence_), "vkCreateFence");
+}
+
+Stream::~Stream() {
+  vkDestroyFence(ctx_.device(), fence_, nullptr);
+  if (queries_) vkDestroyQueryPool(ctx_.device(), queries_, nullptr);
+  vkDestroyDescriptorPool(ctx_.device(), pool_, nullptr);
+  vkFreeCommandBuffers(ctx_.device(), ctx_.command_pool(), 1, &cmd_);
+}
+
+void Stream::begin_if_needed() {
+  if (recording_) return;
+  VkCommandBufferBeginInfo bi{VK_STRUCTURE_TYPE_COMMAND_BUFFER_BEGIN_INFO};
+  bi.flags = VK_COMMAND_BUFFER_USAGE_ONE_TIME_SUBMIT_BIT;
+  check(vkBeginCommandBuffer(cmd_, &bi), "vkBeginCommandBuffer");
+  if (queries_) vkCmdResetQueryPool(cmd_, queries_, 0, 2 * max_dispatches_);
+  recording_ = true;
+  dispatches_ = 0;
+}
+
+void Stream::fill_zero(Buffer& buffer) {
+  begin_if_needed();
+  vkCmdFillBuffer(cmd_, buffer.handle(), 0, VK_WHOLE_SIZE, 0);
+}
+
+void Stream::barrier() {
+  begin_if_needed();
+  VkMemoryBarrier mb{VK_STRUCTURE_TYPE_MEMORY_BARRIER};
+  mb.srcAccessMask = VK_ACCESS_SHADER_WRITE_BIT | VK_ACCESS_TRANSFER_WRITE_BIT;
+  mb.dstAccessMask = VK_ACCESS_SHADER_READ_BIT | VK_ACCESS_SHADER_WRITE_BIT;
+  vkCmdPipelineBarrier(cmd_, VK_PIPELINE_STAGE_COMPUTE_SHADER_BIT | VK_PIPELINE_STAGE_TRANSFER_BIT,
+                       VK_PIPELINE_STAGE_COMPUTE_SHADER_BIT, 0, 1, &mb, 0, nullptr, 0, nullptr);
+}
+
+void Stream::dispatch(Kernel& k, std::initializer_list<const Buffer*> buffers, const void* push, uint32_t gx,
+                      uint32_t gy, uint32_t gz) {
+  begin_if_needed();
+  if (buffers.size() != k.buffer_count_)
+    throw Error("dispatch " + k.name_ + ": expects " + std::to_string(k.buffer_count_) + " buffers, got " +
+                std::to_string(buffers.size()));
+  if (dispatches_ >= max_dispatches_) throw Error("Stream: more than " + std::to_string(max_dispatches_) + " dispatches before submit()");
+  VkDescriptorSetAllocateInfo ai{VK_STRUCTURE_TYPE_DESCRIPTOR_SET_ALLOCATE_INFO};
+  ai.descriptorPool = pool_;
+  ai.descriptorSetCount = 1;
+  ai.pSetLayouts = &k.set_layout_;
+  VkDescriptorSet set;
+  check(vkAllocateDescriptorSets(ctx_.device(), &ai, &set), "vkAllocateDescriptorSets");
+  std::vector<VkDescriptorBufferInfo> infos;
+  for (const Buffer* b : buffers) infos.push_back({b->handle(), 0, VK_WHOLE_SIZE});
+  std::vector<VkWriteDescriptorSet> writes(infos.size());
+  for (uint32_t i = 0; i < infos.size(); ++i) {
+    writes[i] = {VK_STRUCTURE_TYPE_WRITE_DESCRIPTOR_SET};
+    writes[i].dstSet = set;
+    writes[i].dstBinding = i;
+    writes[i].descriptorCount = 1;
+    writes[i].descriptorType = VK_DESCRIPTOR_TYPE_STORAGE_BUFFER;
+    writes[i].pBufferInfo = &infos[i];
+  }
+  vkUpdateDescriptorSets(ctx_.device(), uint32_t(writes.size()), writes.data(), 0, nullptr);
+
+  vkCmdBindPipeline(cmd_, VK_PIPELINE_BIND_POINT_COMPUTE, k.pipeline_);
+  vkCmdBindDescriptorSets(cmd_, VK_PIPELINE_BIND_POINT_COMPUTE, k.layout_, 0, 1, &set, 0, nullptr);
+  if (k.push_bytes_) vkCmdPushConstants(cmd_, k.layout_, VK_SHADER_STAGE_COMPUTE_BIT, 0, k.push_bytes_, push);
+  if (queries_) vkCmdWriteTimestamp(cmd_, VK_PIPELINE_STAGE_TOP_OF_PIPE_BIT, queries_, 2 * dispatches_);
+  vkCmdDispatch(cmd_, gx, gy, gz);
+  if (queries_) vkCmdWriteTimestamp(cmd_, VK_PIPELINE_STAGE_BOTTOM_OF_PIPE_BIT, queries_, 2 * dispatches_ + 1);
+  ++dispatches_;
+}
+
+double Stream::submit() {
+  if (!recording_) return 0.0;
+  check(vkEndCommandBuffer(cmd_), "vkEndCommandBuffer");
+  recording_ = false;
+  VkSubmitInfo si{VK_STRUCTURE_TYPE_SUBMIT_INFO};
+  si.commandBufferCount = 1;
+  si.pCommandBuffers = &cmd_;
+  auto t0 = std::chrono::steady_clock::now();
+  check(vkResetFences(ctx_.device(), 1, &fence_), "vkResetFences");
+  check(vkQueueSubmit(ctx_.queue(), 1, &si, fence_), "vkQueueSubmit");
+  check(vkWaitForFences(ctx_.device(), 1, &fence_, VK_TRUE, UINT64_MAX), "vkWaitForFences");
+  double wall_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+  double ms = wall_ms;
+  if (queries_ && dispatches_ > 0) {
+    std::vector<uint64_t> stamps(2 * dispatches_);
+    check(vkGetQueryPoolResults(ctx_.device(), queries_, 0, 2 * dispatches_, stamps.size() * sizeof(uint64_t),
+                                stamps.data(), sizeof(uint64_t), VK_QUERY_RESULT_64_BIT | VK_QUERY_RESULT_WAIT_BIT),
+          "vkGetQueryPoolResults");
+    ms = 0;
+    for (uint32_t i = 0; i < dispatches_; ++i) ms += double(stamps[2 * i + 1] - stamps[2 * i]) * ctx_.timestamp_period_ns() * 1e-6;
+  }
+  check(vkResetDescriptorPool(ctx_.device(), pool_, 0), "vkResetDescriptorPool");
+  check(vkResetCommandBuffer(cmd_, 0), "vkResetCommandBuffer");
+  dispatches_ = 0;
+  return ms;
+}
+
+}  // namespace prism::vk

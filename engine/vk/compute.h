@@ -1,0 +1,96 @@
+// Buffers, compute kernels and a command stream that records dispatches and
+// times each one with GPU timestamps.
+#pragma once
+#include <cstdint>
+#include <span>
+#include <string>
+#include <vector>
+
+#include "engine/vk/context.h"
+
+namespace prism::vk {
+
+// A storage buffer. Device-local memory is preferred; when it is not mappable
+// (a discrete GPU without resizable BAR) uploads and downloads go through a
+// staging copy. One buffer may not exceed maxStorageBufferRange: callers chunk.
+class Buffer {
+ public:
+  Buffer(Context& ctx, uint64_t bytes);
+  ~Buffer();
+  Buffer(const Buffer&) = delete;
+  Buffer& operator=(const Buffer&) = delete;
+
+  VkBuffer handle() const { return buffer_; }
+  uint64_t bytes() const { return bytes_; }
+  void upload(const void* data, uint64_t bytes, uint64_t offset = 0);
+  void download(void* data, uint64_t bytes, uint64_t offset = 0) const;
+  template <class T> void upload(std::span<const T> v) { upload(v.data(), v.size_bytes()); }
+  template <class T> std::vector<T> download(size_t count) const {
+    std::vector<T> v(count);
+    download(v.data(), count * sizeof(T));
+    return v;
+  }
+
+ private:
+  void copy(VkBuffer src, VkBuffer dst, uint64_t src_off, uint64_t dst_off, uint64_t bytes) const;
+  Context& ctx_;
+  VkBuffer buffer_ = VK_NULL_HANDLE;
+  VkDeviceMemory memory_ = VK_NULL_HANDLE;
+  void* mapped_ = nullptr;
+  uint64_t bytes_ = 0;
+};
+
+// A compute pipeline from embedded SPIR-V. Specialisation constants (ids 0..n-1,
+// 32 bits each) are fixed here; push constants change per dispatch.
+class Kernel {
+ public:
+  Kernel(Context& ctx, std::string name, std::span<const uint32_t> spirv, uint32_t buffer_count,
+         uint32_t push_bytes, std::vector<uint32_t> specialisation = {});
+  ~Kernel();
+  Kernel(const Kernel&) = delete;
+  Kernel& operator=(const Kernel&) = delete;
+
+  const std::string& name() const { return name_; }
+
+ private:
+  friend class Stream;
+  Context& ctx_;
+  std::string name_;
+  uint32_t buffer_count_;
+  uint32_t push_bytes_;
+  VkDescriptorSetLayout set_layout_ = VK_NULL_HANDLE;
+  VkPipelineLayout layout_ = VK_NULL_HANDLE;
+  VkPipeline pipeline_ = VK_NULL_HANDLE;
+};
+
+// Records dispatches into one command buffer; submit() runs them and returns
+// after the device is done. Each dispatch is timed when the queue allows it.
+class Stream {
+ public:
+  explicit Stream(Context& ctx, uint32_t max_dispatches = 256);
+  ~Stream();
+  Stream(const Stream&) = delete;
+  Stream& operator=(const Stream&) = delete;
+
+  void fill_zero(Buffer& buffer);
+  void dispatch(Kernel& kernel, std::initializer_list<const Buffer*> buffers, const void* push, uint32_t groups_x,
+                uint32_t groups_y = 1, uint32_t groups_z = 1);
+  // Make the writes of everything recorded so far visible to what follows.
+  void barrier();
+  // Run what was recorded and wait. Returns the summed kernel time in
+  // milliseconds (GPU timestamps; host wall time where the queue has none).
+  double submit();
+
+ private:
+  void begin_if_needed();
+  Context& ctx_;
+  uint32_t max_dispatches_;
+  VkCommandBuffer cmd_ = VK_NULL_HANDLE;
+  VkDescriptorPool pool_ = VK_NULL_HANDLE;
+  VkQueryPool queries_ = VK_NULL_HANDLE;
+  VkFence fence_ = VK_NULL_HANDLE;
+  uint32_t dispatches_ = 0;
+  bool recording_ = false;
+};
+
+}  // namespace prism::vk

@@ -1,0 +1,10 @@
+// One function per `prism` subcommand; each lives in host/cmd/<name>.cpp and
+// registers its options and callback on the top-level CLI11 app.
+#pragma once
+#include <CLI/CLI.hpp>
+
+namespace prism::cmd {
+void add_crlb(CLI::App& app);
+void add_psf(CLI::App& app);
+void add_camera(CLI::App& app);
+}  // namespace prism::cmd

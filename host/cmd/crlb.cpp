@@ -1,0 +1,139 @@
+// prism crlb: Cramer-Rao lower bounds against depth for one or more scenes.
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <fstream>
+#include <map>
+
+#include "host/cmd/commands.h"
+#include "host/cmd/options.h"
+#include "host/image_io.h"
+#include "host/plot.h"
+
+namespace prism::cmd {
+
+namespace {
+
+struct CrlbArgs {
+  std::vector<std::string> scenes{"prototype"};
+  std::string depths = "0:50:2.5";
+  double x_mm = 0, y_mm = 0;
+  std::string sensor = "poisson";
+  std::string csv, plot;
+  ForwardOptions fw;
+};
+
+std::string fmt(double v) {
+  if (std::isinf(v)) return "inf";
+  char b[32];
+  std::snprintf(b, sizeof b, "%.6g", v);
+  return b;
+}
+
+void run(const CrlbArgs& a) {
+  auto depths = parse_list(a.depths, "--depth-mm");
+  std::vector<glm::dvec3> positions;
+  for (double d : depths) positions.push_back({a.x_mm, a.y_mm, d});
+  SensorModel sensor = a.sensor == "binary" ? SensorModel::binary : SensorModel::poisson;
+
+  // Load every scene first: a bad scene fails before any work is done.
+  std::vector<Scene> scenes;
+  for (const auto& name : a.scenes) {
+    scenes.push_back(load_scene(name));
+    a.fw.apply(scenes.back());
+  }
+  std::unique_ptr<vk::Context> ctx;
+  std::string device = "CPU reference (double precision)";
+  if (a.fw.backend_kind() == Backend::vulkan) {
+    ctx = std::make_unique<vk::Context>(vk::ContextOptions{a.fw.device});
+    device = ctx->describe();
+  }
+  TraceSettings t0 = a.fw.settings(scenes.front());
+  AnalysisGrid g0 = AnalysisGrid::of(scenes.front().optics, t0.binning);
+  std::printf("# device: %s\n# rays per lenslet: %u, analysis pixel: %u x %u binned = %.1f um, sensor model: %s\n",
+              device.c_str(), t0.rays(), t0.binning, t0.binning, g0.pixel_mm * 1e3, a.sensor.c_str());
+  bool at_defaults = t0.rays() >= defaults::rays_per_lenslet && t0.binning == defaults::analysis_binning;
+  std::printf("# convergence: %s\n",
+              at_defaults ? ("CRLB within " + fmt(100 * defaults::crlb_convergence_tol) +
+                             "% of its value at 16x the rays (README, \"Convergence\")").c_str()
+                          : "not the converged defaults; see README, \"Convergence\", for the tolerance they reach");
+  std::printf("%-14s %-4s %7s %7s %7s %9s %10s %10s %10s %10s  %s\n", "scene", "lens", "x_mm", "y_mm", "depth",
+              "photons", "crlb_x", "crlb_y", "crlb_z", "crlb_3d", "flag");
+
+  std::vector<CrlbRow> all;
+  for (const auto& scene : scenes) {
+    TraceSettings t = a.fw.settings(scene);
+    auto start = std::chrono::steady_clock::now();
+    std::fprintf(stderr, "prism crlb: %s (%s lens), %zu positions, %u rays/lenslet ...", scene.name.c_str(),
+                 to_string(scene.optics.lens_model), positions.size(), t.rays());
+    std::fflush(stderr);
+    auto rows = crlb_study(scene, positions, t, a.fw.backend_kind(), sensor, ctx.get());
+    double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    std::fprintf(stderr, " %.2f s\n", s);
+    for (const auto& r : rows) {
+      std::printf("%-14s %-4s %7.2f %7.2f %7.2f %9.2f %10s %10s %10s %10s  %s\n", r.scene.c_str(),
+                  to_string(r.lens_model), r.theta.x, r.theta.y, r.theta.z, r.photons, fmt(r.crlb.x_mm).c_str(),
+                  fmt(r.crlb.y_mm).c_str(), fmt(r.crlb.depth_mm).c_str(), fmt(r.crlb.r3_mm).c_str(),
+                  r.crlb.flag.c_str());
+      all.push_back(r);
+    }
+  }
+
+  if (!a.csv.empty()) {
+    write_atomically(a.csv, [&](const std::string& tmp) {
+      std::ofstream out(tmp);
+      out << "scene,x_mm,y_mm,depth_mm,photons,crlb_x_mm,crlb_y_mm,crlb_z_mm,crlb_3d_mm,"
+             "lens_model,sensor_model,rays_per_lenslet,binning,convergence_tol_rel,flag\n";
+      for (const auto& r : all)
+        out << r.scene << ',' << fmt(r.theta.x) << ',' << fmt(r.theta.y) << ',' << fmt(r.theta.z) << ','
+            << fmt(r.photons) << ',' << fmt(r.crlb.x_mm) << ',' << fmt(r.crlb.y_mm) << ',' << fmt(r.crlb.depth_mm)
+            << ',' << fmt(r.crlb.r3_mm) << ',' << to_string(r.lens_model) << ',' << a.sensor << ',' << t0.rays()
+            << ',' << t0.binning << ',' << (at_defaults ? fmt(defaults::crlb_convergence_tol) : "unknown") << ','
+            << r.crlb.flag << '\n';
+      if (!out) throw std::runtime_error("cannot write " + a.csv);
+    });
+    std::fprintf(stderr, "prism crlb: wrote %s\n", a.csv.c_str());
+  }
+  if (!a.plot.empty()) {
+    std::map<std::string, Series> by_scene;
+    std::vector<std::string> order;
+    for (const auto& r : all) {
+      std::string key = r.scene + " (" + to_string(r.lens_model) + ")";
+      if (!by_scene.count(key)) order.push_back(key);
+      Series& s = by_scene[key];
+      s.label = key;
+      s.dashed = r.scene.rfind("single", 0) == 0;
+      s.x.push_back(r.theta.z);
+      s.y.push_back(r.crlb.r3_mm);
+    }
+    std::vector<Series> series;
+    for (const auto& k : order) series.push_back(by_scene[k]);
+    plot_lines(a.plot,
+               {"3D CRLB against depth (" + fmt(t0.photons_emitted) + " photons emitted, " + a.sensor + " sensor)",
+                "depth from scintillator face (mm)", "3D CRLB (mm)", true},
+               series);
+    std::fprintf(stderr, "prism crlb: wrote %s\n", a.plot.c_str());
+  }
+}
+
+}  // namespace
+
+void add_crlb(CLI::App& app) {
+  auto a = std::make_shared<CrlbArgs>();
+  CLI::App* c = app.add_subcommand("crlb", "Cramer-Rao lower bounds (Fisher information) against depth");
+  c->add_option("--scene", a->scenes,
+                "built-in scene or JSON file; repeat for several (prototype, unifocal-f3/9/15, single-f3/9/15)")
+      ->capture_default_str();
+  c->add_option("--depth-mm", a->depths, "depths from the scintillator face: A,B,C or FIRST:LAST:STEP")
+      ->capture_default_str();
+  c->add_option("--x-mm", a->x_mm, "lateral source position x")->capture_default_str();
+  c->add_option("--y-mm", a->y_mm, "lateral source position y")->capture_default_str();
+  c->add_option("--sensor", a->sensor, "poisson (paper eq. 2) or binary single-photon pixels")
+      ->capture_default_str()->check(CLI::IsMember({"poisson", "binary"}));
+  c->add_option("--csv", a->csv, "write one row per (scene, position)");
+  c->add_option("--plot", a->plot, "draw 3D CRLB against depth (.png or .svg)");
+  a->fw.add_to(c, defaults::analysis_binning);
+  c->callback([a] { run(*a); });
+}
+
+}  // namespace prism::cmd

@@ -1,0 +1,27 @@
+// prism: plenoptic imaging of scintillation events on Vulkan compute.
+#include <cstdio>
+
+#include "engine/vk/context.h"
+#include "host/cmd/commands.h"
+
+int main(int argc, char** argv) {
+  CLI::App app{"prism: plenoptic imaging of particle interactions in scintillation detectors, on Vulkan compute"};
+  app.require_subcommand(1);
+  prism::cmd::add_crlb(app);
+  prism::cmd::add_psf(app);
+#ifdef PRISM_WITH_CAMERA
+  prism::cmd::add_camera(app);
+#endif
+  app.add_subcommand("devices", "list the Vulkan devices that --device can choose")->callback([] {
+    for (const auto& d : prism::vk::Context::list_devices()) std::printf("%s\n", d.c_str());
+  });
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    return app.exit(e);
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "prism: %s\n", e.what());
+    return 1;
+  }
+  return 0;
+}

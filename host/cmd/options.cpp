@@ -1,0 +1,78 @@
+#include "host/cmd/options.h"
+
+#include <cmath>
+#include <sstream>
+
+namespace prism::cmd {
+
+void ForwardOptions::add_to(CLI::App* app, unsigned default_binning) {
+  binning = default_binning;
+  app->add_option("--device", device,
+                  "Vulkan device: auto (GPU if present), gpu, cpu (lavapipe), an index or part of a name; "
+                  "default $PRISM_DEVICE or auto");
+  app->add_option("--rays", rays, "rays per lenslet aperture (rounded up to a square of strata)")
+      ->capture_default_str()->check(CLI::Range(1u, 1u << 24));
+  app->add_option("--binning", binning, "analyse on B x B binned sensor pixels")
+      ->capture_default_str()->check(CLI::Range(1u, 1024u));
+  app->add_option("--lens-model", lens_model, "override the scene's lens model")->check(CLI::IsMember({"thin", "real"}));
+  app->add_option("--photons", photons, "photons emitted by the source (default: the scene's, 6280 for built-ins)")
+      ->check(CLI::PositiveNumber);
+  app->add_option("--backend", backend, "vulkan (kernels on the device) or cpu (double-precision reference)")
+      ->capture_default_str()->check(CLI::IsMember({"vulkan", "cpu"}));
+}
+
+TraceSettings ForwardOptions::settings(const Scene& scene) const {
+  TraceSettings t;
+  t.rays_per_lenslet = rays;
+  t.binning = binning;
+  t.photons_emitted = photons > 0 ? photons : scene.photons_emitted;
+  return t;
+}
+
+void ForwardOptions::apply(Scene& scene) const {
+  if (lens_model.empty()) return;
+  scene.optics.lens_model = lens_model == "real" ? LensModel::real : LensModel::thin;
+  try {
+    validate(scene.optics);
+  } catch (const std::invalid_argument& e) {
+    throw std::runtime_error("scene " + scene.name + " with --lens-model " + lens_model + ": " + e.what());
+  }
+}
+
+std::vector<double> parse_list(const std::string& text, const std::string& option) {
+  auto num = [&](const std::string& s) {
+    try {
+      size_t used = 0;
+      double v = std::stod(s, &used);
+      if (used != s.size() || !std::isfinite(v)) throw std::invalid_argument(s);
+      return v;
+    } catch (const std::exception&) {
+      throw std::runtime_error(option + ": '" + s + "' is not a number (use A,B,C or FIRST:LAST:STEP)");
+    }
+  };
+  std::vector<double> out;
+  if (text.find(':') != std::string::npos) {
+    std::vector<std::string> p;
+    std::stringstream ss(text);
+    std::string part;
+    while (std::getline(ss, part, ':')) p.push_back(part);
+    if (p.size() != 3) throw std::runtime_error(option + ": a range is FIRST:LAST:STEP, got '" + text + "'");
+    double a = num(p[0]), b = num(p[1]), step = num(p[2]);
+    if (!(step > 0) || b < a) throw std::runtime_error(option + ": need FIRST <= LAST and STEP > 0 in '" + text + "'");
+    for (int i = 0; a + i * step <= b + 1e-9 * step; ++i) out.push_back(a + i * step);
+  } else {
+    std::stringstream ss(text);
+    std::string part;
+    while (std::getline(ss, part, ',')) out.push_back(num(part));
+  }
+  if (out.empty()) throw std::runtime_error(option + ": empty list");
+  return out;
+}
+
+glm::dvec3 parse_point(const std::string& text, const std::string& option) {
+  auto v = parse_list(text, option);
+  if (v.size() != 3) throw std::runtime_error(option + ": expected X,Y,DEPTH in mm, got '" + text + "'");
+  return {v[0], v[1], v[2]};
+}
+
+}  // namespace prism::cmd

@@ -1,0 +1,35 @@
+// Options and parsing shared by several subcommands.
+#pragma once
+#include <string>
+#include <vector>
+
+#include <CLI/CLI.hpp>
+
+#include "engine/optical_system.h"
+#include "engine/vk/context.h"
+#include "host/crlb_study.h"
+
+namespace prism::cmd {
+
+// --device, --rays, --binning, --lens-model, --photons, --backend: the forward
+// model's knobs, with the same names and defaults everywhere.
+struct ForwardOptions {
+  std::string device;
+  unsigned rays = defaults::rays_per_lenslet;
+  unsigned binning = defaults::analysis_binning;
+  std::string lens_model;  // empty: the scene's own
+  double photons = 0;      // 0: the scene's own
+  std::string backend = "vulkan";
+
+  void add_to(CLI::App* app, unsigned default_binning);
+  TraceSettings settings(const Scene& scene) const;
+  void apply(Scene& scene) const;  // lens model override
+  Backend backend_kind() const { return backend == "cpu" ? Backend::cpu : Backend::vulkan; }
+};
+
+// "0:50:2.5" (first:last:step) or "5,10,25".
+std::vector<double> parse_list(const std::string& text, const std::string& option);
+// "X,Y,DEPTH".
+glm::dvec3 parse_point(const std::string& text, const std::string& option);
+
+}  // namespace prism::cmd

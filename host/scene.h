@@ -1,0 +1,39 @@
+// Scenes: an optical design plus the volume and the source, from a built-in
+// name or a JSON file (schema in README.md, "Scene files").
+#pragma once
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "engine/optical_system.h"
+
+namespace prism {
+
+struct Volume {
+  double x_min_mm = -defaults::volume_half_width_mm, x_max_mm = defaults::volume_half_width_mm;
+  double y_min_mm = -defaults::volume_half_width_mm, y_max_mm = defaults::volume_half_width_mm;
+  double depth_min_mm = 0, depth_max_mm = defaults::volume_depth_mm;
+};
+
+struct Scene {
+  std::string name;
+  OpticalSystem optics;
+  Volume volume;
+  double photons_emitted = defaults::photons_emitted;
+};
+
+// A scene that cannot be used; the message names the file and the field.
+struct SceneError : std::runtime_error {
+  using std::runtime_error::runtime_error;
+};
+
+std::vector<std::string> builtin_scene_names();
+Scene builtin_scene(const std::string& name);
+// A built-in name, or the path of a JSON scene file.
+Scene load_scene(const std::string& name_or_path);
+Scene parse_scene(const nlohmann::json& j, const std::string& origin);
+nlohmann::json to_json(const Scene& s);
+
+}  // namespace prism

@@ -1,0 +1,370 @@
+// Device math of the forward model: ray emission through a lenslet aperture,
+// refraction (ideal thin lens or real plano-convex lens), optional effects,
+// transport to the sensor, bilinear splatting and per-pixel Fisher terms.
+//
+// Coordinates (millimetres): z along the optical axis; the lens plane is z = 0,
+// the sensor is at z = lens_to_sensor_mm, the scintillator face at
+// z = -working_distance_mm. A source theta = (x, y, depth) sits at
+// (x, y, -(depth + working_distance_mm)). Every dual carries d/d(x, y, depth).
+//
+// Same GLSL/C++ subset as dual.glsl. Layouts are std430 and checked by
+// static_assert on the C++ side (engine/shared_math.h).
+#ifndef PRISM_OPTICS_GLSL
+#define PRISM_OPTICS_GLSL
+
+#include "dual.glsl"
+
+const int LENS_THIN = 0;  // ideal thin lens: paraxial deflection by -h/f
+const int LENS_REAL = 1;  // plano-convex: spherical front face, flat back face
+
+// One lenslet as the kernels see it (std430, 32 bytes).
+struct Lenslet {
+  vec2 center_mm;             // lateral centre on the lens plane
+  float radius_mm;            // clear aperture radius of both faces
+  float focal_mm;             // focal length (thin model)
+  float curvature_radius_mm;  // R of the front face, R = f (n - 1) (real model)
+  float thickness_mm;         // centre thickness (real model)
+  float sag_mm;               // front-face sag at the rim (real model)
+  float glass_index;          // refractive index of the glass (real model)
+};
+
+// Per-dispatch constants (push constants, std430, 64 bytes).
+struct TraceParams {
+  float pixel_mm;             // analysis pixel pitch (sensor pixel x binning)
+  float sensor_half_w_mm;     // half the physical sensor width (x)
+  float sensor_half_h_mm;     // half the physical sensor height (y)
+  float lens_to_sensor_mm;    // lens plane to sensor plane
+  float working_distance_mm;  // lens plane to scintillator face
+  float photons_per_sr;       // emitted / (4 pi) * detection efficiency
+  float scint_index;          // effect: refractive index of the scintillator
+  float holder_bore_mm;       // effect: holder bore length behind the lens plane
+  int grid_w;                 // analysis grid width in pixels
+  int grid_h;                 // analysis grid height in pixels
+  int band_row0;              // first grid row this pass keeps
+  int band_rows;              // rows this pass keeps (chunking of large sensors)
+  uint lens_count;            // lenslets in the scene
+  uint strata;                // rays per lenslet = strata * strata
+  uint source_offset;         // first source of this dispatch
+  uint source_count;          // sources in this dispatch
+};
+
+// A ray on its way to the sensor, with the photons it carries.
+struct Ray {
+  DVec3 origin;
+  DVec3 dir;     // not normalised
+  Dual weight;   // expected photons carried
+};
+
+// Where a ray lands on the sensor plane, and with how many photons.
+struct Hit {
+  Dual x_mm;
+  Dual y_mm;
+  Dual weight;
+  bool ok;  // false when an aperture, the holder or total internal reflection stops it
+};
+
+// ---------------------------------------------------------------------------
+// Aperture sampling
+
+// Integer hash (PCG output permutation); the stratum jitter is a fixed function
+// of (lens, sample) so the CPU reference can reproduce every sample point.
+PRISM_FN uint hash_u32(uint v) {
+  uint state = v * 747796405u + 2891336453u;
+  uint word = ((state >> ((state >> 28u) + 4u)) ^ state) * 277803737u;
+  return (word >> 22u) ^ word;
+}
+
+PRISM_FN float hash_unit(uint v) { return float(hash_u32(v) >> 8u) * (1.0f / 16777216.0f); }
+
+// Shirley-Chiu concentric map: area-preserving from [-1,1]^2 to the unit disk,
+// so equal strata of the square carry equal aperture area.
+PRISM_FN vec2 concentric_disk(float a, float b) {
+  if (a == 0.0f && b == 0.0f) return vec2(0.0f);
+  const float quarter_pi = 0.78539816339f;
+  float r;
+  float phi;
+  if (abs(a) > abs(b)) {
+    r = a;
+    phi = quarter_pi * (b / a);
+  } else {
+    r = b;
+    phi = 2.0f * quarter_pi - quarter_pi * (a / b);
+  }
+  return vec2(r * cos(phi), r * sin(phi));
+}
+
+// Point on the unit disk for jittered stratum `sample_index` of lenslet `lens`.
+PRISM_FN vec2 aperture_sample(uint lens, uint sample_index, uint strata) {
+  uint i = sample_index % strata;
+  uint j = sample_index / strata;
+  uint key = lens * 2654435761u ^ sample_index * 2246822519u;
+  float a = (float(i) + hash_unit(key)) / float(strata);
+  float b = (float(j) + hash_unit(key ^ 0x9e3779b9u)) / float(strata);
+  return concentric_disk(2.0f * a - 1.0f, 2.0f * b - 1.0f);
+}
+
+// The source theta = (x, y, depth) as a point with its identity Jacobian.
+PRISM_FN DVec3 source_point(vec3 theta, float working_distance_mm) {
+  return DVec3(Dual(theta.x, vec3(1.0f, 0.0f, 0.0f)), Dual(theta.y, vec3(0.0f, 1.0f, 0.0f)),
+               Dual(-(theta.z + working_distance_mm), vec3(0.0f, 0.0f, -1.0f)));
+}
+
+// ---------------------------------------------------------------------------
+// Emission: join the source to a fixed point of the lenslet's entrance disk.
+// The disk does not move with theta, so the integration domain is fixed and the
+// weight is smooth in theta: photons = (emitted / 4 pi) * cos / r^2 * dA.
+// (Real lens: the disk is the rim plane z = sag, which every ray that meets the
+// spherical cap crosses; thin lens: the lens plane z = 0.)
+
+// Straight line from the source (no scintillator refraction).
+PRISM_FN Ray emit_direct(DVec3 src, vec3 p, float photons_per_sample) {
+  DVec3 dir = dv_sub(dv_const(p), src);
+  Dual r2 = dv_dot(dir, dir);
+  Dual r = d_sqrt(r2);
+  Dual w = d_scale(d_div(dir.z, d_mul(r2, r)), photons_per_sample);  // cos/r^2 = dz/r^3
+  return Ray(src, dir, w);
+}
+
+// Effect "scintillator_refraction": the source sits inside a medium of index n
+// whose face is the plane z = -working_distance. The path source -> face point q
+// -> aperture point p obeys Snell's law; q = s + k (p - s) laterally, where k
+// solves F(k) = k + w n k / sqrt(h^2 - (n^2 - 1) k^2 u) - 1 = 0 (h: source depth
+// below the face, w: face to aperture plane, u = |p - s|^2 laterally). F is
+// increasing and convex, so Newton from the right converges monotonically; run
+// on duals it also converges the implicit derivative dk/dtheta. The weight is
+// emitted/(4 pi) * Fresnel T * cos_s/L^2 * dA_q/dA_p * dA_p.
+PRISM_FN Ray emit_through_face(DVec3 src, vec3 p, float photons_per_sample, float n, float face_z) {
+  // A source on the face itself is moved 1 um inside: the limit is smooth but
+  // the Newton iteration divides by h.
+  Dual h = d_sub(d_const(face_z), src.z);
+  if (h.v < 1e-3f) h = Dual(1e-3f, h.d);
+  float w = p.z - face_z;
+  Dual px = d_sub(d_const(p.x), src.x);
+  Dual py = d_sub(d_const(p.y), src.y);
+  Dual u = d_add(d_mul(px, px), d_mul(py, py));
+  float nn1 = n * n - 1.0f;
+  Dual h2 = d_mul(h, h);
+
+  // Start right of the root: the paraxial k, capped below the pole of F.
+  Dual k = d_div(h, d_addc(h, n * w));
+  if (u.v > 0.0f) {
+    Dual k_pole = d_div(h, d_sqrt(d_scale(u, nn1)));
+    if (k.v > 0.99f * k_pole.v) k = d_scale(k_pole, 0.99f);
+  }
+  for (int it = 0; it < 12; ++it) {
+    Dual g = d_sub(h2, d_scale(d_mul(d_mul(k, k), u), nn1));
+    Dual inv_sqrt_g = d_div(d_const(1.0f), d_sqrt(g));
+    Dual f = d_addc(d_add(k, d_scale(d_mul(k, inv_sqrt_g), w * n)), -1.0f);
+    Dual inv_g32 = d_div(inv_sqrt_g, g);
+    Dual fk = d_add(d_addc(d_scale(inv_sqrt_g, w * n), 1.0f),
+                    d_scale(d_mul(d_mul(d_mul(k, k), u), inv_g32), w * n * nn1));
+    k = d_sub(k, d_div(f, fk));
+  }
+
+  // Jacobian of the lateral map q -> p (radial): dA_q/dA_p = k (k + p_r dk/dp_r).
+  Dual k2 = d_mul(k, k);
+  Dual g = d_sub(h2, d_scale(d_mul(k2, u), nn1));
+  Dual inv_sqrt_g = d_div(d_const(1.0f), d_sqrt(g));
+  Dual inv_g32 = d_div(inv_sqrt_g, g);
+  Dual fk = d_add(d_addc(d_scale(inv_sqrt_g, w * n), 1.0f), d_scale(d_mul(d_mul(k2, u), inv_g32), w * n * nn1));
+  Dual fu = d_scale(d_mul(d_mul(k2, k), inv_g32), 0.5f * w * n * nn1);
+  Dual area_ratio = d_mul(k, d_sub(k, d_div(d_scale(d_mul(u, fu), 2.0f), fk)));
+
+  // Solid angle per face area inside the scintillator, and Fresnel transmission
+  // (unpolarised) from index n into air.
+  Dual len2 = d_add(d_mul(k2, u), h2);
+  Dual len = d_sqrt(len2);
+  Dual cos_i = d_div(h, len);
+  Dual sin_t2 = d_scale(d_sub(d_const(1.0f), d_mul(cos_i, cos_i)), n * n);
+  Dual cos_t = d_sqrt(d_sub(d_const(1.0f), sin_t2));
+  Dual ncos_i = d_scale(cos_i, n);
+  Dual ncos_t = d_scale(cos_t, n);
+  Dual rs = d_div(d_sub(ncos_i, cos_t), d_add(ncos_i, cos_t));
+  Dual rp = d_div(d_sub(ncos_t, cos_i), d_add(ncos_t, cos_i));
+  Dual transmit = d_sub(d_const(1.0f), d_scale(d_add(d_mul(rs, rs), d_mul(rp, rp)), 0.5f));
+
+  Dual weight = d_mul(d_mul(transmit, d_div(h, d_mul(len2, len))), area_ratio);
+  DVec3 q = DVec3(d_add(src.x, d_mul(k, px)), d_add(src.y, d_mul(k, py)), d_const(face_z));
+  return Ray(q, dv_sub(dv_const(p), q), d_scale(weight, photons_per_sample));
+}
+
+// ---------------------------------------------------------------------------
+// Refraction and transport to the sensor
+
+PRISM_FN bool inside_aperture(Dual x, Dual y, vec2 center, float radius) {
+  float dx = x.v - center.x;
+  float dy = y.v - center.y;
+  return dx * dx + dy * dy <= radius * radius;
+}
+
+// Ideal thin lens in the plane z = 0: the slope turns by -h/f (paraxial).
+PRISM_FN Hit trace_thin(Ray ray, Lenslet lens, float holder_bore_mm, float lens_to_sensor_mm) {
+  // Cross the lens plane.
+  Dual t = d_div(d_neg(ray.origin.z), ray.dir.z);
+  Dual x0 = d_add(ray.origin.x, d_mul(ray.dir.x, t));
+  Dual y0 = d_add(ray.origin.y, d_mul(ray.dir.y, t));
+  Hit hit = Hit(x0, y0, ray.weight, inside_aperture(x0, y0, lens.center_mm, lens.radius_mm));
+  // Deflect.
+  float inv_f = 1.0f / lens.focal_mm;
+  Dual sx = d_sub(d_div(ray.dir.x, ray.dir.z), d_scale(d_addc(x0, -lens.center_mm.x), inv_f));
+  Dual sy = d_sub(d_div(ray.dir.y, ray.dir.z), d_scale(d_addc(y0, -lens.center_mm.y), inv_f));
+  // Holder bore: the lens sits in a cylinder of its own radius that runs
+  // holder_bore_mm toward the sensor; checking the far end suffices (convex).
+  if (holder_bore_mm > 0.0f) {
+    Dual bx = d_add(x0, d_scale(sx, holder_bore_mm));
+    Dual by = d_add(y0, d_scale(sy, holder_bore_mm));
+    hit.ok = hit.ok && inside_aperture(bx, by, lens.center_mm, lens.radius_mm);
+  }
+  hit.x_mm = d_add(x0, d_scale(sx, lens_to_sensor_mm));
+  hit.y_mm = d_add(y0, d_scale(sy, lens_to_sensor_mm));
+  return hit;
+}
+
+// Real plano-convex lens: spherical front face (vertex at z = 0, centre at
+// z = R) toward the source, flat back face at z = thickness toward the sensor.
+PRISM_FN Hit trace_real(Ray ray, Lenslet lens, float holder_bore_mm, float lens_to_sensor_mm) {
+  Hit hit = Hit(d_const(0.0f), d_const(0.0f), ray.weight, false);
+  float n = lens.glass_index;
+  float radius = lens.curvature_radius_mm;
+  DVec3 dir = dv_normalize(ray.dir);
+
+  // Intersect the spherical front face (the near cap).
+  DVec3 oc = dv_sub(ray.origin, dv_const(vec3(lens.center_mm.x, lens.center_mm.y, radius)));
+  Dual b = dv_dot(oc, dir);
+  Dual disc = d_sub(d_mul(b, b), d_addc(dv_dot(oc, oc), -radius * radius));
+  if (disc.v <= 0.0f) return hit;
+  Dual t1 = d_sub(d_neg(b), d_sqrt(disc));
+  DVec3 p1 = dv_add(ray.origin, dv_scale(dir, t1));
+  if (!inside_aperture(p1.x, p1.y, lens.center_mm, lens.radius_mm) || p1.z.v > lens.sag_mm) return hit;
+
+  // Refract into the glass (Snell, vector form; normal faces the incoming ray).
+  DVec3 normal = dv_scalec(dv_sub(p1, dv_const(vec3(lens.center_mm.x, lens.center_mm.y, radius))), 1.0f / radius);
+  float eta = 1.0f / n;
+  Dual cos_i = d_neg(dv_dot(normal, dir));
+  Dual k = d_sub(d_const(1.0f), d_scale(d_sub(d_const(1.0f), d_mul(cos_i, cos_i)), eta * eta));
+  if (k.v <= 0.0f) return hit;
+  DVec3 d1 = dv_add(dv_scalec(dir, eta), dv_scale(normal, d_sub(d_scale(cos_i, eta), d_sqrt(k))));
+
+  // Cross the glass to the flat back face.
+  Dual t2 = d_div(d_sub(d_const(lens.thickness_mm), p1.z), d1.z);
+  DVec3 p2 = dv_add(p1, dv_scale(d1, t2));
+  if (!inside_aperture(p2.x, p2.y, lens.center_mm, lens.radius_mm)) return hit;
+
+  // Refract out of the flat face: tangential components scale by n.
+  Dual kz = d_sub(d_const(1.0f), d_scale(d_sub(d_const(1.0f), d_mul(d1.z, d1.z)), n * n));
+  if (kz.v <= 0.0f) return hit;  // total internal reflection
+  DVec3 d2 = DVec3(d_scale(d1.x, n), d_scale(d1.y, n), d_sqrt(kz));
+
+  // Holder bore beyond the back face (see trace_thin).
+  bool ok = true;
+  if (holder_bore_mm > lens.thickness_mm) {
+    Dual tb = d_div(d_const(holder_bore_mm - lens.thickness_mm), d2.z);
+    ok = inside_aperture(d_add(p2.x, d_mul(d2.x, tb)), d_add(p2.y, d_mul(d2.y, tb)), lens.center_mm, lens.radius_mm);
+  }
+
+  // Transport to the sensor plane.
+  Dual ts = d_div(d_const(lens_to_sensor_mm - lens.thickness_mm), d2.z);
+  hit.x_mm = d_add(p2.x, d_mul(d2.x, ts));
+  hit.y_mm = d_add(p2.y, d_mul(d2.y, ts));
+  hit.ok = ok;
+  return hit;
+}
+
+// Trace aperture sample `sample_index` of lenslet `lens_index` from source theta.
+// The effect switches are compile-time constants in the kernels (specialisation
+// constants), so an effect the scene does not name is compiled out.
+PRISM_FN Hit trace_sample(vec3 theta, Lenslet lens, uint lens_index, uint sample_index, TraceParams P,
+                          int lens_model, bool scint_refraction, bool holder) {
+  vec2 unit = aperture_sample(lens_index, sample_index, P.strata);
+  float aperture_z = (lens_model == LENS_REAL) ? lens.sag_mm : 0.0f;
+  float aperture_r = lens.radius_mm;
+  vec3 p = vec3(lens.center_mm.x + aperture_r * unit.x, lens.center_mm.y + aperture_r * unit.y, aperture_z);
+  // Each stratum carries an equal share of the aperture area.
+  float photons_per_sample = P.photons_per_sr * 3.14159265358979f * aperture_r * aperture_r / float(P.strata * P.strata);
+  DVec3 src = source_point(theta, P.working_distance_mm);
+  Ray ray = scint_refraction
+                ? emit_through_face(src, p, photons_per_sample, P.scint_index, -P.working_distance_mm)
+                : emit_direct(src, p, photons_per_sample);
+  float bore = holder ? P.holder_bore_mm : 0.0f;
+  return (lens_model == LENS_REAL) ? trace_real(ray, lens, bore, P.lens_to_sensor_mm)
+                                   : trace_thin(ray, lens, bore, P.lens_to_sensor_mm);
+}
+
+// ---------------------------------------------------------------------------
+// Bilinear splatting
+
+// The four pixels a hit touches: base pixel (column, row) and per tap
+// (photons, d/dx, d/dy, d/ddepth). Taps outside the grid are left to the caller.
+struct Splat {
+  ivec2 base;
+  vec4 tap00;
+  vec4 tap10;
+  vec4 tap01;
+  vec4 tap11;
+  bool ok;  // false when the hit misses the physical sensor
+};
+
+PRISM_FN vec4 tap_value(Dual a, Dual b, Dual w) {
+  Dual t = d_mul(d_mul(a, b), w);
+  return vec4(t.v, t.d.x, t.d.y, t.d.z);
+}
+
+// Pixel centres sit at (i + 0.5) * pixel from the sensor's left/top edge. A hit
+// exactly on a pixel centre line puts zero weight, with a one-sided derivative,
+// on the neighbour: the Fisher reduction skips such b = 0 pixels.
+PRISM_FN Splat splat_bilinear(Hit hit, TraceParams P) {
+  Splat s;
+  s.ok = hit.ok && abs(hit.x_mm.v) <= P.sensor_half_w_mm && abs(hit.y_mm.v) <= P.sensor_half_h_mm;
+  float inv_px = 1.0f / P.pixel_mm;
+  Dual u = d_addc(d_scale(d_addc(hit.x_mm, P.sensor_half_w_mm), inv_px), -0.5f);
+  Dual v = d_addc(d_scale(d_addc(hit.y_mm, P.sensor_half_h_mm), inv_px), -0.5f);
+  float iu = floor(u.v);
+  float iv = floor(v.v);
+  s.base = ivec2(int(iu), int(iv));
+  Dual fx = d_addc(u, -iu);
+  Dual fy = d_addc(v, -iv);
+  Dual gx = d_sub(d_const(1.0f), fx);
+  Dual gy = d_sub(d_const(1.0f), fy);
+  s.tap00 = tap_value(gx, gy, hit.weight);
+  s.tap10 = tap_value(fx, gy, hit.weight);
+  s.tap01 = tap_value(gx, fy, hit.weight);
+  s.tap11 = tap_value(fx, fy, hit.weight);
+  return s;
+}
+
+// ---------------------------------------------------------------------------
+// Fisher information per pixel
+
+// exp(x) - 1 without cancellation for small x.
+PRISM_FN float expm1_small(float x) {
+  if (abs(x) < 1e-2f) return x * (1.0f + x * (0.5f + x * (1.0f / 6.0f + x * (1.0f / 24.0f))));
+  return exp(x) - 1.0f;
+}
+
+// Pixel (b, db/dtheta) with background `dark` counts: the information it holds
+// as (xx, xy, xz, yy, yz, zz), for a Poisson pixel (divide by b) or a binary
+// single-photon pixel (divide by exp(b) - 1). Empty pixels hold none.
+struct FisherTerms {
+  float xx;
+  float xy;
+  float xz;
+  float yy;
+  float yz;
+  float zz;
+};
+
+PRISM_FN FisherTerms fisher_terms(vec4 pixel, float dark, bool binary) {
+  float b = pixel.x + dark;
+  FisherTerms f = FisherTerms(0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f);
+  if (!(b > 0.0f)) return f;
+  float inv = 1.0f / (binary ? expm1_small(b) : b);
+  f.xx = pixel.y * pixel.y * inv;
+  f.xy = pixel.y * pixel.z * inv;
+  f.xz = pixel.y * pixel.w * inv;
+  f.yy = pixel.z * pixel.z * inv;
+  f.yz = pixel.z * pixel.w * inv;
+  f.zz = pixel.w * pixel.w * inv;
+  return f;
+}
+
+#endif

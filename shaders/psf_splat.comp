@@ -1,0 +1,51 @@
+// Trace every aperture sample of every lenslet from a batch of sources and
+// splat the hits, with their derivatives, into one (b, db/dx, db/dy, db/ddepth)
+// image per source. Grid x: rays (strided), grid y: sources in this dispatch.
+#version 460
+#extension GL_GOOGLE_include_directive : require
+#extension GL_EXT_shader_atomic_float : require
+#define PRISM_FN
+#include "optics.glsl"
+
+layout(local_size_x = 64) in;
+
+// Effects are compile-time: a scene that does not name one compiles it out.
+layout(constant_id = 0) const int LENS_MODEL = LENS_THIN;
+layout(constant_id = 1) const bool SCINT_REFRACTION = false;
+layout(constant_id = 2) const bool HOLDER = false;
+
+layout(push_constant) uniform Push { TraceParams P; };
+layout(std430, binding = 0) readonly buffer Lenses { Lenslet lenses[]; };
+layout(std430, binding = 1) readonly buffer Sources { vec4 sources[]; };  // xyz = (x, y, depth) mm
+layout(std430, binding = 2) buffer Images { float images[]; };           // [source][row][col][4]
+
+void add_tap(uint image_base, ivec2 px, vec4 tap) {
+  int row = px.y - P.band_row0;
+  if (px.x < 0 || px.x >= P.grid_w || row < 0 || row >= P.band_rows || px.y >= P.grid_h) return;
+  uint i = image_base + 4u * (uint(row) * uint(P.grid_w) + uint(px.x));
+  atomicAdd(images[i + 0u], tap.x);
+  atomicAdd(images[i + 1u], tap.y);
+  atomicAdd(images[i + 2u], tap.z);
+  atomicAdd(images[i + 3u], tap.w);
+}
+
+void main() {
+  uint rays_per_lens = P.strata * P.strata;
+  uint total = rays_per_lens * P.lens_count;
+  uint s = gl_GlobalInvocationID.y;
+  if (s >= P.source_count) return;
+  vec3 theta = sources[P.source_offset + s].xyz;
+  uint image_base = s * uint(P.grid_w) * uint(P.band_rows) * 4u;
+  uint stride = gl_NumWorkGroups.x * gl_WorkGroupSize.x;
+  for (uint r = gl_GlobalInvocationID.x; r < total; r += stride) {
+    uint lens_index = r / rays_per_lens;
+    Hit hit = trace_sample(theta, lenses[lens_index], lens_index, r % rays_per_lens, P, LENS_MODEL,
+                           SCINT_REFRACTION, HOLDER);
+    Splat sp = splat_bilinear(hit, P);
+    if (!sp.ok) continue;
+    add_tap(image_base, sp.base, sp.tap00);
+    add_tap(image_base, sp.base + ivec2(1, 0), sp.tap10);
+    add_tap(image_base, sp.base + ivec2(0, 1), sp.tap01);
+    add_tap(image_base, sp.base + ivec2(1, 1), sp.tap11);
+  }
+}

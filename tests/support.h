@@ -1,0 +1,17 @@
+// Shared test fixtures: one Vulkan context per test process (validation on),
+// and the check that the validation layer stayed silent.
+#pragma once
+#include <doctest/doctest.h>
+
+#include "engine/vk/context.h"
+#include "host/scene.h"
+
+namespace prism::test {
+
+vk::Context& gpu();
+// Fails the current test if the validation layer printed anything.
+void check_validation_clean();
+// A scene small enough for exhaustive CPU-reference comparisons.
+OpticalSystem small_system(LensModel model);
+
+}  // namespace prism::test
