@@ -19,7 +19,9 @@ constexpr uint32_t kPartialFloats = 16;
 
 template <size_t N> std::span<const uint32_t> spirv(const uint32_t (&code)[N]) { return {code, N}; }
 
-shared::Lenslet to_device(const OpticalSystem& sys, size_t i) {
+}  // namespace
+
+shared::Lenslet device_lenslet(const OpticalSystem& sys, size_t i) {
   const auto& l = sys.lenslets[i];
   shared::Lenslet d{};
   d.center_mm = glm::vec2(float(l.x_mm), float(l.y_mm));
@@ -29,10 +31,9 @@ shared::Lenslet to_device(const OpticalSystem& sys, size_t i) {
   d.thickness_mm = float(sys.center_thickness_mm(i));
   d.sag_mm = float(sys.sag_mm(i));
   d.glass_index = float(sys.glass_index);
+  d.curved_toward_sensor = sys.curved_toward_sensor ? 1 : 0;
   return d;
 }
-
-}  // namespace
 
 double PixelImage::photons() const {
   double s = 0;
@@ -61,7 +62,7 @@ struct ForwardVulkan::Impl {
                uint32_t(s.effects.scintillator_refraction), uint32_t(s.effects.holder_vignetting)}),
         reduce(c, "fisher_reduce", spirv(spv_fisher_reduce), 2, 3 * sizeof(uint32_t)) {
     std::vector<shared::Lenslet> dev(s.lenslets.size());
-    for (size_t i = 0; i < dev.size(); ++i) dev[i] = to_device(s, i);
+    for (size_t i = 0; i < dev.size(); ++i) dev[i] = device_lenslet(s, i);
     lenses.upload(std::span<const shared::Lenslet>(dev));
 
     params.pixel_mm = float(grid.pixel_mm);
@@ -187,7 +188,7 @@ std::vector<glm::vec3> trace_rays_vulkan(vk::Context& ctx, const OpticalSystem& 
                                          std::span<const glm::vec3> origin_dir_pairs) {
   size_t n = origin_dir_pairs.size() / 2;
   if (n == 0) return {};
-  shared::Lenslet lens = to_device(sys, lens_index);
+  shared::Lenslet lens = device_lenslet(sys, lens_index);
   vk::Buffer lens_buf(ctx, sizeof(lens));
   lens_buf.upload(&lens, sizeof(lens));
   std::vector<glm::vec4> rays(2 * n);

@@ -12,6 +12,7 @@
 
 #include "engine/fisher.h"
 #include "engine/optical_system.h"
+#include "engine/shared_math.h"
 #include "engine/vk/compute.h"
 
 namespace prism {
@@ -47,6 +48,9 @@ class ForwardVulkan {
   AnalysisGrid grid_;
   double last_kernel_ms_ = 0;
 };
+
+// Lenslet i as the kernels see it.
+shared::Lenslet device_lenslet(const OpticalSystem& sys, size_t i);
 
 // Trace explicit rays (origin, direction pairs) through one lenslet to the
 // sensor plane on the device; returns (x_mm, y_mm, ok) per ray.

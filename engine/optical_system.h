@@ -35,6 +35,8 @@ struct OpticalSystem {
   LensModel lens_model = LensModel::real;
   double glass_index = defaults::glass_index_nbk7;
   double edge_thickness_mm = defaults::edge_thickness_mm;
+  // Real model: which face is curved. DESIGN.md: toward the scintillator.
+  bool curved_toward_sensor = false;
   int sensor_width_px = defaults::sensor_width_px;
   int sensor_height_px = defaults::sensor_height_px;
   double pixel_um = defaults::pixel_um;

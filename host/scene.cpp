@@ -131,7 +131,12 @@ Scene parse_scene(const json& j, const std::string& origin) {
   OpticalSystem& o = s.optics;
   if (j.contains("lens_model")) o.lens_model = parse_lens_model(rd, j["lens_model"], "lens_model");
   if (j.contains("glass")) {
-    check_keys(rd, j["glass"], "glass.", {"index", "edge_thickness_mm"});
+    check_keys(rd, j["glass"], "glass.", {"index", "edge_thickness_mm", "curved_face"});
+    if (j["glass"].contains("curved_face")) {
+      const json& cf = j["glass"]["curved_face"];
+      if (cf != "source" && cf != "sensor") rd.fail("glass.curved_face", "must be \"source\" or \"sensor\", got " + cf.dump());
+      o.curved_toward_sensor = cf == "sensor";
+    }
     o.glass_index = rd.number(j["glass"], "index", "glass.", o.glass_index);
     o.edge_thickness_mm = rd.number(j["glass"], "edge_thickness_mm", "glass.", o.edge_thickness_mm);
   }
@@ -240,7 +245,10 @@ json to_json(const Scene& s) {
   if (e.dark_counts_per_pixel != 0.0) fx.push_back({{"name", "dark_counts"}, {"per_pixel", e.dark_counts_per_pixel}});
   return {{"name", s.name},
           {"lens_model", to_string(o.lens_model)},
-          {"glass", {{"index", o.glass_index}, {"edge_thickness_mm", o.edge_thickness_mm}}},
+          {"glass",
+           {{"index", o.glass_index},
+            {"edge_thickness_mm", o.edge_thickness_mm},
+            {"curved_face", o.curved_toward_sensor ? "sensor" : "source"}}},
           {"lenslets", ls},
           {"sensor", {{"width_px", o.sensor_width_px}, {"height_px", o.sensor_height_px}, {"pixel_um", o.pixel_um}}},
           {"lens_to_sensor_mm", o.lens_to_sensor_mm},

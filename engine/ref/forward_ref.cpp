@@ -59,43 +59,64 @@ Geometry geometry(const OpticalSystem& sys, size_t i) {
 }
 
 // Propagate a ray from `o` along `dir` through lenslet g to the sensor plane.
-// Returns the landing point (x, y) or nothing when stopped.
-std::optional<std::pair<D, D>> propagate(const OpticalSystem& sys, const Geometry& g, V3 o, V3 dir) {
+// Returns the landing point (x, y) or nothing when stopped. Sampled rays start
+// inside the entrance disk by construction and skip its test.
+std::optional<std::pair<D, D>> propagate(const OpticalSystem& sys, const Geometry& g, V3 o, V3 dir,
+                                         bool test_entrance) {
   double bore = sys.effects.holder_vignetting ? sys.effects.holder_bore_mm : 0.0;
   double L = sys.lens_to_sensor_mm;
   if (sys.lens_model == LensModel::thin) {
     D t = -o.z / dir.z;
     V3 p = o + dir * t;
-    if (!within(p, g.cx, g.cy, g.radius)) return std::nullopt;
+    if (test_entrance && !within(p, g.cx, g.cy, g.radius)) return std::nullopt;
     D sx = dir.x / dir.z - (p.x - D(g.cx)) / D(g.focal);
     D sy = dir.y / dir.z - (p.y - D(g.cy)) / D(g.focal);
     if (bore > 0 && !within(V3{p.x + sx * D(bore), p.y + sy * D(bore), D(bore)}, g.cx, g.cy, g.radius)) return std::nullopt;
     return std::make_pair(p.x + sx * D(L), p.y + sy * D(L));
   }
-  // Spherical front face: centre (cx, cy, R); first intersection from the source side.
   V3 d = unit(dir);
-  V3 c{D(g.cx), D(g.cy), D(g.R)};
-  V3 oc = o - c;
-  D b = dot(oc, d);
-  D disc = b * b - (dot(oc, oc) - D(g.R * g.R));
-  if (disc.v <= 0) return std::nullopt;
-  D t = -b - sqrt(disc);
-  V3 p1 = o + d * t;
-  if (!within(p1, g.cx, g.cy, g.radius) || p1.z.v > g.sag) return std::nullopt;
-  auto d1 = snell(d, (p1 - c) * D(1.0 / g.R), 1.0 / g.n);  // outward normal faces the source
-  if (!d1) return std::nullopt;
-  // Flat back face.
-  D t2 = (D(g.thickness) - p1.z) / d1->z;
-  V3 p2 = p1 + *d1 * t2;
-  if (!within(p2, g.cx, g.cy, g.radius)) return std::nullopt;
-  auto d2 = snell(*d1, V3{D(0.0), D(0.0), D(-1.0)}, g.n);
-  if (!d2) return std::nullopt;
-  if (bore > g.thickness) {
-    D tb = D(bore - g.thickness) / d2->z;
-    if (!within(p2 + *d2 * tb, g.cx, g.cy, g.radius)) return std::nullopt;
+  V3 exit_point, exit_dir;
+  if (!sys.curved_toward_sensor) {
+    // Spherical front face, centre (cx, cy, R): first intersection from the source side.
+    V3 c{D(g.cx), D(g.cy), D(g.R)};
+    V3 oc = o - c;
+    D b = dot(oc, d);
+    D disc = b * b - (dot(oc, oc) - D(g.R * g.R));
+    if (disc.v <= 0) return std::nullopt;
+    V3 p1 = o + d * (-b - sqrt(disc));
+    if (test_entrance && (!within(p1, g.cx, g.cy, g.radius) || p1.z.v > g.sag)) return std::nullopt;
+    auto d1 = snell(d, (p1 - c) * D(1.0 / g.R), 1.0 / g.n);  // outward normal faces the source
+    if (!d1) return std::nullopt;
+    // Flat back face.
+    V3 p2 = p1 + *d1 * ((D(g.thickness) - p1.z) / d1->z);
+    if (!within(p2, g.cx, g.cy, g.radius)) return std::nullopt;
+    auto d2 = snell(*d1, V3{D(0.0), D(0.0), D(-1.0)}, g.n);
+    if (!d2) return std::nullopt;
+    exit_point = p2;
+    exit_dir = *d2;
+  } else {
+    // Flat front face at z = 0, then the sphere centred at z = thickness - R, left from inside.
+    V3 p0 = o + d * (-o.z / d.z);
+    if (test_entrance && !within(p0, g.cx, g.cy, g.radius)) return std::nullopt;
+    auto d1 = snell(d, V3{D(0.0), D(0.0), D(-1.0)}, 1.0 / g.n);
+    V3 c{D(g.cx), D(g.cy), D(g.thickness - g.R)};
+    V3 oc = p0 - c;
+    D b = dot(oc, *d1);
+    D disc = b * b - (dot(oc, oc) - D(g.R * g.R));
+    if (disc.v <= 0) return std::nullopt;
+    V3 p1 = p0 + *d1 * (-b + sqrt(disc));
+    if (!within(p1, g.cx, g.cy, g.radius) || p1.z.v < g.thickness - g.sag) return std::nullopt;
+    auto d2 = snell(*d1, (c - p1) * D(1.0 / g.R), g.n);  // inward normal faces the outgoing ray
+    if (!d2) return std::nullopt;
+    exit_point = p1;
+    exit_dir = *d2;
   }
-  D ts = D(L - g.thickness) / d2->z;
-  return std::make_pair(p2.x + d2->x * ts, p2.y + d2->y * ts);
+  if (bore > exit_point.z.v) {
+    D tb = (D(bore) - exit_point.z) / exit_dir.z;
+    if (!within(exit_point + exit_dir * tb, g.cx, g.cy, g.radius)) return std::nullopt;
+  }
+  D ts = (D(L) - exit_point.z) / exit_dir.z;
+  return std::make_pair(exit_point.x + exit_dir.x * ts, exit_point.y + exit_dir.y * ts);
 }
 
 // Same stratified, jittered aperture points as the device (the integer hash is
@@ -138,9 +159,11 @@ FacePath face_path(D h, D pr2, double w, double n) {
     D s = D(n) * rho / L;  // sin in air
     return s / sqrt(D(1.0) - s * s);
   };
-  // Start from the paraxial guess and keep rho below the critical angle.
+  // Start from the paraxial guess, kept below the critical angle (beyond it
+  // no ray leaves the scintillator).
   D rho = pr * h / (h + D(n * w));
-  double rho_max = h.v / std::sqrt(n * n - 1.0);
+  double rho_max = n > 1.0 ? h.v / std::sqrt(n * n - 1.0) : INFINITY;
+  if (rho.v >= rho_max) rho = D(0.99) * D(rho_max, h.d / std::sqrt(n * n - 1.0));
   for (int it = 0; it < 60; ++it) {
     D L = sqrt(rho * rho + h * h);
     D s = D(n) * rho / L;
@@ -170,7 +193,7 @@ SampleHit trace_sample_impl(const OpticalSystem& sys, const TraceSettings& setti
                             size_t lens, uint32_t sample) {
   Geometry g = geometry(sys, lens);
   glm::dvec2 u = unit_disk_sample(uint32_t(lens), sample, settings.strata());
-  double z_ap = sys.lens_model == LensModel::real ? g.sag : 0.0;
+  double z_ap = (sys.lens_model == LensModel::real && !sys.curved_toward_sensor) ? g.sag : 0.0;
   V3 p{D(g.cx + g.radius * u.x), D(g.cy + g.radius * u.y), D(z_ap)};
   V3 s{D(theta.x, {1, 0, 0}), D(theta.y, {0, 1, 0}), D(-(theta.z + sys.working_distance_mm), {0, 0, -1})};
   double per_sample = settings.photons_emitted * sys.effects.detection_efficiency / (4 * M_PI) * M_PI * g.radius *
@@ -192,7 +215,7 @@ SampleHit trace_sample_impl(const OpticalSystem& sys, const TraceSettings& setti
   }
   weight = weight * D(per_sample);
   SampleHit out;
-  auto hit = propagate(sys, g, origin, p - origin);
+  auto hit = propagate(sys, g, origin, p - origin, false);
   if (!hit) return out;
   out.ok = true;
   out.x_mm = hit->first.v;
@@ -279,7 +302,7 @@ std::optional<glm::dvec2> trace_ray(const OpticalSystem& sys, size_t lens_index,
   OpticalSystem plain = sys;
   plain.effects.holder_vignetting = false;
   auto hit = propagate(plain, g, V3{D(origin.x), D(origin.y), D(origin.z)},
-                       V3{D(direction.x), D(direction.y), D(direction.z)});
+                       V3{D(direction.x), D(direction.y), D(direction.z)}, true);
   if (!hit) return std::nullopt;
   return glm::dvec2(hit->first.v, hit->second.v);
 }

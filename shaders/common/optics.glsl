@@ -17,7 +17,7 @@
 const int LENS_THIN = 0;  // ideal thin lens: paraxial deflection by -h/f
 const int LENS_REAL = 1;  // plano-convex: spherical front face, flat back face
 
-// One lenslet as the kernels see it (std430, 32 bytes).
+// One lenslet as the kernels see it (std430, 40 bytes).
 struct Lenslet {
   vec2 center_mm;             // lateral centre on the lens plane
   float radius_mm;            // clear aperture radius of both faces
@@ -26,6 +26,8 @@ struct Lenslet {
   float thickness_mm;         // centre thickness (real model)
   float sag_mm;               // front-face sag at the rim (real model)
   float glass_index;          // refractive index of the glass (real model)
+  int curved_toward_sensor;   // real model: 0 = curved face toward the source, 1 = flipped
+  float pad_;                 // std430: the struct aligns to its vec2
 };
 
 // Per-dispatch constants (push constants, std430, 64 bytes).
@@ -197,13 +199,17 @@ PRISM_FN bool inside_aperture(Dual x, Dual y, vec2 center, float radius) {
   return dx * dx + dy * dy <= radius * radius;
 }
 
+// Rays sampled on a lenslet's entrance disk are inside it by construction:
+// re-testing them would only let float rounding at the rim clip a few.
+// Explicit rays (trace_rays.comp) are tested.
+
 // Ideal thin lens in the plane z = 0: the slope turns by -h/f (paraxial).
-PRISM_FN Hit trace_thin(Ray ray, Lenslet lens, float holder_bore_mm, float lens_to_sensor_mm) {
+PRISM_FN Hit trace_thin(Ray ray, Lenslet lens, float holder_bore_mm, float lens_to_sensor_mm, bool test_entrance) {
   // Cross the lens plane.
   Dual t = d_div(d_neg(ray.origin.z), ray.dir.z);
   Dual x0 = d_add(ray.origin.x, d_mul(ray.dir.x, t));
   Dual y0 = d_add(ray.origin.y, d_mul(ray.dir.y, t));
-  Hit hit = Hit(x0, y0, ray.weight, inside_aperture(x0, y0, lens.center_mm, lens.radius_mm));
+  Hit hit = Hit(x0, y0, ray.weight, !test_entrance || inside_aperture(x0, y0, lens.center_mm, lens.radius_mm));
   // Deflect.
   float inv_f = 1.0f / lens.focal_mm;
   Dual sx = d_sub(d_div(ray.dir.x, ray.dir.z), d_scale(d_addc(x0, -lens.center_mm.x), inv_f));
@@ -220,52 +226,103 @@ PRISM_FN Hit trace_thin(Ray ray, Lenslet lens, float holder_bore_mm, float lens_
   return hit;
 }
 
-// Real plano-convex lens: spherical front face (vertex at z = 0, centre at
-// z = R) toward the source, flat back face at z = thickness toward the sensor.
-PRISM_FN Hit trace_real(Ray ray, Lenslet lens, float holder_bore_mm, float lens_to_sensor_mm) {
-  Hit hit = Hit(d_const(0.0f), d_const(0.0f), ray.weight, false);
+// Snell's law in vector form for unit direction i and unit normal n facing
+// against it, index ratio eta = n_before / n_after. The z of the result is
+// left at 0 on total internal reflection (callers test it).
+PRISM_FN DVec3 refract_dual(DVec3 i, DVec3 n, float eta) {
+  Dual cos_i = d_neg(dv_dot(n, i));
+  Dual k = d_sub(d_const(1.0f), d_scale(d_sub(d_const(1.0f), d_mul(cos_i, cos_i)), eta * eta));
+  if (k.v <= 0.0f) return DVec3(d_const(0.0f), d_const(0.0f), d_const(0.0f));
+  return dv_add(dv_scalec(i, eta), dv_scale(n, d_sub(d_scale(cos_i, eta), d_sqrt(k))));
+}
+
+// Where the ray leaves the last surface, its direction, and whether it got there.
+struct Exit {
+  DVec3 p;
+  DVec3 d;
+  bool ok;
+};
+
+// Distance along unit direction d from o to the sphere (centre c, radius r):
+// the near root when `far` is false. The discriminant is formed as
+// r^2 - |oc - b d|^2 rather than b^2 - (|oc|^2 - r^2): the latter loses all
+// float digits when the origin is tens of millimetres away (|oc|^2 ~ 2000
+// against r^2 ~ 5). Returns a negative value on a miss.
+PRISM_FN Dual sphere_distance(DVec3 o, DVec3 d, DVec3 c, float r, bool far) {
+  DVec3 oc = dv_sub(o, c);
+  Dual b = dv_dot(oc, d);
+  DVec3 perp = dv_sub(oc, dv_scale(d, b));
+  Dual disc = d_sub(d_const(r * r), dv_dot(perp, perp));
+  if (disc.v <= 0.0f) return d_const(-1.0f);
+  return far ? d_add(d_neg(b), d_sqrt(disc)) : d_sub(d_neg(b), d_sqrt(disc));
+}
+
+// Curved face toward the source (the prototype): spherical front face with its
+// vertex at z = 0 and centre at z = R; flat back face at z = thickness.
+PRISM_FN Exit through_convex_first(Ray ray, Lenslet lens, DVec3 dir, bool test_entrance) {
+  Exit e = Exit(ray.origin, dir, false);
   float n = lens.glass_index;
   float radius = lens.curvature_radius_mm;
-  DVec3 dir = dv_normalize(ray.dir);
-
+  DVec3 centre = dv_const(vec3(lens.center_mm.x, lens.center_mm.y, radius));
   // Intersect the spherical front face (the near cap).
-  DVec3 oc = dv_sub(ray.origin, dv_const(vec3(lens.center_mm.x, lens.center_mm.y, radius)));
-  Dual b = dv_dot(oc, dir);
-  Dual disc = d_sub(d_mul(b, b), d_addc(dv_dot(oc, oc), -radius * radius));
-  if (disc.v <= 0.0f) return hit;
-  Dual t1 = d_sub(d_neg(b), d_sqrt(disc));
+  Dual t1 = sphere_distance(ray.origin, dir, centre, radius, false);
+  if (t1.v < 0.0f) return e;
   DVec3 p1 = dv_add(ray.origin, dv_scale(dir, t1));
-  if (!inside_aperture(p1.x, p1.y, lens.center_mm, lens.radius_mm) || p1.z.v > lens.sag_mm) return hit;
-
-  // Refract into the glass (Snell, vector form; normal faces the incoming ray).
-  DVec3 normal = dv_scalec(dv_sub(p1, dv_const(vec3(lens.center_mm.x, lens.center_mm.y, radius))), 1.0f / radius);
-  float eta = 1.0f / n;
-  Dual cos_i = d_neg(dv_dot(normal, dir));
-  Dual k = d_sub(d_const(1.0f), d_scale(d_sub(d_const(1.0f), d_mul(cos_i, cos_i)), eta * eta));
-  if (k.v <= 0.0f) return hit;
-  DVec3 d1 = dv_add(dv_scalec(dir, eta), dv_scale(normal, d_sub(d_scale(cos_i, eta), d_sqrt(k))));
-
+  if (test_entrance && (!inside_aperture(p1.x, p1.y, lens.center_mm, lens.radius_mm) || p1.z.v > lens.sag_mm)) return e;
+  // Refract into the glass; the outward normal faces the incoming ray.
+  DVec3 d1 = refract_dual(dir, dv_scalec(dv_sub(p1, centre), 1.0f / radius), 1.0f / n);
+  if (d1.z.v <= 0.0f) return e;
   // Cross the glass to the flat back face.
-  Dual t2 = d_div(d_sub(d_const(lens.thickness_mm), p1.z), d1.z);
-  DVec3 p2 = dv_add(p1, dv_scale(d1, t2));
-  if (!inside_aperture(p2.x, p2.y, lens.center_mm, lens.radius_mm)) return hit;
-
+  DVec3 p2 = dv_add(p1, dv_scale(d1, d_div(d_sub(d_const(lens.thickness_mm), p1.z), d1.z)));
+  if (!inside_aperture(p2.x, p2.y, lens.center_mm, lens.radius_mm)) return e;
   // Refract out of the flat face: tangential components scale by n.
   Dual kz = d_sub(d_const(1.0f), d_scale(d_sub(d_const(1.0f), d_mul(d1.z, d1.z)), n * n));
-  if (kz.v <= 0.0f) return hit;  // total internal reflection
-  DVec3 d2 = DVec3(d_scale(d1.x, n), d_scale(d1.y, n), d_sqrt(kz));
+  if (kz.v <= 0.0f) return e;  // total internal reflection
+  return Exit(p2, DVec3(d_scale(d1.x, n), d_scale(d1.y, n), d_sqrt(kz)), true);
+}
 
-  // Holder bore beyond the back face (see trace_thin).
+// Flipped: flat front face at z = 0, spherical back face with its vertex at
+// z = thickness and centre at z = thickness - R.
+PRISM_FN Exit through_flat_first(Ray ray, Lenslet lens, DVec3 dir, bool test_entrance) {
+  Exit e = Exit(ray.origin, dir, false);
+  float n = lens.glass_index;
+  float radius = lens.curvature_radius_mm;
+  // Cross the flat front face and refract into the glass.
+  DVec3 p0 = dv_add(ray.origin, dv_scale(dir, d_div(d_neg(ray.origin.z), dir.z)));
+  if (test_entrance && !inside_aperture(p0.x, p0.y, lens.center_mm, lens.radius_mm)) return e;
+  float eta = 1.0f / n;
+  Dual kz = d_sub(d_const(1.0f), d_scale(d_sub(d_const(1.0f), d_mul(dir.z, dir.z)), eta * eta));
+  DVec3 d1 = DVec3(d_scale(dir.x, eta), d_scale(dir.y, eta), d_sqrt(kz));
+  // Leave the sphere from inside: the far root.
+  DVec3 centre = dv_const(vec3(lens.center_mm.x, lens.center_mm.y, lens.thickness_mm - radius));
+  Dual t1 = sphere_distance(p0, d1, centre, radius, true);
+  if (t1.v < 0.0f) return e;
+  DVec3 p1 = dv_add(p0, dv_scale(d1, t1));
+  if (!inside_aperture(p1.x, p1.y, lens.center_mm, lens.radius_mm) || p1.z.v < lens.thickness_mm - lens.sag_mm)
+    return e;
+  // Refract out; the inward normal faces the outgoing ray.
+  DVec3 d2 = refract_dual(d1, dv_scalec(dv_sub(centre, p1), 1.0f / radius), n);
+  if (d2.z.v <= 0.0f) return e;  // total internal reflection
+  return Exit(p1, d2, true);
+}
+
+// Real plano-convex lens, either way round, then holder and sensor.
+PRISM_FN Hit trace_real(Ray ray, Lenslet lens, float holder_bore_mm, float lens_to_sensor_mm, bool test_entrance) {
+  DVec3 dir = dv_normalize(ray.dir);
+  Exit e = (lens.curved_toward_sensor != 0) ? through_flat_first(ray, lens, dir, test_entrance)
+                                           : through_convex_first(ray, lens, dir, test_entrance);
+  Hit hit = Hit(d_const(0.0f), d_const(0.0f), ray.weight, false);
+  if (!e.ok) return hit;
+  // Holder bore beyond the glass (see trace_thin).
   bool ok = true;
-  if (holder_bore_mm > lens.thickness_mm) {
-    Dual tb = d_div(d_const(holder_bore_mm - lens.thickness_mm), d2.z);
-    ok = inside_aperture(d_add(p2.x, d_mul(d2.x, tb)), d_add(p2.y, d_mul(d2.y, tb)), lens.center_mm, lens.radius_mm);
+  if (holder_bore_mm > e.p.z.v) {
+    Dual tb = d_div(d_sub(d_const(holder_bore_mm), e.p.z), e.d.z);
+    ok = inside_aperture(d_add(e.p.x, d_mul(e.d.x, tb)), d_add(e.p.y, d_mul(e.d.y, tb)), lens.center_mm, lens.radius_mm);
   }
-
   // Transport to the sensor plane.
-  Dual ts = d_div(d_const(lens_to_sensor_mm - lens.thickness_mm), d2.z);
-  hit.x_mm = d_add(p2.x, d_mul(d2.x, ts));
-  hit.y_mm = d_add(p2.y, d_mul(d2.y, ts));
+  Dual ts = d_div(d_sub(d_const(lens_to_sensor_mm), e.p.z), e.d.z);
+  hit.x_mm = d_add(e.p.x, d_mul(e.d.x, ts));
+  hit.y_mm = d_add(e.p.y, d_mul(e.d.y, ts));
   hit.ok = ok;
   return hit;
 }
@@ -276,7 +333,8 @@ PRISM_FN Hit trace_real(Ray ray, Lenslet lens, float holder_bore_mm, float lens_
 PRISM_FN Hit trace_sample(vec3 theta, Lenslet lens, uint lens_index, uint sample_index, TraceParams P,
                           int lens_model, bool scint_refraction, bool holder) {
   vec2 unit = aperture_sample(lens_index, sample_index, P.strata);
-  float aperture_z = (lens_model == LENS_REAL) ? lens.sag_mm : 0.0f;
+  // The entrance disk: the rim plane of a front sphere, else the plane z = 0.
+  float aperture_z = (lens_model == LENS_REAL && lens.curved_toward_sensor == 0) ? lens.sag_mm : 0.0f;
   float aperture_r = lens.radius_mm;
   vec3 p = vec3(lens.center_mm.x + aperture_r * unit.x, lens.center_mm.y + aperture_r * unit.y, aperture_z);
   // Each stratum carries an equal share of the aperture area.
@@ -286,8 +344,8 @@ PRISM_FN Hit trace_sample(vec3 theta, Lenslet lens, uint lens_index, uint sample
                 ? emit_through_face(src, p, photons_per_sample, P.scint_index, -P.working_distance_mm)
                 : emit_direct(src, p, photons_per_sample);
   float bore = holder ? P.holder_bore_mm : 0.0f;
-  return (lens_model == LENS_REAL) ? trace_real(ray, lens, bore, P.lens_to_sensor_mm)
-                                   : trace_thin(ray, lens, bore, P.lens_to_sensor_mm);
+  return (lens_model == LENS_REAL) ? trace_real(ray, lens, bore, P.lens_to_sensor_mm, false)
+                                   : trace_thin(ray, lens, bore, P.lens_to_sensor_mm, false);
 }
 
 // ---------------------------------------------------------------------------

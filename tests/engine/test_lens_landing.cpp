@@ -4,6 +4,7 @@
 #include <cmath>
 #include <fstream>
 #include <map>
+#include <tuple>
 #include <sstream>
 
 #include "engine/forward.h"
@@ -14,6 +15,7 @@ namespace {
 
 struct LandingRow {
   double f, ct, R;
+  bool flat_toward_source;
   glm::dvec3 src, dir;
   double hit_x, hit_y;
   bool ok;
@@ -35,8 +37,8 @@ std::vector<LandingRow> read_landings() {
     std::vector<std::string> c;
     while (std::getline(ss, cell, ',')) c.push_back(cell);
     REQUIRE_MESSAGE(c.size() == 13, path << ":" << n << ": expected 13 columns");
-    REQUIRE_MESSAGE(c[2] == "toward_sensor", path << ":" << n << ": only flat-toward-sensor lenses are modelled");
-    LandingRow r{std::stod(c[0]), std::stod(c[1]), std::stod(c[3]), {std::stod(c[4]), std::stod(c[5]), std::stod(c[6])},
+    REQUIRE_MESSAGE((c[2] == "toward_sensor" || c[2] == "toward_source"), path << ":" << n << ": flat_faces?");
+    LandingRow r{std::stod(c[0]), std::stod(c[1]), std::stod(c[3]), c[2] == "toward_source", {std::stod(c[4]), std::stod(c[5]), std::stod(c[6])},
                  {std::stod(c[7]), std::stod(c[8]), std::stod(c[9])}, std::stod(c[10]), std::stod(c[11]),
                  c[12] == "1", n};
     rows.push_back(r);
@@ -50,6 +52,7 @@ prism::OpticalSystem lens_of(const LandingRow& r) {
   s.lens_model = prism::LensModel::real;
   s.glass_index = 1.5168;
   s.lenslets = {{0.0, 0.0, 3.0, r.f}};
+  s.curved_toward_sensor = r.flat_toward_source;
   s.edge_thickness_mm = r.ct - s.sag_mm(0);
   s.lens_to_sensor_mm = 18.5;
   return s;
@@ -80,8 +83,8 @@ TEST_CASE("real lens lands rays where optiland does (CPU reference)") {
 TEST_CASE("real lens lands rays where optiland does (Vulkan)") {
   auto rows = read_landings();
   // Group rows by lens so each lens is one dispatch.
-  std::map<std::pair<double, double>, std::vector<const LandingRow*>> by_lens;
-  for (const auto& r : rows) by_lens[{r.f, r.ct}].push_back(&r);
+  std::map<std::tuple<double, double, bool>, std::vector<const LandingRow*>> by_lens;
+  for (const auto& r : rows) by_lens[{r.f, r.ct, r.flat_toward_source}].push_back(&r);
   for (const auto& [key, group] : by_lens) {
     auto sys = lens_of(*group.front());
     std::vector<glm::vec3> pairs;

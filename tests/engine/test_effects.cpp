@@ -1,0 +1,99 @@
+// Effects: each is simulated only when the scene names it. Without it the
+// kernels run the plain model (its parameters are ignored, it is compiled out
+// through specialisation constants), and at neutral parameters it reduces to
+// the plain model.
+#include "engine/forward.h"
+#include "engine/ref/forward_ref.h"
+#include "support.h"
+
+namespace {
+
+prism::PixelImage render(const prism::OpticalSystem& sys) {
+  prism::TraceSettings t;
+  t.rays_per_lenslet = 256;
+  t.binning = 8;
+  prism::ForwardVulkan fw(prism::test::gpu(), sys, t);
+  return fw.psf({1.0, 2.0, 15.0});
+}
+
+// Largest difference over pixels in channel c (0: b; 1..3: its derivatives),
+// relative to that channel's peak in `b`.
+double max_rel_diff(const prism::PixelImage& a, const prism::PixelImage& b, int first = 0, int last = 3) {
+  double worst = 0;
+  for (int c = first; c <= last; ++c) {
+    double peak = 0, m = 0;
+    for (size_t i = c; i < a.data.size(); i += 4) {
+      peak = std::max(peak, double(std::abs(b.data[i])));
+      m = std::max(m, double(std::abs(a.data[i] - b.data[i])));
+    }
+    worst = std::max(worst, peak > 0 ? m / peak : m);
+  }
+  return worst;
+}
+
+}  // namespace
+
+TEST_CASE("an effect the scene does not name changes nothing, whatever its parameters") {
+  auto plain = prism::test::small_system(prism::LensModel::real);
+  auto odd = plain;
+  odd.effects.scintillator_index = 2.5;  // named nowhere: must be ignored
+  odd.effects.holder_bore_mm = 9.0;
+  auto a = render(plain), b = render(odd);
+  CHECK(max_rel_diff(a, b) == 0.0);
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("effects at neutral parameters reduce to the plain model") {
+  auto plain = prism::test::small_system(prism::LensModel::real);
+  auto base = render(plain);
+
+  auto face = plain;
+  face.effects.scintillator_refraction = true;
+  face.effects.scintillator_index = 1.0;  // no index step: no refraction, no Fresnel loss
+  // The face path solves Snell's law by Newton iteration in float: agreement
+  // to float accuracy, not bit for bit. Derivative channels are discontinuous
+  // where a hit crosses a pixel-centre line (the kink of the bilinear tent),
+  // so a 1e-6 mm difference can move one ray's derivative tap: 1e-3 there,
+  // as in the backend comparison (test_forward_vulkan.cpp).
+  auto refracted = render(face);
+  CHECK(max_rel_diff(refracted, base, 0, 0) < 3e-4);
+  CHECK(max_rel_diff(refracted, base, 1, 3) < 1e-3);
+
+  auto holder = plain;
+  holder.effects.holder_vignetting = true;
+  holder.effects.holder_bore_mm = 0.0;  // a bore of zero length clips nothing
+  CHECK(max_rel_diff(render(holder), base) == 0.0);
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("effects change the light as the physics says, in both backends") {
+  auto plain = prism::test::small_system(prism::LensModel::real);
+  prism::TraceSettings t;
+  t.rays_per_lenslet = 256;
+  t.binning = 8;
+  glm::dvec3 theta{1.0, 2.0, 15.0};
+  double base = prism::ref::psf(plain, t, theta).photons();
+
+  // Refraction out of n = 1.58 narrows the cone that reaches the lenses: fewer photons.
+  auto face = plain;
+  face.effects.scintillator_refraction = true;
+  double with_face = prism::ref::psf(face, t, theta).photons();
+  CHECK(with_face < 0.9 * base);
+  prism::ForwardVulkan fw_face(prism::test::gpu(), face, t);
+  CHECK(fw_face.psf(theta).photons() == doctest::Approx(with_face).epsilon(1e-4));
+
+  // A long holder bore clips oblique rays.
+  auto holder = plain;
+  holder.effects.holder_vignetting = true;
+  holder.effects.holder_bore_mm = 4.0;
+  double with_holder = prism::ref::psf(holder, t, theta).photons();
+  CHECK(with_holder < base);
+  prism::ForwardVulkan fw_holder(prism::test::gpu(), holder, t);
+  CHECK(fw_holder.psf(theta).photons() == doctest::Approx(with_holder).epsilon(1e-4));
+
+  // Detection efficiency scales the photons.
+  auto eff = plain;
+  eff.effects.detection_efficiency = 0.5;
+  CHECK(prism::ref::psf(eff, t, theta).photons() == doctest::Approx(0.5 * base).epsilon(1e-12));
+  prism::test::check_validation_clean();
+}

@@ -1,0 +1,175 @@
+// The Vulkan forward model (lavapipe) against the double-precision reference:
+// images pixel by pixel, Fisher information, and hard inputs.
+//
+// Tolerances. Hit positions agree to float precision (~2e-6 mm at 25 mm off
+// axis, 4e-5 of a 55 um pixel); rays focused on one spot shift together, so
+// a pixel value agrees to 3e-4 of the image peak. Derivative channels jump
+// where a hit crosses a pixel-centre line (the kink of the bilinear tent):
+// 1e-3 of their peak. Fisher sums
+// weigh each pixel by 1/b: a pixel reached by one ray with a tiny bilinear
+// fraction f adds w (df)^2 / f, and float's ~1e-4 px error in f changes such
+// a term by a large factor. The Fisher comparison is therefore made where
+// every lit pixel holds many rays (coarse binning), to 1e-3 relative; at few
+// rays per pixel both backends show the same upward sampling bias but not
+// the same digits (see README, "Convergence").
+#include <algorithm>
+#include <cmath>
+
+#include "engine/forward.h"
+#include "engine/ref/forward_ref.h"
+#include "support.h"
+
+namespace {
+
+using prism::test::gpu;
+
+// Max over pixels of |vulkan - reference| for channel c, relative to the peak.
+double image_mismatch(const prism::PixelImage& v, const prism::ref::SparseImage& r, int c) {
+  double peak = 0, worst = 0;
+  for (const auto& [k, px] : r.pixels) peak = std::max(peak, std::abs(px[c]));
+  for (int i = 0; i < v.width * v.height; ++i) {
+    auto it = r.pixels.find(i);
+    double ref = it == r.pixels.end() ? 0.0 : it->second[c];
+    worst = std::max(worst, std::abs(double(v.data[4 * size_t(i) + c]) - ref));
+  }
+  return peak > 0 ? worst / peak : worst;
+}
+
+void compare_images(const prism::OpticalSystem& sys, const prism::TraceSettings& t, const glm::dvec3& theta) {
+  prism::ForwardVulkan fw(gpu(), sys, t);
+  auto v = fw.psf(theta);
+  auto r = prism::ref::psf(sys, t, theta);
+  CAPTURE(theta.x);
+  CAPTURE(theta.y);
+  CAPTURE(theta.z);
+  REQUIRE(r.photons() > 0);
+  CHECK(v.photons() == doctest::Approx(r.photons()).epsilon(1e-5));
+  CHECK(image_mismatch(v, r, 0) < 3e-4);
+  for (int c = 1; c < 4; ++c) {
+    CAPTURE(c);
+    CHECK(image_mismatch(v, r, c) < 1e-3);
+  }
+}
+
+void compare_fisher(const prism::OpticalSystem& sys, const prism::TraceSettings& t, const glm::dvec3& theta,
+                    double tol) {
+  prism::ForwardVulkan fw(gpu(), sys, t);
+  auto v = fw.fisher(std::vector<glm::dvec3>{theta}).front();
+  auto r = prism::ref::fisher(sys, t, theta);
+  CHECK(v.photons == doctest::Approx(r.photons).epsilon(1e-5));
+  double scale = std::max({r.poisson[0], r.poisson[3], r.poisson[5]});
+  for (int k = 0; k < 6; ++k) {
+    CAPTURE(k);
+    CHECK(v.poisson[k] == doctest::Approx(r.poisson[k]).epsilon(tol).scale(scale));
+    CHECK(v.binary[k] == doctest::Approx(r.binary[k]).epsilon(tol).scale(scale));
+  }
+  auto cv = prism::crlb_from_fisher(v.poisson, v.photons), cr = prism::crlb_from_fisher(r.poisson, r.photons);
+  CHECK(cv.r3_mm == doctest::Approx(cr.r3_mm).epsilon(tol));
+}
+
+}  // namespace
+
+TEST_CASE("Vulkan PSF equals the reference pixel by pixel (thin and real lenses)") {
+  prism::TraceSettings t;
+  t.rays_per_lenslet = 400;
+  t.binning = 8;
+  for (auto model : {prism::LensModel::thin, prism::LensModel::real}) {
+    std::string model_name = prism::to_string(model);
+    CAPTURE(model_name);
+    auto sys = prism::test::small_system(model);
+    compare_images(sys, t, {1.7, -2.3, 21.0});
+    compare_images(sys, t, {-6.0, -1.0, 0.0});
+  }
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("Vulkan Fisher information equals the reference where pixels hold many rays") {
+  prism::TraceSettings t;
+  t.rays_per_lenslet = 4096;
+  t.binning = 64;
+  for (auto model : {prism::LensModel::thin, prism::LensModel::real}) {
+    std::string model_name = prism::to_string(model);
+    CAPTURE(model_name);
+    auto sys = prism::test::small_system(model);
+    compare_fisher(sys, t, {0.7, 1.1, 12.0}, 1e-3);
+  }
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("hard inputs: a source on a lenslet edge, and one far outside the field of view") {
+  prism::TraceSettings t;
+  t.rays_per_lenslet = 400;
+  t.binning = 8;
+  auto sys = prism::test::small_system(prism::LensModel::real);
+  const auto& l = sys.lenslets[3];
+  compare_images(sys, t, {l.x_mm + 0.5 * l.diameter_mm, l.y_mm, 0.0});
+
+  // 0.5 m to the side: no ray reaches the sensor. Fisher is zero, the CRLB is
+  // infinite and flagged in both backends.
+  glm::dvec3 far{500.0, 0.0, 25.0};
+  prism::ForwardVulkan fw(prism::test::gpu(), sys, t);
+  auto v = fw.fisher(std::vector<glm::dvec3>{far}).front();
+  auto r = prism::ref::fisher(sys, t, far);
+  CHECK(v.photons == 0.0);
+  CHECK(r.photons == 0.0);
+  for (const auto& f : {v, r}) {
+    auto c = prism::crlb_from_fisher(f.poisson, f.photons);
+    CHECK_FALSE(c.identifiable);
+    CHECK(c.flag == "no_photons");
+    CHECK(std::isinf(c.r3_mm));
+  }
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("hard inputs: rays focused exactly on pixel borders and pixel centres") {
+  // One thin lens imaging an on-axis source in focus: every ray lands at x = y = 0.
+  // Even sensor width: x = 0 is a pixel border (fractions 0.5). Odd width: x = 0
+  // is a pixel centre, so the neighbour gets b = 0 with a nonzero derivative,
+  // which the Fisher sum must skip rather than divide by.
+  for (int width : {64, 65}) {
+    CAPTURE(width);
+    prism::OpticalSystem sys;
+    sys.lens_model = prism::LensModel::thin;
+    sys.lenslets = {{0.0, 0.0, 3.0, 9.0}};
+    sys.sensor_width_px = width;
+    sys.sensor_height_px = width;
+    double object_mm = 1.0 / (1.0 / 9.0 - 1.0 / sys.lens_to_sensor_mm);
+    glm::dvec3 focus{0.0, 0.0, object_mm - sys.working_distance_mm};
+    prism::TraceSettings t;
+    t.rays_per_lenslet = 256;
+    t.binning = 1;
+    prism::ForwardVulkan fw(prism::test::gpu(), sys, t);
+    auto v = fw.fisher(std::vector<glm::dvec3>{focus}).front();
+    auto r = prism::ref::fisher(sys, t, focus);
+    CHECK(v.photons == doctest::Approx(r.photons).epsilon(1e-5));
+    for (int k = 0; k < 6; ++k) {
+      CHECK(std::isfinite(v.poisson[k]));
+      CHECK(std::isfinite(v.binary[k]));
+      CHECK(std::isfinite(r.poisson[k]));
+    }
+    auto cv = prism::crlb_from_fisher(v.poisson, v.photons);
+    CHECK_FALSE(std::isnan(cv.r3_mm));
+  }
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("full sensor resolution: 6696 x 4764 px in bands of at most maxStorageBufferRange") {
+  auto sys = prism::builtin_scene("prototype").optics;
+  prism::TraceSettings t;
+  t.rays_per_lenslet = 64;
+  t.binning = 1;
+  glm::dvec3 theta{2.0, -1.0, 30.0};
+  prism::ForwardVulkan full(prism::test::gpu(), sys, t);
+  REQUIRE(full.grid().width == 6696);
+  REQUIRE(full.grid().height == 4764);
+  // 510 MB of (b, grad b) cannot be one buffer on lavapipe: the kernel runs in bands.
+  REQUIRE(uint64_t(6696) * 4764 * 16 > prism::test::gpu().max_storage_buffer_bytes());
+  auto f = full.fisher(std::vector<glm::dvec3>{theta}).front();
+  auto r = prism::ref::fisher(sys, t, theta);
+  CHECK(f.photons == doctest::Approx(r.photons).epsilon(1e-5));
+  CHECK(f.photons > 10.0);
+  auto img = full.psf(theta);
+  CHECK(img.photons() == doctest::Approx(r.photons).epsilon(1e-5));
+  CHECK(prism::crlb_from_fisher(f.poisson, f.photons).identifiable);
+  prism::test::check_validation_clean();
+}
