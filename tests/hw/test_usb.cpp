@@ -1,0 +1,298 @@
+// The libusb driver against the scripted camera (tests/hw/device_model.cpp),
+// served through umockdev's usbdevfs emulation: the real libusb code path.
+#define DOCTEST_CONFIG_IMPLEMENT
+#include <doctest/doctest.h>
+
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
+
+#include "fake_usb.h"
+#include "host/cmd/commands.h"
+#include "hw/camera.h"
+#include "hw/capture.h"
+#include "hw/pixels.h"
+
+using namespace prism::hw;
+using namespace prism::hw::test;
+using Fault = Faults::Stream;
+
+namespace {
+
+// Streams `n` frames with a fault on frame `at`; returns what the driver reports.
+struct Run {
+  StreamResult result;
+  std::vector<Frame> frames;
+};
+Run stream_with(Fault fault, unsigned at, unsigned n, StreamOptions opt = {}) {
+  Faults f;
+  f.stream = fault;
+  f.frame = at;
+  FakeUsb usb(f);
+  Camera cam;
+  Run run;
+  opt.max_transfer_bytes = 1024;  // several payload transfers per frame
+  if (opt.idle_timeout_ms == 3000) opt.idle_timeout_ms = 400;
+  run.result = cam.stream(n, [&](Frame&& fr) { run.frames.push_back(std::move(fr)); }, opt);
+  return run;
+}
+
+// Every delivered frame must carry exactly the model's pattern for its block id.
+void check_intact(const std::vector<Frame>& frames) {
+  for (const Frame& f : frames) {
+    auto px = unpack(f.pixel_format, f.data, f.width, f.height);
+    unsigned bits = bit_depth(f.pixel_format);
+    bool ok = true;
+    for (uint32_t y = 0; y < f.height && ok; ++y)
+      for (uint32_t x = 0; x < f.width && ok; ++x) ok = px[y * f.width + x] == pattern(x, y, f.block_id, bits);
+    CAPTURE(f.block_id);
+    CHECK(ok);
+  }
+}
+
+unsigned drops(const StreamResult& r) {
+  unsigned n = 0;
+  for (auto& [why, k] : r.drops) n += k;
+  return n;
+}
+
+std::string drop_text(const StreamResult& r) {
+  std::string s;
+  for (auto& [why, k] : r.drops) s += why + " x" + std::to_string(k) + "; ";
+  return s;
+}
+
+}  // namespace
+
+TEST_SUITE("usb3 vision session") {
+  TEST_CASE("list finds the camera by its U3V interface") {
+    FakeUsb usb;
+    UsbContext ctx;
+    auto cams = list_cameras(ctx);
+    REQUIRE(cams.size() == 1);
+    CHECK(cams[0].vendor == "PRISM");
+    CHECK(cams[0].model == "PrismSim U3V");
+    CHECK(cams[0].serial == "PRISM-0001");
+    CHECK(cams[0].speed == "super (5 Gb/s)");
+    CHECK(cams[0].vendor_id == 0x1209);
+  }
+
+  TEST_CASE("bootstrap reads ABRM, SBRM, SIRM and the zipped or plain XML") {
+    for (bool zipped : {true, false}) {
+      Faults f;
+      f.zipped_xml = zipped;
+      FakeUsb usb(f);
+      Camera cam;
+      CHECK(cam.bootstrap().model == "PrismSim U3V");
+      CHECK(cam.bootstrap().serial == "PRISM-0001");
+      CHECK(cam.bootstrap().max_cmd == kMaxCmd);
+      CHECK(cam.bootstrap().sirm_address == kSirmAddr);
+      CHECK(cam.bootstrap().payload_alignment == kAlignment);
+      CHECK(cam.features().has("ExposureTime"));
+    }
+  }
+
+  TEST_CASE("features read and write through the XML register map") {
+    FakeUsb usb;
+    Camera cam;
+    NodeMap& n = cam.features();
+    CHECK(n.get_int("Width") == 64);
+    n.set_int("Width", 32);
+    CHECK(usb.model().reg32(kRegWidth) == 32);
+    CHECK(n.get_int("Width") == 32);
+    CHECK_THROWS_WITH(n.set_int("Width", 33), doctest::Contains("multiple of 2"));
+    CHECK_THROWS_WITH(n.set_int("Height", 4000), doctest::Contains("outside"));
+    n.set_float("ExposureTime", 2500.0);
+    CHECK(usb.model().exposure_us() == doctest::Approx(2500.0));
+    CHECK(n.get_float("ExposureTime") == doctest::Approx(2500.0));
+    CHECK(n.get_enum("PixelFormat") == "Mono16");
+    n.set_enum("PixelFormat", "Mono12p");
+    CHECK(usb.model().reg32(kRegPixelFormat) == kMono12p);
+    CHECK_THROWS_WITH(n.set_enum("PixelFormat", "RGB8"), doctest::Contains("Mono12p"));
+    n.set_int("BinningHorizontal", 2);  // MaskedIntReg bits 0..3 next to BinningVertical's 8..11
+    n.set_int("BinningVertical", 3);
+    CHECK(usb.model().reg32(kRegBinning) == 0x0302);
+    CHECK(n.get_int("BinningHorizontal") == 2);
+    CHECK(n.get_string("SensorWidth") == "64");
+    CHECK_THROWS_WITH(n.get_int("NoSuchFeature"), doctest::Contains("no feature"));
+  }
+
+  TEST_CASE("100 frames stream intact in every pixel format") {
+    for (const char* fmt : {"Mono16", "Mono8", "Mono12", "Mono12p"}) {
+      CAPTURE(fmt);
+      FakeUsb usb;
+      Camera cam;
+      cam.features().set_enum("PixelFormat", fmt);
+      cam.features().set_int("Width", 62);  // Mono12p: payload not a multiple of the alignment
+      std::vector<Frame> frames;
+      StreamOptions opt;
+      opt.max_transfer_bytes = 1024;
+      unsigned n = std::string(fmt) == "Mono16" ? 100 : 10;
+      StreamResult r = cam.stream(n, [&](Frame&& f) { frames.push_back(std::move(f)); }, opt);
+      CHECK(r.error == "");
+      CHECK(r.delivered == n);
+      CHECK(drops(r) == 0);
+      REQUIRE(frames.size() == n);
+      CHECK(frames.back().block_id == n - 1);
+      check_intact(frames);
+    }
+  }
+
+  TEST_CASE("GenCP: pending acknowledge, lost acknowledge and device status") {
+    Faults f;
+    f.pending_ack = true;
+    f.drop_first_ack = true;
+    FakeUsb usb(f);
+    Camera cam;
+    CHECK(cam.gencp().pending_acks == 1);
+    CHECK(cam.gencp().retries >= 1);
+    CHECK_THROWS_WITH(cam.gencp().read(0x7000, 4), doctest::Contains("address not mapped"));
+    cam.gencp().write32(kSirmAddr + 0x04, 1);  // stream enabled: SIRM is locked
+    CHECK_THROWS_WITH(cam.gencp().write32(kSirmAddr + 0x1C, 512), doctest::Contains("written while streaming"));
+  }
+
+  TEST_CASE("capture-hdr writes a stack with log-spaced exposures and darks") {
+    FakeUsb usb;
+    Camera cam;
+    auto dir = std::filesystem::temp_directory_path() / "prism_hw_stack_test";
+    std::filesystem::remove_all(dir);
+    CaptureOptions opt;
+    opt.out_dir = dir;
+    opt.x_mm = 1.5, opt.y_mm = -2, opt.depth_mm = 30;
+    NoStage stage;
+    std::ostringstream progress;
+    auto manifest = capture_hdr(cam, stage, opt, progress);
+    auto j = nlohmann::json::parse(std::ifstream(manifest));
+    CHECK(j["format_version"] == kStackFormatVersion);
+    CHECK(j["width"] == 64);
+    CHECK(j["bit_depth"] == 16);
+    REQUIRE(j["exposures"].size() == 7);
+    CHECK(j["darks"].size() == 3);
+    CHECK(j["exposures"][0]["exposure_us"].get<double>() == doctest::Approx(10));
+    CHECK(j["exposures"][6]["exposure_us"].get<double>() == doctest::Approx(1e6));
+    CHECK(j["exposures"][3]["exposure_us"].get<double>() == doctest::Approx(std::sqrt(10 * 1e6)).epsilon(1e-3));
+    CHECK(j["source"]["depth_mm"] == 30);
+    CHECK(std::filesystem::file_size(dir / j["darks"][2]["file"].get<std::string>()) == 64 * 48 * 2);
+    CHECK(progress.str().find("[10/10]") != std::string::npos);
+    std::filesystem::remove_all(dir);
+  }
+
+  TEST_CASE("prism camera commands run through CLI11") {
+    FakeUsb usb;
+    auto run = [](std::vector<std::string> args) {
+      CLI::App app;
+      prism::cmd::add_camera(app);
+      std::vector<const char*> argv{"prism"};
+      for (auto& a : args) argv.push_back(a.c_str());
+      app.parse(int(argv.size()), argv.data());
+    };
+    CHECK_NOTHROW(run({"camera", "list"}));
+    CHECK_NOTHROW(run({"camera", "set", "ExposureTime", "1234.5"}));
+    CHECK(usb.model().exposure_us() == doctest::Approx(1234.5));
+    CHECK_NOTHROW(run({"camera", "get", "PixelFormat"}));
+    CHECK_NOTHROW(run({"camera", "stream", "--frames", "5"}));
+    auto dir = std::filesystem::temp_directory_path() / "prism_hw_cli_stack";
+    std::filesystem::remove_all(dir);
+    CHECK_NOTHROW(run({"camera", "capture-hdr", "--out", dir.string(), "--exposures", "3", "--darks", "1",
+                       "--min-us", "100", "--max-us", "10000", "--x-mm", "1", "--y-mm", "2", "--depth-mm", "3"}));
+    CHECK(std::filesystem::exists(dir / "stack.json"));
+    std::filesystem::remove_all(dir);
+  }
+}
+
+TEST_SUITE("usb3 vision faults") {
+  TEST_CASE("short payload transfer drops only that frame") {
+    Run r = stream_with(Fault::ShortTransfer, 3, 10);
+    CHECK(r.result.error == "");
+    CHECK(r.result.delivered == 10);
+    CHECK(r.result.drops["short payload transfer"] == 1);
+    check_intact(r.frames);
+  }
+  TEST_CASE("lost transfer: frame dropped, stream resynchronises on the next leader") {
+    Run r = stream_with(Fault::LostTransfer, 3, 10);
+    INFO(drop_text(r.result));
+    CHECK(r.result.error == "");
+    CHECK(r.result.delivered == 10);
+    CHECK(r.result.drops["short payload transfer"] == 1);
+    CHECK(drops(r.result) >= 2);  // the frame after it lost its leader to the misaligned buffers
+    check_intact(r.frames);
+  }
+  TEST_CASE("malformed leader or trailer is a counted drop") {
+    struct Case {
+      Fault f;
+      const char* reason;
+    } cases[] = {{Fault::BadLeaderMagic, "leader has wrong magic"},
+                 {Fault::TruncatedLeader, "leader truncated"},
+                 {Fault::BadTrailerMagic, "trailer has wrong magic"},
+                 {Fault::TruncatedTrailer, "trailer truncated"},
+                 {Fault::TrailerStatus, "camera flagged the frame"},
+                 {Fault::Oversize, "device sent more than a transfer holds"}};
+    for (auto& c : cases) {
+      CAPTURE(c.reason);
+      Run r = stream_with(c.f, 2, 6);
+      INFO(drop_text(r.result));
+      CHECK(r.result.error == "");
+      CHECK(r.result.delivered == 6);
+      CHECK(drops(r.result) >= 1);
+      CHECK(drop_text(r.result).find(c.reason) != std::string::npos);
+      check_intact(r.frames);
+    }
+  }
+  TEST_CASE("endpoint stall: halt cleared, streaming continues") {
+    Run r = stream_with(Fault::Stall, 2, 8);
+    INFO(drop_text(r.result));
+    CHECK(r.result.error == "");
+    CHECK(r.result.delivered == 8);
+    CHECK(r.result.stalls_cleared >= 1);
+    CHECK(r.result.drops["stream endpoint stalled"] >= 1);
+    check_intact(r.frames);
+  }
+  TEST_CASE("unplug during streaming: clear error, completed frames kept") {
+    Run r = stream_with(Fault::Unplug, 4, 10);
+    CHECK(r.result.error.find("unplugged") != std::string::npos);
+    CHECK(r.result.delivered == 4);
+    CHECK(r.frames.size() == 4);
+    check_intact(r.frames);
+  }
+  TEST_CASE("camera goes silent: stream times out, no hang") {
+    Run r = stream_with(Fault::Silence, 2, 10);
+    CHECK(r.result.error.find("no stream data") != std::string::npos);
+    CHECK(r.result.delivered == 3);
+    check_intact(r.frames);
+  }
+  TEST_CASE("usbfs memory limit too low: clear error naming the fix") {
+    Faults f;
+    f.usbfs_limit = 8000;  // room for one frame's buffers, not three
+    FakeUsb usb(f);
+    Camera cam;
+    StreamOptions opt;
+    opt.max_transfer_bytes = 1024;
+    std::vector<Frame> frames;
+    StreamResult r = cam.stream(5, [&](Frame&& fr) { frames.push_back(std::move(fr)); }, opt);
+    CHECK(r.error.find("usbfs_memory_mb") != std::string::npos);
+    CHECK(r.error.find("NO_MEM") != std::string::npos);
+  }
+  TEST_CASE("unplugged before a command: clear error") {
+    Faults f;
+    FakeUsb usb(f);
+    Camera cam;
+    usb.model().faults.stream = Fault::Unplug;
+    usb.model().faults.frame = 0;
+    StreamOptions opt;
+    opt.idle_timeout_ms = 400;
+    cam.stream(1, [](Frame&&) {}, opt);
+    CHECK_THROWS_WITH(cam.features().get_int("Width"), doctest::Contains("unplugged"));
+  }
+}
+
+int main(int argc, char** argv) {
+  if (!umockdev_active()) {
+    std::fprintf(stderr,
+                 "SKIPPED: umockdev's preload library is not active, so no USB device can be scripted. "
+                 "Run under `umockdev-wrapper` (Debian package umockdev); ctest does this when it is installed.\n");
+    return 77;
+  }
+  doctest::Context ctx(argc, argv);
+  return ctx.run();
+}
