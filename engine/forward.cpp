@@ -16,6 +16,7 @@ namespace {
 constexpr uint32_t kSplatGroup = 64;
 constexpr uint32_t kReduceChunk = 256 * 16;  // pixels per reduce workgroup (fisher_reduce.comp)
 constexpr uint32_t kPartialFloats = 16;
+constexpr uint64_t kPixelBytes = 32;  // b, grad b from ray half A, from half B, unused (psf_splat.comp)
 
 template <size_t N> std::span<const uint32_t> spirv(const uint32_t (&code)[N]) { return {code, N}; }
 
@@ -60,7 +61,8 @@ struct ForwardVulkan::Impl {
         splat(c, "psf_splat", spirv(spv_psf_splat), 3, sizeof(shared::TraceParams),
               {uint32_t(s.lens_model == LensModel::real ? shared::LENS_REAL : shared::LENS_THIN),
                uint32_t(s.effects.scintillator_refraction), uint32_t(s.effects.holder_vignetting)}),
-        reduce(c, "fisher_reduce", spirv(spv_fisher_reduce), 2, 3 * sizeof(uint32_t)) {
+        reduce(c, "fisher_reduce", spirv(spv_fisher_reduce), 2, 3 * sizeof(uint32_t),
+               {uint32_t(t.estimator == FisherEstimator::split ? shared::FISHER_SPLIT : shared::FISHER_NAIVE)}) {
     std::vector<shared::Lenslet> dev(s.lenslets.size());
     for (size_t i = 0; i < dev.size(); ++i) dev[i] = device_lenslet(s, i);
     lenses.upload(std::span<const shared::Lenslet>(dev));
@@ -81,7 +83,7 @@ struct ForwardVulkan::Impl {
     // One image buffer of at most maxStorageBufferRange and the budget: bands
     // of rows when one image is larger, batches of sources when it is smaller.
     uint64_t cap = std::min<uint64_t>(budget, c.max_storage_buffer_bytes());
-    uint64_t row_bytes = uint64_t(grid.width) * 16;
+    uint64_t row_bytes = uint64_t(grid.width) * kPixelBytes;
     band_rows = uint32_t(std::min<uint64_t>(grid.height, cap / row_bytes));
     if (band_rows == 0) throw vk::Error("one sensor row does not fit in a storage buffer");
     uint64_t image_bytes = row_bytes * band_rows;
@@ -119,7 +121,7 @@ std::vector<FisherResult> ForwardVulkan::fisher(std::span<const glm::dvec3> thet
   for (size_t i = 0; i < theta.size(); ++i) src[i] = glm::vec4(glm::vec3(theta[i]), 0.0f);
   vk::Buffer sources(m.ctx, src.size() * sizeof(glm::vec4));
   sources.upload(std::span<const glm::vec4>(src));
-  vk::Buffer images(m.ctx, uint64_t(batch) * grid_.width * m.band_rows * 16);
+  vk::Buffer images(m.ctx, uint64_t(batch) * grid_.width * m.band_rows * kPixelBytes);
   const uint32_t max_pixels = uint32_t(grid_.width) * m.band_rows;
   const uint32_t max_chunks = (max_pixels + kReduceChunk - 1) / kReduceChunk;
   vk::Buffer partials(m.ctx, uint64_t(batch) * max_chunks * kPartialFloats * sizeof(float));
@@ -166,7 +168,8 @@ PixelImage ForwardVulkan::psf(const glm::dvec3& theta) {
   glm::vec4 src(glm::vec3(theta), 0.0f);
   vk::Buffer sources(m.ctx, sizeof(glm::vec4));
   sources.upload(&src, sizeof(src));
-  vk::Buffer images(m.ctx, uint64_t(grid_.width) * m.band_rows * 16);
+  vk::Buffer images(m.ctx, uint64_t(grid_.width) * m.band_rows * kPixelBytes);
+  std::vector<float> band_pixels(size_t(grid_.width) * m.band_rows * 8);
   vk::Stream stream(m.ctx);
   last_kernel_ms_ = 0;
   for (uint32_t band = 0; band < m.bands(); ++band) {
@@ -179,7 +182,15 @@ PixelImage ForwardVulkan::psf(const glm::dvec3& theta) {
     stream.barrier();
     stream.dispatch(m.splat, {&m.lenses, &sources, &images}, &p, m.splat_groups(), 1);
     last_kernel_ms_ += stream.submit();
-    images.download(&img.data[size_t(p.band_row0) * grid_.width * 4], uint64_t(p.band_rows) * grid_.width * 16);
+    // Keep b and the mean of the two half-ray gradient estimates.
+    size_t n = size_t(p.band_rows) * grid_.width;
+    images.download(band_pixels.data(), n * kPixelBytes);
+    float* out = &img.data[size_t(p.band_row0) * grid_.width * 4];
+    for (size_t i = 0; i < n; ++i) {
+      const float* q = &band_pixels[8 * i];
+      out[4 * i] = q[0];
+      for (int a = 0; a < 3; ++a) out[4 * i + 1 + a] = 0.5f * (q[1 + a] + q[4 + a]);
+    }
   }
   return img;
 }

@@ -6,6 +6,7 @@
 namespace prism {
 
 const char* to_string(LensModel m) { return m == LensModel::real ? "real" : "thin"; }
+const char* to_string(FisherEstimator e) { return e == FisherEstimator::split ? "split" : "naive"; }
 
 double OpticalSystem::sag_mm(size_t i) const {
   double r = curvature_radius_mm(i);
@@ -13,9 +14,11 @@ double OpticalSystem::sag_mm(size_t i) const {
   return r - std::sqrt(r * r - a * a);
 }
 
+// Even, so the checkerboard halves of the strata hold equally many rays.
 unsigned TraceSettings::strata() const {
   unsigned s = unsigned(std::ceil(std::sqrt(double(rays_per_lenslet)) - 1e-9));
-  return s < 1 ? 1 : s;
+  s += s & 1u;
+  return s < 2 ? 2 : s;
 }
 
 AnalysisGrid AnalysisGrid::of(const OpticalSystem& sys, unsigned binning) {

@@ -53,11 +53,18 @@ struct OpticalSystem {
   double sensor_height_mm() const { return sensor_height_px * pixel_um * 1e-3; }
 };
 
+// How Fisher information is estimated from splatted rays (see fisher_terms in
+// shaders/common/optics.glsl): `split` pairs two independent halves of the rays
+// and has no noise bias in the numerator; `naive` is the plug-in estimate.
+enum class FisherEstimator { naive, split };
+const char* to_string(FisherEstimator e);
+
 // Analysis settings of one forward-model run.
 struct TraceSettings {
-  unsigned rays_per_lenslet = defaults::rays_per_lenslet;  // rounded up to a square number of strata
+  unsigned rays_per_lenslet = defaults::rays_per_lenslet;  // rounded up to (2k)^2: an even square of strata
   unsigned binning = defaults::analysis_binning;           // analyse on binning x binning sensor pixels
   double photons_emitted = defaults::photons_emitted;
+  FisherEstimator estimator = FisherEstimator::split;
 
   unsigned strata() const;
   unsigned rays() const { return strata() * strata(); }

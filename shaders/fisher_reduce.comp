@@ -11,13 +11,14 @@ const uint GROUP = 256u;
 const uint CHUNK = GROUP * 16u;
 const uint SUMS = 13u;  // photons, Poisson xx..zz (6), binary xx..zz (6)
 layout(local_size_x = 256) in;
+layout(constant_id = 0) const int ESTIMATOR = FISHER_SPLIT;
 
 layout(push_constant) uniform Push {
   uint pixels;        // pixels per image (this band)
   uint chunks;        // workgroups per image = ceil(pixels / CHUNK)
   float dark_counts;  // expected background counts per pixel
 };
-layout(std430, binding = 0) readonly buffer Images { vec4 images[]; };
+layout(std430, binding = 0) readonly buffer Images { vec4 images[]; };  // 2 per pixel (psf_splat.comp)
 layout(std430, binding = 1) writeonly buffer Partials { float partials[]; };  // [source][chunk][16]
 
 shared float sums[SUMS][GROUP];
@@ -31,10 +32,13 @@ void main() {
   uint first = chunk * CHUNK;
   uint last = min(first + CHUNK, pixels);
   for (uint i = first + lid; i < last; i += GROUP) {
-    vec4 px = images[uint(s) * pixels + i];
-    acc[0] += px.x;
-    FisherTerms p = fisher_terms(px, dark_counts, false);
-    FisherTerms b = fisher_terms(px, dark_counts, true);
+    vec4 lo = images[2u * (uint(s) * pixels + i)];
+    vec4 hi = images[2u * (uint(s) * pixels + i) + 1u];
+    vec3 ga = vec3(lo.y, lo.z, lo.w);
+    vec3 gb = vec3(hi.x, hi.y, hi.z);
+    acc[0] += lo.x;
+    FisherTerms p = fisher_terms(lo.x, ga, gb, dark_counts, false, ESTIMATOR);
+    FisherTerms b = fisher_terms(lo.x, ga, gb, dark_counts, true, ESTIMATOR);
     acc[1] += p.xx; acc[2] += p.xy; acc[3] += p.xz; acc[4] += p.yy; acc[5] += p.yz; acc[6] += p.zz;
     acc[7] += b.xx; acc[8] += b.xy; acc[9] += b.xz; acc[10] += b.yy; acc[11] += b.yz; acc[12] += b.zz;
   }

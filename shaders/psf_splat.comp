@@ -17,16 +17,18 @@ layout(constant_id = 2) const bool HOLDER = false;
 layout(push_constant) uniform Push { TraceParams P; };
 layout(std430, binding = 0) readonly buffer Lenses { Lenslet lenses[]; };
 layout(std430, binding = 1) readonly buffer Sources { vec4 sources[]; };  // xyz = (x, y, depth) mm
-layout(std430, binding = 2) buffer Images { float images[]; };           // [source][row][col][4]
+// Per pixel 8 floats: b, grad b from ray half A (x2), grad b from half B (x2), unused.
+layout(std430, binding = 2) buffer Images { float images[]; };  // [source][row][col][8]
 
-void add_tap(uint image_base, ivec2 px, vec4 tap) {
+void add_tap(uint image_base, ivec2 px, vec4 tap, uint half_offset) {
   int row = px.y - P.band_row0;
   if (px.x < 0 || px.x >= P.grid_w || row < 0 || row >= P.band_rows || px.y >= P.grid_h) return;
-  uint i = image_base + 4u * (uint(row) * uint(P.grid_w) + uint(px.x));
-  atomicAdd(images[i + 0u], tap.x);
-  atomicAdd(images[i + 1u], tap.y);
-  atomicAdd(images[i + 2u], tap.z);
-  atomicAdd(images[i + 3u], tap.w);
+  uint i = image_base + 8u * (uint(row) * uint(P.grid_w) + uint(px.x));
+  // Each half estimates the whole gradient: its rays count double.
+  atomicAdd(images[i], tap.x);
+  atomicAdd(images[i + half_offset], 2.0f * tap.y);
+  atomicAdd(images[i + half_offset + 1u], 2.0f * tap.z);
+  atomicAdd(images[i + half_offset + 2u], 2.0f * tap.w);
 }
 
 void main() {
@@ -35,17 +37,19 @@ void main() {
   uint s = gl_GlobalInvocationID.y;
   if (s >= P.source_count) return;
   vec3 theta = sources[P.source_offset + s].xyz;
-  uint image_base = s * uint(P.grid_w) * uint(P.band_rows) * 4u;
+  uint image_base = s * uint(P.grid_w) * uint(P.band_rows) * 8u;
   uint stride = gl_NumWorkGroups.x * gl_WorkGroupSize.x;
   for (uint r = gl_GlobalInvocationID.x; r < total; r += stride) {
     uint lens_index = r / rays_per_lens;
-    Hit hit = trace_sample(theta, lenses[lens_index], lens_index, r % rays_per_lens, P, LENS_MODEL,
+    uint sample_index = r % rays_per_lens;
+    Hit hit = trace_sample(theta, lenses[lens_index], lens_index, sample_index, P, LENS_MODEL,
                            SCINT_REFRACTION, HOLDER);
     Splat sp = splat_bilinear(hit, P);
     if (!sp.ok) continue;
-    add_tap(image_base, sp.base, sp.tap00);
-    add_tap(image_base, sp.base + ivec2(1, 0), sp.tap10);
-    add_tap(image_base, sp.base + ivec2(0, 1), sp.tap01);
-    add_tap(image_base, sp.base + ivec2(1, 1), sp.tap11);
+    uint half_offset = 1u + 3u * ray_half(sample_index, P.strata);
+    add_tap(image_base, sp.base, sp.tap00, half_offset);
+    add_tap(image_base, sp.base + ivec2(1, 0), sp.tap10, half_offset);
+    add_tap(image_base, sp.base + ivec2(0, 1), sp.tap01, half_offset);
+    add_tap(image_base, sp.base + ivec2(1, 1), sp.tap11, half_offset);
   }
 }

@@ -235,6 +235,13 @@ double SparseImage::photons() const {
   return s;
 }
 
+std::array<double, 4> SparseImage::value(int64_t key) const {
+  auto it = pixels.find(key);
+  if (it == pixels.end()) return {0, 0, 0, 0};
+  const auto& v = it->second;
+  return {v[0], 0.5 * (v[1] + v[4]), 0.5 * (v[2] + v[5]), 0.5 * (v[3] + v[6])};
+}
+
 SampleHit trace_sample(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta, size_t lens,
                        uint32_t sample) {
   return trace_sample_impl(sys, settings, theta, lens, sample);
@@ -245,9 +252,12 @@ SparseImage psf(const OpticalSystem& sys, const TraceSettings& settings, const g
   AnalysisGrid grid = AnalysisGrid::of(sys, settings.binning);
   SparseImage img{grid.width, grid.height, {}};
   double half_w = 0.5 * sys.sensor_width_mm(), half_h = 0.5 * sys.sensor_height_mm();
+  const uint32_t strata = settings.strata();
   for (size_t l = 0; l < sys.lenslets.size(); ++l) {
     for (uint32_t k = 0; k < settings.rays(); ++k) {
       SampleHit h = trace_sample_impl(sys, settings, theta, l, k);
+      // Checkerboard half of the strata; each half estimates the whole gradient.
+      int half = int((k % strata + k / strata) % 2);
       if (!h.ok || std::abs(h.x_mm) > half_w || std::abs(h.y_mm) > half_h) continue;
       double u = (h.x_mm + half_w) / grid.pixel_mm - 0.5;
       double v = (h.y_mm + half_h) / grid.pixel_mm - 0.5;
@@ -264,28 +274,28 @@ SparseImage psf(const OpticalSystem& sys, const TraceSettings& settings, const g
           glm::dvec3 grad = h.dweight * a * b + h.weight * (da_sign * dfx * b + db_sign * dfy * a);
           auto& px = img.pixels[int64_t(row) * grid.width + col];
           px[0] += h.weight * a * b;
-          px[1] += grad.x;
-          px[2] += grad.y;
-          px[3] += grad.z;
+          for (int c = 0; c < 3; ++c) px[1 + 3 * half + c] += 2.0 * grad[c];
         }
     }
   }
   return img;
 }
 
-FisherResult fisher_of(const SparseImage& image, double dark) {
+FisherResult fisher_of(const SparseImage& image, double dark, FisherEstimator estimator) {
   FisherResult r;
   for (const auto& [key, px] : image.pixels) {
     r.photons += px[0];
     double b = px[0] + dark;
     if (!(b > 0)) continue;
     double inv_p = 1.0 / b, inv_b = 1.0 / std::expm1(b);
-    const double g[3] = {px[1], px[2], px[3]};
+    glm::dvec3 ga(px[1], px[2], px[3]), gb(px[4], px[5], px[6]);
+    if (estimator == FisherEstimator::naive) ga = gb = 0.5 * (ga + gb);
     int k = 0;
     for (int i = 0; i < 3; ++i)
       for (int j = i; j < 3; ++j, ++k) {
-        r.poisson[k] += g[i] * g[j] * inv_p;
-        r.binary[k] += g[i] * g[j] * inv_b;
+        double term = 0.5 * (ga[i] * gb[j] + ga[j] * gb[i]);
+        r.poisson[k] += term * inv_p;
+        r.binary[k] += term * inv_b;
       }
   }
   // Pixels no ray reaches still hold dark counts but no information.
@@ -293,7 +303,7 @@ FisherResult fisher_of(const SparseImage& image, double dark) {
 }
 
 FisherResult fisher(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta) {
-  return fisher_of(psf(sys, settings, theta), sys.effects.dark_counts_per_pixel);
+  return fisher_of(psf(sys, settings, theta), sys.effects.dark_counts_per_pixel, settings.estimator);
 }
 
 std::optional<glm::dvec2> trace_ray(const OpticalSystem& sys, size_t lens_index, const glm::dvec3& origin,

@@ -17,18 +17,21 @@
 
 namespace prism::ref {
 
-// Expected photons and d/d(x, y, depth) per touched pixel, keyed by
-// row * grid_width + col: only the pixels rays reach are stored.
+// Per touched pixel, keyed by row * grid_width + col: expected photons b, and
+// d b/d(x, y, depth) estimated from each half of the rays (checkerboard of
+// strata) separately: {b, gA.x, gA.y, gA.z, gB.x, gB.y, gB.z}.
 struct SparseImage {
   int width = 0;
   int height = 0;
-  std::unordered_map<int64_t, std::array<double, 4>> pixels;
+  std::unordered_map<int64_t, std::array<double, 7>> pixels;
   double photons() const;
+  // b and the mean gradient of pixel `key`.
+  std::array<double, 4> value(int64_t key) const;
 };
 
 SparseImage psf(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta);
 FisherResult fisher(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta);
-FisherResult fisher_of(const SparseImage& image, double dark_counts_per_pixel);
+FisherResult fisher_of(const SparseImage& image, double dark_counts_per_pixel, FisherEstimator estimator);
 
 // Landing point (x, y) on the sensor plane of one explicit ray through lenslet
 // `lens_index`, or nothing when an aperture or total internal reflection stops it.

@@ -19,6 +19,10 @@ void ForwardOptions::add_to(CLI::App* app, unsigned default_binning) {
       ->check(CLI::PositiveNumber);
   app->add_option("--backend", backend, "vulkan (kernels on the device) or cpu (double-precision reference)")
       ->capture_default_str()->check(CLI::IsMember({"vulkan", "cpu"}));
+  app->add_option("--fisher-estimator", estimator,
+                  "split: pair two independent halves of the rays (no noise bias in grad b grad b^T); "
+                  "naive: plug-in estimate, biased upward by sampling noise")
+      ->capture_default_str()->check(CLI::IsMember({"split", "naive"}));
 }
 
 TraceSettings ForwardOptions::settings(const Scene& scene) const {
@@ -26,6 +30,7 @@ TraceSettings ForwardOptions::settings(const Scene& scene) const {
   t.rays_per_lenslet = rays;
   t.binning = binning;
   t.photons_emitted = photons > 0 ? photons : scene.photons_emitted;
+  t.estimator = estimator == "naive" ? FisherEstimator::naive : FisherEstimator::split;
   return t;
 }
 

@@ -20,6 +20,7 @@ struct ForwardOptions {
   std::string lens_model;  // empty: the scene's own
   double photons = 0;      // 0: the scene's own
   std::string backend = "vulkan";
+  std::string estimator = "split";
 
   void add_to(CLI::App* app, unsigned default_binning);
   TraceSettings settings(const Scene& scene) const;

@@ -35,8 +35,10 @@ void run(const PsfArgs& a) {
     auto sparse = ref::psf(scene.optics, t, theta);
     img = {sparse.width, sparse.height, AnalysisGrid::of(scene.optics, t.binning).pixel_mm,
            std::vector<float>(size_t(sparse.width) * sparse.height * 4, 0.0f)};
-    for (const auto& [k, v] : sparse.pixels)
-      for (int c = 0; c < 4; ++c) img.data[size_t(k) * 4 + c] = float(v[c]);
+    for (const auto& [k, v] : sparse.pixels) {
+      auto px = sparse.value(k);
+      for (int c = 0; c < 4; ++c) img.data[size_t(k) * 4 + c] = float(px[c]);
+    }
   }
   std::vector<ExrChannel> channels{{"Y", img.data.data(), 4}};
   if (a.derivatives) {

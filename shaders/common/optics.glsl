@@ -399,9 +399,15 @@ PRISM_FN float expm1_small(float x) {
   return exp(x) - 1.0f;
 }
 
-// Pixel (b, db/dtheta) with background `dark` counts: the information it holds
-// as (xx, xy, xz, yy, yz, zz), for a Poisson pixel (divide by b) or a binary
-// single-photon pixel (divide by exp(b) - 1). Empty pixels hold none.
+// Information a pixel holds, as (xx, xy, xz, yy, yz, zz), for a Poisson pixel
+// (divide by b) or a binary single-photon pixel (divide by exp(b) - 1).
+// The pixel stores b and two independent estimates of grad b, one from each
+// half of the rays (checkerboard strata). The naive estimate uses their mean
+// g and g g^T, whose expectation is grad b grad b^T + Var(g): sampling noise
+// adds information that is not there, without bound where one ray grazes a
+// pixel (w (df)^2 / f). The split estimate (gA gB^T + gB gA^T) / 2 has
+// expectation grad b grad b^T exactly, because the halves are independent.
+// Empty pixels hold none; `dark` is the background in every pixel.
 struct FisherTerms {
   float xx;
   float xy;
@@ -411,18 +417,33 @@ struct FisherTerms {
   float zz;
 };
 
-PRISM_FN FisherTerms fisher_terms(vec4 pixel, float dark, bool binary) {
-  float b = pixel.x + dark;
+const int FISHER_NAIVE = 0;
+const int FISHER_SPLIT = 1;
+
+PRISM_FN FisherTerms fisher_terms(float b_signal, vec3 ga, vec3 gb, float dark, bool binary, int estimator) {
+  float b = b_signal + dark;
   FisherTerms f = FisherTerms(0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f);
   if (!(b > 0.0f)) return f;
   float inv = 1.0f / (binary ? expm1_small(b) : b);
-  f.xx = pixel.y * pixel.y * inv;
-  f.xy = pixel.y * pixel.z * inv;
-  f.xz = pixel.y * pixel.w * inv;
-  f.yy = pixel.z * pixel.z * inv;
-  f.yz = pixel.z * pixel.w * inv;
-  f.zz = pixel.w * pixel.w * inv;
+  vec3 u = ga;
+  vec3 v = gb;
+  if (estimator == FISHER_NAIVE) {
+    u = 0.5f * (ga + gb);
+    v = u;
+  }
+  f.xx = u.x * v.x * inv;
+  f.xy = 0.5f * (u.x * v.y + u.y * v.x) * inv;
+  f.xz = 0.5f * (u.x * v.z + u.z * v.x) * inv;
+  f.yy = u.y * v.y * inv;
+  f.yz = 0.5f * (u.y * v.z + u.z * v.y) * inv;
+  f.zz = u.z * v.z * inv;
   return f;
+}
+
+// Which half of the rays a sample belongs to: the checkerboard of strata, so
+// each half is itself stratified over the aperture.
+PRISM_FN uint ray_half(uint sample_index, uint strata) {
+  return ((sample_index % strata) + (sample_index / strata)) & 1u;
 }
 
 #endif
