@@ -22,18 +22,26 @@ template <size_t N> std::span<const uint32_t> spirv(const uint32_t (&code)[N]) {
 
 }  // namespace
 
-shared::Lenslet device_lenslet(const OpticalSystem& sys, size_t i) {
-  const auto& l = sys.lenslets[i];
-  shared::Lenslet d{};
-  d.center_mm = glm::vec2(float(l.x_mm), float(l.y_mm));
-  d.radius_mm = float(0.5 * l.diameter_mm);
-  d.focal_mm = float(l.focal_mm);
-  d.curvature_radius_mm = float(sys.curvature_radius_mm(i));
-  d.thickness_mm = float(sys.center_thickness_mm(i));
-  d.sag_mm = float(sys.sag_mm(i));
-  d.glass_index = float(sys.glass_index);
-  d.curved_toward_sensor = sys.curved_toward_sensor ? 1 : 0;
-  return d;
+std::vector<shared::Lenslet> device_lenslets(const OpticalSystem& sys, const TraceSettings& settings) {
+  std::vector<shared::Lenslet> out(sys.lenslets.size());
+  uint64_t first = 0;
+  for (size_t i = 0; i < out.size(); ++i) {
+    const auto& l = sys.lenslets[i];
+    shared::Lenslet& d = out[i];
+    d.center_mm = glm::vec2(float(l.x_mm), float(l.y_mm));
+    d.radius_mm = float(0.5 * l.diameter_mm);
+    d.focal_mm = float(l.focal_mm);
+    d.curvature_radius_mm = float(sys.curvature_radius_mm(i));
+    d.thickness_mm = float(sys.center_thickness_mm(i));
+    d.sag_mm = float(sys.sag_mm(i));
+    d.glass_index = float(sys.glass_index);
+    d.curved_toward_sensor = sys.curved_toward_sensor ? 1 : 0;
+    d.strata = settings.strata_for(l.diameter_mm);
+    d.first_ray = uint32_t(first);
+    first += uint64_t(d.strata) * d.strata;
+    if (first > 0xffffffffull) throw std::invalid_argument("more than 2^32 rays per source: lower --rays");
+  }
+  return out;
 }
 
 double PixelImage::photons() const {
@@ -63,9 +71,9 @@ struct ForwardVulkan::Impl {
                uint32_t(s.effects.scintillator_refraction), uint32_t(s.effects.holder_vignetting)}),
         reduce(c, "fisher_reduce", spirv(spv_fisher_reduce), 2, 3 * sizeof(uint32_t),
                {uint32_t(t.estimator == FisherEstimator::split ? shared::FISHER_SPLIT : shared::FISHER_NAIVE)}) {
-    std::vector<shared::Lenslet> dev(s.lenslets.size());
-    for (size_t i = 0; i < dev.size(); ++i) dev[i] = device_lenslet(s, i);
+    std::vector<shared::Lenslet> dev = device_lenslets(s, t);
     lenses.upload(std::span<const shared::Lenslet>(dev));
+    params.total_rays = dev.back().first_ray + dev.back().strata * dev.back().strata;
 
     params.pixel_mm = float(grid.pixel_mm);
     params.sensor_half_w_mm = float(0.5 * s.sensor_width_mm());
@@ -78,7 +86,6 @@ struct ForwardVulkan::Impl {
     params.grid_w = grid.width;
     params.grid_h = grid.height;
     params.lens_count = uint32_t(s.lenslets.size());
-    params.strata = t.strata();
 
     // One image buffer of at most maxStorageBufferRange and the budget: bands
     // of rows when one image is larger, batches of sources when it is smaller.
@@ -93,7 +100,7 @@ struct ForwardVulkan::Impl {
   uint32_t bands() const { return (uint32_t(params.grid_h) + band_rows - 1) / band_rows; }
 
   uint32_t splat_groups() const {
-    uint64_t total = uint64_t(params.strata) * params.strata * params.lens_count;
+    uint64_t total = params.total_rays;
     return uint32_t(std::min<uint64_t>((total + kSplatGroup - 1) / kSplatGroup, std::min(ctx.max_group_count_x(), 65535u)));
   }
 };
@@ -107,9 +114,7 @@ ForwardVulkan::ForwardVulkan(vk::Context& ctx, const OpticalSystem& sys, const T
 
 ForwardVulkan::~ForwardVulkan() = default;
 
-uint64_t ForwardVulkan::rays_per_source() const {
-  return uint64_t(impl_->params.strata) * impl_->params.strata * impl_->params.lens_count;
-}
+uint64_t ForwardVulkan::rays_per_source() const { return impl_->params.total_rays; }
 
 std::vector<FisherResult> ForwardVulkan::fisher(std::span<const glm::dvec3> theta) {
   Impl& m = *impl_;
@@ -199,7 +204,7 @@ std::vector<glm::vec3> trace_rays_vulkan(vk::Context& ctx, const OpticalSystem& 
                                          std::span<const glm::vec3> origin_dir_pairs) {
   size_t n = origin_dir_pairs.size() / 2;
   if (n == 0) return {};
-  shared::Lenslet lens = device_lenslet(sys, lens_index);
+  shared::Lenslet lens = device_lenslets(sys, TraceSettings{})[lens_index];
   vk::Buffer lens_buf(ctx, sizeof(lens));
   lens_buf.upload(&lens, sizeof(lens));
   std::vector<glm::vec4> rays(2 * n);

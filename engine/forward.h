@@ -49,8 +49,8 @@ class ForwardVulkan {
   double last_kernel_ms_ = 0;
 };
 
-// Lenslet i as the kernels see it.
-shared::Lenslet device_lenslet(const OpticalSystem& sys, size_t i);
+// The lenslets as the kernels see them: geometry, strata, first ray.
+std::vector<shared::Lenslet> device_lenslets(const OpticalSystem& sys, const TraceSettings& settings);
 
 // Trace explicit rays (origin, direction pairs) through one lenslet to the
 // sensor plane on the device; returns (x_mm, y_mm, ok) per ray.

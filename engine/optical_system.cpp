@@ -15,8 +15,9 @@ double OpticalSystem::sag_mm(size_t i) const {
 }
 
 // Even, so the checkerboard halves of the strata hold equally many rays.
-unsigned TraceSettings::strata() const {
-  unsigned s = unsigned(std::ceil(std::sqrt(double(rays_per_lenslet)) - 1e-9));
+unsigned TraceSettings::strata_for(double diameter_mm) const {
+  double per_side = std::sqrt(double(rays_per_lenslet)) * diameter_mm / defaults::lenslet_diameter_mm;
+  unsigned s = unsigned(std::ceil(per_side - 1e-9));
   s += s & 1u;
   return s < 2 ? 2 : s;
 }

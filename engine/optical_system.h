@@ -61,13 +61,17 @@ const char* to_string(FisherEstimator e);
 
 // Analysis settings of one forward-model run.
 struct TraceSettings {
-  unsigned rays_per_lenslet = defaults::rays_per_lenslet;  // rounded up to (2k)^2: an even square of strata
+  // Rays through a lenslet of the prototype's 3 mm diameter, rounded up to an
+  // even square of strata. Other lenses get the same density of rays per
+  // aperture area, so designs with lenses of different sizes compare fairly.
+  unsigned rays_per_lenslet = defaults::rays_per_lenslet;
   unsigned binning = defaults::analysis_binning;           // analyse on binning x binning sensor pixels
   double photons_emitted = defaults::photons_emitted;
   FisherEstimator estimator = FisherEstimator::split;
 
-  unsigned strata() const;
-  unsigned rays() const { return strata() * strata(); }
+  unsigned strata() const { return strata_for(defaults::lenslet_diameter_mm); }
+  unsigned rays() const { return strata() * strata(); }  // through a 3 mm lenslet
+  unsigned strata_for(double diameter_mm) const;          // even, >= 2
 };
 
 // The analysis grid: the sensor binned B x B (the last column/row may hang

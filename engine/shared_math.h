@@ -11,6 +11,6 @@ using uint = unsigned int;
 #include "common/optics.glsl"
 #undef PRISM_FN
 
-static_assert(sizeof(Lenslet) == 40, "Lenslet must match its std430 layout");
+static_assert(sizeof(Lenslet) == 48, "Lenslet must match its std430 layout");
 static_assert(sizeof(TraceParams) == 64, "TraceParams must match its std430 push-constant layout");
 }  // namespace prism::shared

@@ -31,22 +31,33 @@ void add_tap(uint image_base, ivec2 px, vec4 tap, uint half_offset) {
   atomicAdd(images[i + half_offset + 2u], 2.0f * tap.w);
 }
 
+// The lenslet that ray r belongs to: the last one whose first_ray <= r.
+uint lens_of_ray(uint r) {
+  uint lo = 0u;
+  uint hi = P.lens_count - 1u;
+  while (lo < hi) {
+    uint mid = (lo + hi + 1u) / 2u;
+    if (lenses[mid].first_ray <= r) lo = mid;
+    else hi = mid - 1u;
+  }
+  return lo;
+}
+
 void main() {
-  uint rays_per_lens = P.strata * P.strata;
-  uint total = rays_per_lens * P.lens_count;
+  uint total = P.total_rays;
   uint s = gl_GlobalInvocationID.y;
   if (s >= P.source_count) return;
   vec3 theta = sources[P.source_offset + s].xyz;
   uint image_base = s * uint(P.grid_w) * uint(P.band_rows) * 8u;
   uint stride = gl_NumWorkGroups.x * gl_WorkGroupSize.x;
   for (uint r = gl_GlobalInvocationID.x; r < total; r += stride) {
-    uint lens_index = r / rays_per_lens;
-    uint sample_index = r % rays_per_lens;
+    uint lens_index = lens_of_ray(r);
+    uint sample_index = r - lenses[lens_index].first_ray;
     Hit hit = trace_sample(theta, lenses[lens_index], lens_index, sample_index, P, LENS_MODEL,
                            SCINT_REFRACTION, HOLDER);
     Splat sp = splat_bilinear(hit, P);
     if (!sp.ok) continue;
-    uint half_offset = 1u + 3u * ray_half(sample_index, P.strata);
+    uint half_offset = 1u + 3u * ray_half(sample_index, lenses[lens_index].strata);
     add_tap(image_base, sp.base, sp.tap00, half_offset);
     add_tap(image_base, sp.base + ivec2(1, 0), sp.tap10, half_offset);
     add_tap(image_base, sp.base + ivec2(0, 1), sp.tap01, half_offset);

@@ -192,12 +192,13 @@ FacePath face_path(D h, D pr2, double w, double n) {
 SampleHit trace_sample_impl(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta,
                             size_t lens, uint32_t sample) {
   Geometry g = geometry(sys, lens);
-  glm::dvec2 u = unit_disk_sample(uint32_t(lens), sample, settings.strata());
+  const uint32_t strata = settings.strata_for(sys.lenslets[lens].diameter_mm);
+  glm::dvec2 u = unit_disk_sample(uint32_t(lens), sample, strata);
   double z_ap = (sys.lens_model == LensModel::real && !sys.curved_toward_sensor) ? g.sag : 0.0;
   V3 p{D(g.cx + g.radius * u.x), D(g.cy + g.radius * u.y), D(z_ap)};
   V3 s{D(theta.x, {1, 0, 0}), D(theta.y, {0, 1, 0}), D(-(theta.z + sys.working_distance_mm), {0, 0, -1})};
   double per_sample = settings.photons_emitted * sys.effects.detection_efficiency / (4 * M_PI) * M_PI * g.radius *
-                      g.radius / double(settings.rays());
+                      g.radius / double(strata * strata);
   V3 origin = s;
   D weight;
   if (sys.effects.scintillator_refraction) {
@@ -252,9 +253,9 @@ SparseImage psf(const OpticalSystem& sys, const TraceSettings& settings, const g
   AnalysisGrid grid = AnalysisGrid::of(sys, settings.binning);
   SparseImage img{grid.width, grid.height, {}};
   double half_w = 0.5 * sys.sensor_width_mm(), half_h = 0.5 * sys.sensor_height_mm();
-  const uint32_t strata = settings.strata();
   for (size_t l = 0; l < sys.lenslets.size(); ++l) {
-    for (uint32_t k = 0; k < settings.rays(); ++k) {
+    const uint32_t strata = settings.strata_for(sys.lenslets[l].diameter_mm);
+    for (uint32_t k = 0; k < strata * strata; ++k) {
       SampleHit h = trace_sample_impl(sys, settings, theta, l, k);
       // Checkerboard half of the strata; each half estimates the whole gradient.
       int half = int((k % strata + k / strata) % 2);

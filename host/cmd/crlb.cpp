@@ -20,6 +20,8 @@ struct CrlbArgs {
   double x_mm = 0, y_mm = 0;
   std::string sensor = "poisson";
   std::string csv, plot;
+  double converge = 0;
+  unsigned max_rays = 1u << 20;
   ForwardOptions fw;
 };
 
@@ -53,12 +55,18 @@ void run(const CrlbArgs& a) {
   std::printf("# device: %s\n# rays per lenslet: %u, analysis pixel: %u x %u binned = %.1f um, sensor model: %s\n",
               device.c_str(), t0.rays(), t0.binning, t0.binning, g0.pixel_mm * 1e3, a.sensor.c_str());
   bool at_defaults = t0.rays() >= defaults::rays_per_lenslet && t0.binning == defaults::analysis_binning;
-  std::printf("# convergence: %s\n",
-              at_defaults ? ("CRLB within " + fmt(100 * defaults::crlb_convergence_tol) +
-                             "% of its value at 16x the rays (README, \"Convergence\")").c_str()
-                          : "not the converged defaults; see README, \"Convergence\", for the tolerance they reach");
-  std::printf("%-14s %-4s %7s %7s %7s %9s %10s %10s %10s %10s  %s\n", "scene", "lens", "x_mm", "y_mm", "depth",
-              "photons", "crlb_x", "crlb_y", "crlb_z", "crlb_3d", "flag");
+  if (a.converge > 0)
+    std::printf("# convergence: rays x4 until the 3D CRLB changes by <= %s%% (column 'change'), at most %u rays\n",
+                fmt(100 * a.converge).c_str(), a.max_rays);
+  else
+    std::printf("# convergence: %s\n",
+                at_defaults ? ("defaults: prototype CRLB within " + fmt(100 * defaults::crlb_convergence_tol) +
+                               "% of 16x the rays (README, \"Convergence\"); other designs: use --converge").c_str()
+                            : "not the converged defaults; use --converge TOL to measure it");
+  std::printf("# CRLB at %.0f um analysis pixels: an upper bound on the CRLB at the native %.1f um pixels\n",
+              g0.pixel_mm * 1e3, scenes.front().optics.pixel_um);
+  std::printf("%-14s %-4s %7s %7s %7s %9s %10s %10s %10s %10s %8s %7s  %s\n", "scene", "lens", "x_mm", "y_mm", "depth",
+              "photons", "crlb_x", "crlb_y", "crlb_z", "crlb_3d", "rays", "change", "flag");
 
   std::vector<CrlbRow> all;
   for (const auto& scene : scenes) {
@@ -67,14 +75,16 @@ void run(const CrlbArgs& a) {
     std::fprintf(stderr, "prism crlb: %s (%s lens), %zu positions, %u rays/lenslet ...", scene.name.c_str(),
                  to_string(scene.optics.lens_model), positions.size(), t.rays());
     std::fflush(stderr);
-    auto rows = crlb_study(scene, positions, t, a.fw.backend_kind(), sensor, ctx.get());
+    auto rows = a.converge > 0
+                    ? crlb_converged(scene, positions, t, a.converge, a.max_rays, a.fw.backend_kind(), sensor, ctx.get())
+                    : crlb_study(scene, positions, t, a.fw.backend_kind(), sensor, ctx.get());
     double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
     std::fprintf(stderr, " %.2f s\n", s);
     for (const auto& r : rows) {
-      std::printf("%-14s %-4s %7.2f %7.2f %7.2f %9.2f %10s %10s %10s %10s  %s\n", r.scene.c_str(),
+      std::printf("%-14s %-4s %7.2f %7.2f %7.2f %9.2f %10s %10s %10s %10s %8u %7s  %s\n", r.scene.c_str(),
                   to_string(r.lens_model), r.theta.x, r.theta.y, r.theta.z, r.photons, fmt(r.crlb.x_mm).c_str(),
                   fmt(r.crlb.y_mm).c_str(), fmt(r.crlb.depth_mm).c_str(), fmt(r.crlb.r3_mm).c_str(),
-                  r.crlb.flag.c_str());
+                  r.rays_per_lenslet, std::isnan(r.change) ? "-" : fmt(r.change).c_str(), r.crlb.flag.c_str());
       all.push_back(r);
     }
   }
@@ -83,13 +93,13 @@ void run(const CrlbArgs& a) {
     write_atomically(a.csv, [&](const std::string& tmp) {
       std::ofstream out(tmp);
       out << "scene,x_mm,y_mm,depth_mm,photons,crlb_x_mm,crlb_y_mm,crlb_z_mm,crlb_3d_mm,"
-             "lens_model,sensor_model,rays_per_lenslet,binning,convergence_tol_rel,flag\n";
+             "lens_model,sensor_model,rays_per_lenslet,binning,analysis_pixel_um,change_vs_quarter_rays,flag\n";
       for (const auto& r : all)
         out << r.scene << ',' << fmt(r.theta.x) << ',' << fmt(r.theta.y) << ',' << fmt(r.theta.z) << ','
             << fmt(r.photons) << ',' << fmt(r.crlb.x_mm) << ',' << fmt(r.crlb.y_mm) << ',' << fmt(r.crlb.depth_mm)
-            << ',' << fmt(r.crlb.r3_mm) << ',' << to_string(r.lens_model) << ',' << a.sensor << ',' << t0.rays()
-            << ',' << t0.binning << ',' << (at_defaults ? fmt(defaults::crlb_convergence_tol) : "unknown") << ','
-            << r.crlb.flag << '\n';
+            << ',' << fmt(r.crlb.r3_mm) << ',' << to_string(r.lens_model) << ',' << a.sensor << ','
+            << r.rays_per_lenslet << ',' << t0.binning << ',' << fmt(g0.pixel_mm * 1e3) << ','
+            << (std::isnan(r.change) ? "" : fmt(r.change)) << ',' << r.crlb.flag << '\n';
       if (!out) throw std::runtime_error("cannot write " + a.csv);
     });
     std::fprintf(stderr, "prism crlb: wrote %s\n", a.csv.c_str());
@@ -132,6 +142,10 @@ void add_crlb(CLI::App& app) {
       ->capture_default_str()->check(CLI::IsMember({"poisson", "binary"}));
   c->add_option("--csv", a->csv, "write one row per (scene, position)");
   c->add_option("--plot", a->plot, "draw 3D CRLB against depth (.png or .svg)");
+  c->add_option("--converge", a->converge,
+                "quadruple the rays until every 3D CRLB changes by at most this fraction (e.g. 0.02)")
+      ->check(CLI::Range(0.0, 1.0));
+  c->add_option("--max-rays", a->max_rays, "with --converge: most rays per 3 mm lenslet")->capture_default_str();
   a->fw.add_to(c, defaults::analysis_binning);
   c->callback([a] { run(*a); });
 }

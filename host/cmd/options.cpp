@@ -10,7 +10,8 @@ void ForwardOptions::add_to(CLI::App* app, unsigned default_binning) {
   app->add_option("--device", device,
                   "Vulkan device: auto (GPU if present), gpu, cpu (lavapipe), an index or part of a name; "
                   "default $PRISM_DEVICE or auto");
-  app->add_option("--rays", rays, "rays per lenslet aperture (rounded up to a square of strata)")
+  app->add_option("--rays", rays, "rays per 3 mm lenslet aperture, rounded up to an even square of strata; "
+                  "other lens sizes get the same rays per mm^2")
       ->capture_default_str()->check(CLI::Range(1u, 1u << 24));
   app->add_option("--binning", binning, "analyse on B x B binned sensor pixels")
       ->capture_default_str()->check(CLI::Range(1u, 1024u));

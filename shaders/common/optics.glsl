@@ -17,7 +17,7 @@
 const int LENS_THIN = 0;  // ideal thin lens: paraxial deflection by -h/f
 const int LENS_REAL = 1;  // plano-convex: spherical front face, flat back face
 
-// One lenslet as the kernels see it (std430, 40 bytes).
+// One lenslet as the kernels see it (std430, 48 bytes).
 struct Lenslet {
   vec2 center_mm;             // lateral centre on the lens plane
   float radius_mm;            // clear aperture radius of both faces
@@ -27,7 +27,9 @@ struct Lenslet {
   float sag_mm;               // front-face sag at the rim (real model)
   float glass_index;          // refractive index of the glass (real model)
   int curved_toward_sensor;   // real model: 0 = curved face toward the source, 1 = flipped
-  float pad_;                 // std430: the struct aligns to its vec2
+  uint strata;                // aperture samples = strata^2 (equal density over lens sizes)
+  uint first_ray;             // index of this lenslet's first ray among all lenslets' rays
+  uint pad_;                  // std430: the struct aligns to its vec2
 };
 
 // Per-dispatch constants (push constants, std430, 64 bytes).
@@ -45,7 +47,7 @@ struct TraceParams {
   int band_row0;              // first grid row this pass keeps
   int band_rows;              // rows this pass keeps (chunking of large sensors)
   uint lens_count;            // lenslets in the scene
-  uint strata;                // rays per lenslet = strata * strata
+  uint total_rays;            // rays per source, all lenslets together
   uint source_offset;         // first source of this dispatch
   uint source_count;          // sources in this dispatch
 };
@@ -332,13 +334,13 @@ PRISM_FN Hit trace_real(Ray ray, Lenslet lens, float holder_bore_mm, float lens_
 // constants), so an effect the scene does not name is compiled out.
 PRISM_FN Hit trace_sample(vec3 theta, Lenslet lens, uint lens_index, uint sample_index, TraceParams P,
                           int lens_model, bool scint_refraction, bool holder) {
-  vec2 unit = aperture_sample(lens_index, sample_index, P.strata);
+  vec2 unit = aperture_sample(lens_index, sample_index, lens.strata);
   // The entrance disk: the rim plane of a front sphere, else the plane z = 0.
   float aperture_z = (lens_model == LENS_REAL && lens.curved_toward_sensor == 0) ? lens.sag_mm : 0.0f;
   float aperture_r = lens.radius_mm;
   vec3 p = vec3(lens.center_mm.x + aperture_r * unit.x, lens.center_mm.y + aperture_r * unit.y, aperture_z);
   // Each stratum carries an equal share of the aperture area.
-  float photons_per_sample = P.photons_per_sr * 3.14159265358979f * aperture_r * aperture_r / float(P.strata * P.strata);
+  float photons_per_sample = P.photons_per_sr * 3.14159265358979f * aperture_r * aperture_r / float(lens.strata * lens.strata);
   DVec3 src = source_point(theta, P.working_distance_mm);
   Ray ray = scint_refraction
                 ? emit_through_face(src, p, photons_per_sample, P.scint_index, -P.working_distance_mm)

@@ -23,11 +23,10 @@ TEST_CASE("shared GLSL math compiled as C++ traces rays like the reference") {
       P.working_distance_mm = float(sys.working_distance_mm);
       P.photons_per_sr = float(t.photons_emitted / (4 * M_PI));
       P.scint_index = float(sys.effects.scintillator_index);
-      P.strata = t.strata();
       glm::dvec3 theta{2.5, -1.5, 12.0};
       int compared = 0;
       for (size_t l = 0; l < sys.lenslets.size(); ++l) {
-        sh::Lenslet lens = prism::device_lenslet(sys, l);
+        sh::Lenslet lens = prism::device_lenslets(sys, t)[l];
         for (uint32_t s = 0; s < t.rays(); ++s) {
           auto r = prism::ref::trace_sample(sys, t, theta, l, s);
           auto h = sh::trace_sample(glm::vec3(theta), lens, uint32_t(l), s, P,
