@@ -1,0 +1,77 @@
+// Serving a PSF dictionary under a memory budget. The coarse level the support
+// search correlates against stays resident on the device, packed into storage
+// buffers of at most maxStorageBufferRange (128 MiB on lavapipe); its
+// summed-area tables stay on the host. Finer levels are read tile by tile, only
+// around the pixels asked for, into an LRU cache that never exceeds the host
+// budget. A dictionary far larger than memory is served this way.
+#pragma once
+#include <cstdint>
+#include <list>
+#include <map>
+#include <memory>
+#include <span>
+#include <tuple>
+#include <vector>
+
+#include <glm/glm.hpp>
+
+#include "engine/vk/compute.h"
+#include "host/dictionary_store.h"
+
+namespace prism {
+
+struct ServiceBudget {
+  uint64_t host_bytes = 1ull << 30;    // summed-area tables + tile cache
+  uint64_t device_bytes = 1ull << 30;  // resident coarse level
+};
+
+struct ServiceStats {
+  uint64_t host_bytes = 0, host_peak_bytes = 0, device_bytes = 0;
+  uint64_t tile_hits = 0, tile_misses = 0, evictions = 0;
+  uint64_t bytes_read = 0;  // decoded tile bytes fetched from disk
+};
+
+class DictionaryService {
+ public:
+  // ctx may be null: nothing is put on a device (CPU-only users).
+  DictionaryService(const DictionaryReader& reader, vk::Context* ctx, int coarse_level, ServiceBudget budget);
+
+  const DictionaryManifest& manifest() const { return reader_.manifest(); }
+  int coarse_level() const { return coarse_level_; }
+
+  // Where PSF i's coarse level lives on the device: buffer and float offset.
+  struct Slot {
+    uint32_t chunk;
+    uint64_t offset;
+  };
+  Slot coarse_slot(size_t i) const { return slots_.at(i); }
+  const vk::Buffer& coarse_chunk(uint32_t c) const { return *chunks_.at(c); }
+  size_t coarse_chunks() const { return chunks_.size(); }
+  const SummedArea& coarse_mass(size_t i) const { return sats_.at(i); }
+
+  // PSF i at `level` for each pixel; tiles are fetched and cached as needed.
+  std::vector<float> values(size_t i, int level, std::span<const glm::ivec2> pixels);
+
+  const ServiceStats& stats() const { return stats_; }
+
+ private:
+  using TileKey = std::tuple<size_t, int, int, int>;  // psf, level, tile x, tile y
+  struct Tile {
+    std::vector<float> p;
+    std::list<TileKey>::iterator lru;
+  };
+  const std::vector<float>& tile(size_t i, int level, int tx, int ty);
+  void account(int64_t delta);
+
+  const DictionaryReader& reader_;
+  int coarse_level_;
+  ServiceBudget budget_;
+  std::vector<std::unique_ptr<vk::Buffer>> chunks_;
+  std::vector<Slot> slots_;
+  std::vector<SummedArea> sats_;
+  std::map<TileKey, Tile> tiles_;
+  std::list<TileKey> lru_;  // front: most recent
+  ServiceStats stats_;
+};
+
+}  // namespace prism
