@@ -10,4 +10,6 @@ void add_camera(CLI::App& app);
 // `prism dictionary ...`; its subcommands live in host/cmd/dictionary_*.cpp.
 void add_dictionary(CLI::App& app);
 void add_dictionary_merge_hdr(CLI::App& dictionary);
+void add_dictionary_build(CLI::App& dictionary);
+void add_dictionary_info(CLI::App& dictionary);
 }  // namespace prism::cmd

@@ -1,0 +1,94 @@
+// prism dictionary build / info: synthesise a PSF dictionary, and describe one.
+#include <cstdio>
+#include <filesystem>
+
+#include "host/cmd/commands.h"
+#include "host/cmd/options.h"
+#include "host/dictionary_build.h"
+#include "host/progress.h"
+
+namespace prism::cmd {
+
+namespace {
+
+struct BuildArgs {
+  std::string scene = "prototype";
+  std::string out;
+  std::string grid_x = "-25:25:5", grid_y = "-25:25:5", grid_depth = "5:50:5";
+  int binning = 4;
+  unsigned rays = 4096;
+  std::string device;
+};
+
+void run_build(const BuildArgs& a) {
+  Scene scene = load_scene(a.scene);
+  DictionaryBuildOptions o;
+  o.grid = {parse_list(a.grid_x, "--grid-x-mm"), parse_list(a.grid_y, "--grid-y-mm"),
+            parse_list(a.grid_depth, "--grid-depth-mm")};
+  o.base_binning = a.binning;
+  o.rays_per_lenslet = a.rays;
+  vk::Context ctx(vk::ContextOptions{a.device});
+  std::printf("# device: %s\n", ctx.describe().c_str());
+  Progress progress("prism dictionary build", o.grid.size());
+  auto r = build_dictionary(ctx, scene, a.out, o, [&](size_t done, size_t) { progress.update(done); });
+  progress.finish();
+  std::printf("%s: %zu PSFs rendered, %zu already present, %.1f s (%.3f s per PSF, median)\n", a.out.c_str(),
+              r.rendered, r.reused, r.seconds, r.seconds_per_psf);
+}
+
+void run_info(const std::string& dir) {
+  DictionaryReader r(dir);
+  const DictionaryManifest& m = r.manifest();
+  const OpticalSystem& o = m.scene.optics;
+  uint64_t bytes = 0;
+  size_t present = 0;
+  for (size_t i = 0; i < m.grid.size(); ++i)
+    if (r.has(i)) {
+      ++present;
+      bytes += std::filesystem::file_size(r.path_of(i));
+    }
+  auto range = [](const std::vector<double>& v) {
+    char b[96];
+    std::snprintf(b, sizeof b, "%zu values, %g .. %g", v.size(), v.front(), v.back());
+    return std::string(b);
+  };
+  std::printf("dictionary %s (format version %d, %s)\n", dir.c_str(), m.version, m.source.c_str());
+  std::printf("  scene       %s, %zu lenslets, %s lenses\n", m.scene.name.c_str(), o.lenslets.size(), to_string(o.lens_model));
+  std::printf("  sensor      %d x %d px of %.2f um\n", o.sensor_width_px, o.sensor_height_px, o.pixel_um);
+  std::printf("  grid x      %s mm\n  grid y      %s mm\n  grid depth  %s mm\n", range(m.grid.x_mm).c_str(),
+              range(m.grid.y_mm).c_str(), range(m.grid.depth_mm).c_str());
+  std::printf("  entries     %zu of %zu present%s\n", present, m.grid.size(),
+              present < m.grid.size() ? " (run `prism dictionary build` again to finish)" : "");
+  std::printf("  storage     half floats x 2^15, ZIP, %d px tiles; %.1f MiB on disk (%.2f MiB per PSF)\n", m.tile_px,
+              bytes / 1048576.0, present ? bytes / 1048576.0 / present : 0.0);
+  std::printf("  rays        %u per 3 mm lenslet\n", m.rays_per_lenslet);
+  std::printf("  levels      %d; every level of every PSF sums to 1 over the sensor\n", m.levels);
+  for (int l = 0; l < m.levels; ++l)
+    std::printf("    level %-2d  %5d x %-5d px of %7.1f um\n", l, m.level_width(l), m.level_height(l), m.pixel_mm(l) * 1e3);
+}
+
+}  // namespace
+
+void add_dictionary_build(CLI::App& dictionary) {
+  auto a = std::make_shared<BuildArgs>();
+  CLI::App* c = dictionary.add_subcommand("build", "render every grid PSF with the forward model (resumable)");
+  c->add_option("--scene", a->scene, "built-in scene or JSON file")->capture_default_str();
+  c->add_option("--out", a->out, "dictionary directory (a rerun continues an interrupted build)")->required();
+  c->add_option("--grid-x-mm", a->grid_x, "x positions: A,B,C or FIRST:LAST:STEP")->capture_default_str();
+  c->add_option("--grid-y-mm", a->grid_y, "y positions")->capture_default_str();
+  c->add_option("--grid-depth-mm", a->grid_depth, "depths from the scintillator face")->capture_default_str();
+  c->add_option("--binning", a->binning, "level 0 = sensor pixels binned B x B (1: full resolution, 128 MB/PSF in memory)")
+      ->capture_default_str()->check(CLI::Range(1, 256));
+  c->add_option("--rays", a->rays, "rays per 3 mm lenslet for each PSF")->capture_default_str()->check(CLI::Range(4u, 1u << 24));
+  c->add_option("--device", a->device, "Vulkan device (see prism devices)");
+  c->callback([a] { run_build(*a); });
+}
+
+void add_dictionary_info(CLI::App& dictionary) {
+  auto dir = std::make_shared<std::string>();
+  CLI::App* c = dictionary.add_subcommand("info", "print a dictionary's manifest, levels and size on disk");
+  c->add_option("DIR", *dir, "dictionary directory")->required();
+  c->callback([dir] { run_info(*dir); });
+}
+
+}  // namespace prism::cmd
