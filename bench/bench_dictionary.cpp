@@ -1,0 +1,67 @@
+// The PSF dictionary's costs, in one run: time to synthesise a PSF (Vulkan vs
+// the CPU reference), bytes on disk per PSF for each base resolution, and read
+// throughput for whole levels and for tile fetches around clicks.
+#include <cstdio>
+#include <filesystem>
+#include <random>
+
+#include "bench_util.h"
+#include "engine/forward.h"
+#include "engine/ref/forward_ref.h"
+#include "host/dictionary_build.h"
+#include "host/dictionary_service.h"
+
+using namespace prism;
+namespace fs = std::filesystem;
+
+int main(int argc, char** argv) {
+  std::string device = argc > 1 ? argv[1] : "";
+  vk::Context ctx(vk::ContextOptions{device});
+  Scene scene = builtin_scene("prototype");
+  std::printf("# bench_dictionary\n# machine: %s\n# device: %s\n# times: medians; PSFs at 4096 rays per lenslet\n",
+              bench::machine_line().c_str(), ctx.describe().c_str());
+  std::printf("\n%-8s %10s %12s %12s %12s %9s %13s %10s %13s\n", "binning", "level 0", "build s/PSF", "Vulkan trace",
+              "CPU ref", "ratio", "disk MiB/PSF", "read MB/s", "tile reads/s");
+  std::string root = (fs::temp_directory_path() / "prism-bench-dictionary").string();
+  for (int binning : {16, 4, 1}) {
+    std::string dir = root + "-" + std::to_string(binning);
+    fs::remove_all(dir);
+    DictionaryBuildOptions o;
+    o.grid = {{-5.0, 5.0}, {0.0}, {10.0, 30.0}};
+    o.base_binning = binning;
+    o.rays_per_lenslet = 4096;
+    auto report = build_dictionary(ctx, scene, dir, o);
+    TraceSettings t;
+    t.rays_per_lenslet = o.rays_per_lenslet;
+    t.binning = unsigned(binning);
+    ForwardVulkan fw(ctx, scene.optics, t);
+    double gpu = bench::median_seconds(3, [&] { fw.psf({1.0, 2.0, 20.0}); });
+    double cpu = bench::median_seconds(3, [&] { ref::psf(scene.optics, t, {1.0, 2.0, 20.0}); });
+    DictionaryReader r(dir);
+    double bytes = 0;
+    for (size_t i = 0; i < r.manifest().grid.size(); ++i) bytes += double(fs::file_size(r.path_of(i)));
+    bytes /= double(r.manifest().grid.size());
+    double level0_bytes = double(r.manifest().width) * r.manifest().height * sizeof(float);
+    double read_s = bench::median_seconds(3, [&] { r.read_level(0, 0); });
+    // Tile fetches around random clicks, every fetch a cache miss (budget of one tile).
+    DictionaryService svc(r, nullptr, r.manifest().levels - 1, ServiceBudget{64 * 64 * 4 + 4096, 0});
+    std::mt19937 rng(1);
+    int fetches = 200;
+    double tiles_s = bench::median_seconds(3, [&] {
+      for (int k = 0; k < fetches; ++k) {
+        glm::ivec2 px{int(rng() % r.manifest().width), int(rng() % r.manifest().height)};
+        svc.values(size_t(k % 4), 0, std::span<const glm::ivec2>(&px, 1));
+      }
+    });
+    char size[32];
+    std::snprintf(size, sizeof size, "%dx%d", r.manifest().width, r.manifest().height);
+    std::printf("%-8d %10s %12.3f %12.3f %12.3f %8.1fx %13.2f %10.1f %13.0f\n", binning, size, report.seconds_per_psf,
+                gpu, cpu, cpu / gpu, bytes / 1048576.0, level0_bytes / read_s / 1e6, fetches / tiles_s);
+    std::fflush(stdout);
+    fs::remove_all(dir);
+  }
+  std::printf("\n1210 PSFs: multiply the per-PSF figures by 1210 (e.g. disk and build time of the whole grid).\n");
+  std::printf("build = trace on the device + normalise + write the EXR (all levels, ZIP); Vulkan trace and CPU ref\n"
+              "trace and splat one PSF (ratio = CPU ref / Vulkan trace). read = decode a whole level 0.\n");
+  return 0;
+}
