@@ -9,6 +9,7 @@ int main(int argc, char** argv) {
   app.require_subcommand(1);
   prism::cmd::add_crlb(app);
   prism::cmd::add_psf(app);
+  prism::cmd::add_dictionary(app);
 #ifdef PRISM_WITH_CAMERA
   prism::cmd::add_camera(app);
 #endif
