@@ -50,6 +50,12 @@ double PixelImage::photons() const {
   return s;
 }
 
+// psf_splat.comp's specialisation constants: lens model, effects, derivatives.
+std::vector<uint32_t> specialisation(const OpticalSystem& s, bool derivatives) {
+  return {uint32_t(s.lens_model == LensModel::real ? shared::LENS_REAL : shared::LENS_THIN),
+          uint32_t(s.effects.scintillator_refraction), uint32_t(s.effects.holder_vignetting), uint32_t(derivatives)};
+}
+
 struct ForwardVulkan::Impl {
   vk::Context& ctx;
   OpticalSystem sys;
@@ -57,6 +63,7 @@ struct ForwardVulkan::Impl {
   shared::TraceParams params{};
   vk::Buffer lenses;
   vk::Kernel splat;
+  vk::Kernel splat_values;  // b only
   vk::Kernel reduce;
   uint32_t band_rows;       // grid rows per band
   uint32_t sources_per_batch;
@@ -66,9 +73,9 @@ struct ForwardVulkan::Impl {
         sys(s),
         settings(t),
         lenses(c, s.lenslets.size() * sizeof(shared::Lenslet)),
-        splat(c, "psf_splat", spirv(spv_psf_splat), 3, sizeof(shared::TraceParams),
-              {uint32_t(s.lens_model == LensModel::real ? shared::LENS_REAL : shared::LENS_THIN),
-               uint32_t(s.effects.scintillator_refraction), uint32_t(s.effects.holder_vignetting)}),
+        splat(c, "psf_splat", spirv(spv_psf_splat), 3, sizeof(shared::TraceParams), specialisation(s, true)),
+        splat_values(c, "psf_splat (values)", spirv(spv_psf_splat), 3, sizeof(shared::TraceParams),
+                     specialisation(s, false)),
         reduce(c, "fisher_reduce", spirv(spv_fisher_reduce), 2, 3 * sizeof(uint32_t),
                {uint32_t(t.estimator == FisherEstimator::split ? shared::FISHER_SPLIT : shared::FISHER_NAIVE)}) {
     std::vector<shared::Lenslet> dev = device_lenslets(s, t);
@@ -198,6 +205,32 @@ PixelImage ForwardVulkan::psf(const glm::dvec3& theta) {
     }
   }
   return img;
+}
+
+std::vector<float> ForwardVulkan::psf_values(const glm::dvec3& theta) {
+  Impl& m = *impl_;
+  std::vector<float> out(size_t(grid_.width) * grid_.height);
+  glm::vec4 src(glm::vec3(theta), 0.0f);
+  vk::Buffer sources(m.ctx, sizeof(glm::vec4));
+  sources.upload(&src, sizeof(src));
+  // One float per pixel: bands 8x taller than with derivatives.
+  uint32_t rows = uint32_t(std::min<uint64_t>(grid_.height, uint64_t(m.band_rows) * (kPixelBytes / sizeof(float))));
+  vk::Buffer images(m.ctx, uint64_t(grid_.width) * rows * sizeof(float));
+  vk::Stream stream(m.ctx);
+  last_kernel_ms_ = 0;
+  for (uint32_t row0 = 0; row0 < uint32_t(grid_.height); row0 += rows) {
+    shared::TraceParams p = m.params;
+    p.band_row0 = int(row0);
+    p.band_rows = int(std::min<uint32_t>(rows, uint32_t(grid_.height) - row0));
+    p.source_offset = 0;
+    p.source_count = 1;
+    stream.fill_zero(images);
+    stream.barrier();
+    stream.dispatch(m.splat_values, {&m.lenses, &sources, &images}, &p, m.splat_groups(), 1);
+    last_kernel_ms_ += stream.submit();
+    images.download(&out[size_t(row0) * grid_.width], uint64_t(p.band_rows) * grid_.width * sizeof(float));
+  }
+  return out;
 }
 
 std::vector<glm::vec3> trace_rays_vulkan(vk::Context& ctx, const OpticalSystem& sys, size_t lens_index,

@@ -37,6 +37,9 @@ class ForwardVulkan {
   // theta = (x_mm, y_mm, depth_mm) per source.
   std::vector<FisherResult> fisher(std::span<const glm::dvec3> theta);
   PixelImage psf(const glm::dvec3& theta);
+  // Expected photons per pixel only, row-major: 4 bytes per pixel on the
+  // device instead of 32 (no derivatives); for dictionaries and events.
+  std::vector<float> psf_values(const glm::dvec3& theta);
 
   double last_kernel_ms() const { return last_kernel_ms_; }  // device time of the last call
   uint64_t rays_per_source() const;

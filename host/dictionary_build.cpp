@@ -71,11 +71,11 @@ DictionaryBuildReport build_dictionary(vk::Context& ctx, const Scene& scene, con
       ++report.reused;
     } else {
       auto t0 = std::chrono::steady_clock::now();
-      PixelImage img = fw.psf(wanted.grid.position(i));
-      PsfLevel l0{0, img.width, img.height, std::vector<float>(size_t(img.width) * img.height)};
-      double total = img.photons();
+      PsfLevel l0{0, wanted.width, wanted.height, fw.psf_values(wanted.grid.position(i))};
+      double total = 0;
+      for (float b : l0.p) total += b;
       // A position that puts no light on the sensor is stored as zeros.
-      for (size_t p = 0; p < l0.p.size(); ++p) l0.p[p] = total > 0 ? float(img.data[4 * p] / total) : 0.0f;
+      for (float& p : l0.p) p = total > 0 ? float(p / total) : 0.0f;
       write_psf_file(reader.path_of(i), wanted, i, l0, total);
       per_psf.push_back(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
       ++report.rendered;

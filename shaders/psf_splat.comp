@@ -13,19 +13,24 @@ layout(local_size_x = 64) in;
 layout(constant_id = 0) const int LENS_MODEL = LENS_THIN;
 layout(constant_id = 1) const bool SCINT_REFRACTION = false;
 layout(constant_id = 2) const bool HOLDER = false;
+// Without derivatives a pixel is just b (dictionary synthesis, event simulation).
+layout(constant_id = 3) const bool DERIVATIVES = true;
+const uint PIXEL_FLOATS = DERIVATIVES ? 8u : 1u;
 
 layout(push_constant) uniform Push { TraceParams P; };
 layout(std430, binding = 0) readonly buffer Lenses { Lenslet lenses[]; };
 layout(std430, binding = 1) readonly buffer Sources { vec4 sources[]; };  // xyz = (x, y, depth) mm
-// Per pixel 8 floats: b, grad b from ray half A (x2), grad b from half B (x2), unused.
-layout(std430, binding = 2) buffer Images { float images[]; };  // [source][row][col][8]
+// Per pixel 8 floats: b, grad b from ray half A (x2), grad b from half B (x2), unused;
+// or b alone without DERIVATIVES.
+layout(std430, binding = 2) buffer Images { float images[]; };  // [source][row][col][PIXEL_FLOATS]
 
 void add_tap(uint image_base, ivec2 px, vec4 tap, uint half_offset) {
   int row = px.y - P.band_row0;
   if (px.x < 0 || px.x >= P.grid_w || row < 0 || row >= P.band_rows || px.y >= P.grid_h) return;
-  uint i = image_base + 8u * (uint(row) * uint(P.grid_w) + uint(px.x));
-  // Each half estimates the whole gradient: its rays count double.
+  uint i = image_base + PIXEL_FLOATS * (uint(row) * uint(P.grid_w) + uint(px.x));
   atomicAdd(images[i], tap.x);
+  if (!DERIVATIVES) return;
+  // Each half estimates the whole gradient: its rays count double.
   atomicAdd(images[i + half_offset], 2.0f * tap.y);
   atomicAdd(images[i + half_offset + 1u], 2.0f * tap.z);
   atomicAdd(images[i + half_offset + 2u], 2.0f * tap.w);
@@ -48,7 +53,7 @@ void main() {
   uint s = gl_GlobalInvocationID.y;
   if (s >= P.source_count) return;
   vec3 theta = sources[P.source_offset + s].xyz;
-  uint image_base = s * uint(P.grid_w) * uint(P.band_rows) * 8u;
+  uint image_base = s * uint(P.grid_w) * uint(P.band_rows) * PIXEL_FLOATS;
   uint stride = gl_NumWorkGroups.x * gl_WorkGroupSize.x;
   for (uint r = gl_GlobalInvocationID.x; r < total; r += stride) {
     uint lens_index = lens_of_ray(r);

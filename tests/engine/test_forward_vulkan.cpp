@@ -197,3 +197,26 @@ TEST_CASE("Fisher sums do not depend on how the sensor is cut into bands and bat
   }
   prism::test::check_validation_clean();
 }
+
+TEST_CASE("the values-only PSF kernel equals the b channel of the full one, at any band cut") {
+  auto sys = prism::builtin_scene("prototype").optics;
+  for (unsigned binning : {16u, 1u}) {
+    CAPTURE(binning);
+    prism::TraceSettings t;
+    t.rays_per_lenslet = 256;
+    t.binning = binning;
+    prism::ForwardVulkan fw(prism::test::gpu(), sys, t);
+    glm::dvec3 theta{-3.0, 4.0, 12.0};
+    auto full = fw.psf(theta);
+    auto values = fw.psf_values(theta);
+    REQUIRE(values.size() == size_t(full.width) * full.height);
+    double peak = 0, worst = 0;
+    for (size_t i = 0; i < values.size(); ++i) {
+      peak = std::max(peak, double(full.data[4 * i]));
+      worst = std::max(worst, double(std::abs(values[i] - full.data[4 * i])));
+    }
+    CHECK(peak > 0);
+    CHECK(worst <= 1e-5 * peak);  // only the order of float atomic adds differs
+  }
+  prism::test::check_validation_clean();
+}
