@@ -77,7 +77,7 @@ void plot_lines(const std::string& path, const PlotSpec& spec, const std::vector
     std::vector<int> zeros(series.size(), 0), text_colors(series.size(), 15);
     std::vector<PLFLT> zf(series.size(), 0.0);
     PLFLT lw, lh;
-    pls->legend(&lw, &lh, PL_LEGEND_BACKGROUND | PL_LEGEND_BOUNDING_BOX, PL_POSITION_RIGHT | PL_POSITION_BOTTOM, 0.01, 0.01,
+    pls->legend(&lw, &lh, PL_LEGEND_BACKGROUND | PL_LEGEND_BOUNDING_BOX, PL_POSITION_LEFT | PL_POSITION_TOP, 0.01, 0.01,
                 0.1, 0, 15, 1, 0, 0, int(series.size()), opt.data(), 1.0, 0.8, 2.0, 1.0, text_colors.data(),
                 texts.data(), nullptr, nullptr, nullptr, nullptr, line_colors.data(), line_styles.data(),
                 widths.data(), nullptr, nullptr, nullptr, nullptr);
