@@ -75,10 +75,20 @@ void write_png_preview(const std::string& path, int width, int height, const flo
   std::vector<double> box(size_t(w) * h, 0.0);
   for (int r = 0; r < height; ++r)
     for (int c = 0; c < width; ++c) box[size_t(r / factor) * w + c / factor] += data[(size_t(r) * width + c) * stride];
-  double peak = *std::max_element(box.begin(), box.end());
+  // Scale to the 99.5th percentile of lit pixels: a few focused spots would
+  // otherwise leave every defocused disc black.
+  std::vector<double> lit;
+  for (double v : box)
+    if (v > 0) lit.push_back(v);
+  double peak = 0;
+  if (!lit.empty()) {
+    auto k = lit.begin() + std::ptrdiff_t(0.995 * double(lit.size() - 1));
+    std::nth_element(lit.begin(), k, lit.end());
+    peak = *k;
+  }
   std::vector<png_byte> pixels(box.size());
   for (size_t i = 0; i < box.size(); ++i)
-    pixels[i] = png_byte(peak > 0 ? std::lround(255.0 * std::sqrt(std::max(0.0, box[i]) / peak)) : 0);
+    pixels[i] = png_byte(peak > 0 ? std::lround(255.0 * std::min(1.0, std::sqrt(std::max(0.0, box[i]) / peak))) : 0);
   write_atomically(path, [&](const std::string& tmp) {
     std::unique_ptr<FILE, int (*)(FILE*)> f(std::fopen(tmp.c_str(), "wb"), &std::fclose);
     if (!f) throw std::runtime_error("cannot write " + path);

@@ -16,8 +16,8 @@ void write_exr(const std::string& path, int width, int height, const std::vector
 // Reads one float channel back (tests, tools).
 std::vector<float> read_exr_channel(const std::string& path, const std::string& channel, int& width, int& height);
 
-// Square-root tone-mapped grayscale preview, box-downsampled so the longer side
-// is at most max_side pixels.
+// Square-root tone-mapped grayscale preview (white = the 99.5th percentile of
+// lit pixels), box-downsampled so the longer side is at most max_side pixels.
 void write_png_preview(const std::string& path, int width, int height, const float* data, int stride, int max_side = 1600);
 
 // Write `path` through a temporary file in the same directory: the callback

@@ -30,7 +30,14 @@ void run(const PsfArgs& a) {
     vk::Context ctx(vk::ContextOptions{a.fw.device});
     device = ctx.describe();
     ForwardVulkan fw(ctx, scene.optics, t);
-    img = fw.psf(theta);
+    if (a.derivatives) {
+      img = fw.psf(theta);
+    } else {
+      // b alone: 4 bytes per pixel on the device instead of 32.
+      auto b = fw.psf_values(theta);
+      img = {fw.grid().width, fw.grid().height, fw.grid().pixel_mm, std::vector<float>(4 * b.size(), 0.0f)};
+      for (size_t i = 0; i < b.size(); ++i) img.data[4 * i] = b[i];
+    }
   } else {
     auto sparse = ref::psf(scene.optics, t, theta);
     img = {sparse.width, sparse.height, AnalysisGrid::of(scene.optics, t.binning).pixel_mm,
