@@ -174,62 +174,55 @@ std::vector<FisherResult> ForwardVulkan::fisher(std::span<const glm::dvec3> thet
   return out;
 }
 
-PixelImage ForwardVulkan::psf(const glm::dvec3& theta) {
-  Impl& m = *impl_;
-  PixelImage img{grid_.width, grid_.height, grid_.pixel_mm, std::vector<float>(size_t(grid_.width) * grid_.height * 4)};
+// Render one source band by band with `kernel` (pixel_floats floats per
+// pixel); hand each band's pixels to consume(first_row, rows, pixels).
+template <class Consume>
+double render_bands(ForwardVulkan::Impl& m, const AnalysisGrid& grid, vk::Kernel& kernel, uint32_t pixel_floats,
+                    const glm::dvec3& theta, Consume&& consume) {
   glm::vec4 src(glm::vec3(theta), 0.0f);
   vk::Buffer sources(m.ctx, sizeof(glm::vec4));
   sources.upload(&src, sizeof(src));
-  vk::Buffer images(m.ctx, uint64_t(grid_.width) * m.band_rows * kPixelBytes);
-  std::vector<float> band_pixels(size_t(grid_.width) * m.band_rows * 8);
+  // Bands as tall as one buffer allows at this pixel size.
+  const uint64_t band_bytes = uint64_t(m.band_rows) * grid.width * kPixelBytes;
+  const uint32_t rows = uint32_t(std::min<uint64_t>(grid.height, band_bytes / (uint64_t(grid.width) * pixel_floats * 4)));
+  vk::Buffer images(m.ctx, uint64_t(grid.width) * rows * pixel_floats * sizeof(float));
+  std::vector<float> pixels(size_t(grid.width) * rows * pixel_floats);
   vk::Stream stream(m.ctx);
-  last_kernel_ms_ = 0;
-  for (uint32_t band = 0; band < m.bands(); ++band) {
+  double ms = 0;
+  for (uint32_t row0 = 0; row0 < uint32_t(grid.height); row0 += rows) {
     shared::TraceParams p = m.params;
-    p.band_row0 = int(band * m.band_rows);
-    p.band_rows = int(std::min<uint32_t>(m.band_rows, uint32_t(grid_.height) - band * m.band_rows));
+    p.band_row0 = int(row0);
+    p.band_rows = int(std::min<uint32_t>(rows, uint32_t(grid.height) - row0));
     p.source_offset = 0;
     p.source_count = 1;
     stream.fill_zero(images);
     stream.barrier();
-    stream.dispatch(m.splat, {&m.lenses, &sources, &images}, &p, m.splat_groups(), 1);
-    last_kernel_ms_ += stream.submit();
+    stream.dispatch(kernel, {&m.lenses, &sources, &images}, &p, m.splat_groups(), 1);
+    ms += stream.submit();
+    images.download(pixels.data(), uint64_t(p.band_rows) * grid.width * pixel_floats * sizeof(float));
+    consume(row0, uint32_t(p.band_rows), pixels.data());
+  }
+  return ms;
+}
+
+PixelImage ForwardVulkan::psf(const glm::dvec3& theta) {
+  PixelImage img{grid_.width, grid_.height, grid_.pixel_mm, std::vector<float>(size_t(grid_.width) * grid_.height * 4)};
+  last_kernel_ms_ = render_bands(*impl_, grid_, impl_->splat, 8, theta, [&](uint32_t row0, uint32_t rows, const float* q) {
     // Keep b and the mean of the two half-ray gradient estimates.
-    size_t n = size_t(p.band_rows) * grid_.width;
-    images.download(band_pixels.data(), n * kPixelBytes);
-    float* out = &img.data[size_t(p.band_row0) * grid_.width * 4];
-    for (size_t i = 0; i < n; ++i) {
-      const float* q = &band_pixels[8 * i];
+    float* out = &img.data[size_t(row0) * grid_.width * 4];
+    for (size_t i = 0; i < size_t(rows) * grid_.width; ++i, q += 8) {
       out[4 * i] = q[0];
       for (int a = 0; a < 3; ++a) out[4 * i + 1 + a] = 0.5f * (q[1 + a] + q[4 + a]);
     }
-  }
+  });
   return img;
 }
 
 std::vector<float> ForwardVulkan::psf_values(const glm::dvec3& theta) {
-  Impl& m = *impl_;
   std::vector<float> out(size_t(grid_.width) * grid_.height);
-  glm::vec4 src(glm::vec3(theta), 0.0f);
-  vk::Buffer sources(m.ctx, sizeof(glm::vec4));
-  sources.upload(&src, sizeof(src));
-  // One float per pixel: bands 8x taller than with derivatives.
-  uint32_t rows = uint32_t(std::min<uint64_t>(grid_.height, uint64_t(m.band_rows) * (kPixelBytes / sizeof(float))));
-  vk::Buffer images(m.ctx, uint64_t(grid_.width) * rows * sizeof(float));
-  vk::Stream stream(m.ctx);
-  last_kernel_ms_ = 0;
-  for (uint32_t row0 = 0; row0 < uint32_t(grid_.height); row0 += rows) {
-    shared::TraceParams p = m.params;
-    p.band_row0 = int(row0);
-    p.band_rows = int(std::min<uint32_t>(rows, uint32_t(grid_.height) - row0));
-    p.source_offset = 0;
-    p.source_count = 1;
-    stream.fill_zero(images);
-    stream.barrier();
-    stream.dispatch(m.splat_values, {&m.lenses, &sources, &images}, &p, m.splat_groups(), 1);
-    last_kernel_ms_ += stream.submit();
-    images.download(&out[size_t(row0) * grid_.width], uint64_t(p.band_rows) * grid_.width * sizeof(float));
-  }
+  last_kernel_ms_ = render_bands(*impl_, grid_, impl_->splat_values, 1, theta, [&](uint32_t row0, uint32_t rows, const float* q) {
+    std::copy_n(q, size_t(rows) * grid_.width, &out[size_t(row0) * grid_.width]);
+  });
   return out;
 }
 

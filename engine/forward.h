@@ -45,8 +45,10 @@ class ForwardVulkan {
   uint64_t rays_per_source() const;
   const AnalysisGrid& grid() const { return grid_; }
 
+ public:
+  struct Impl;  // the kernels and their buffers (forward.cpp)
+
  private:
-  struct Impl;
   std::unique_ptr<Impl> impl_;
   AnalysisGrid grid_;
   double last_kernel_ms_ = 0;
