@@ -1,5 +1,11 @@
 #include "support.h"
 
+#include <sys/wait.h>
+
+#include <array>
+#include <cstdio>
+#include <memory>
+
 namespace prism::test {
 
 vk::Context& gpu() {
@@ -20,6 +26,18 @@ OpticalSystem small_system(LensModel model) {
   // would image near sources off the sensor.
   s.lenslets = std::vector<LensletGeometry>(s.lenslets.begin() + 14, s.lenslets.begin() + 21);
   return s;
+}
+
+CommandResult run_prism(const std::string& args, const std::string& env) {
+  std::string cmd = env + " " + std::string(PRISM_BINARY) + " " + args + " 2>&1";
+  std::unique_ptr<FILE, int (*)(FILE*)> pipe(popen(cmd.c_str(), "r"), &pclose);
+  REQUIRE(pipe);
+  std::string out;
+  std::array<char, 4096> buf;
+  size_t n;
+  while ((n = fread(buf.data(), 1, buf.size(), pipe.get())) > 0) out.append(buf.data(), n);
+  int status = pclose(pipe.release());
+  return {WEXITSTATUS(status), out};
 }
 
 }  // namespace prism::test

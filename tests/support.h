@@ -3,6 +3,8 @@
 #pragma once
 #include <doctest/doctest.h>
 
+#include <string>
+
 #include "engine/vk/context.h"
 #include "host/scene.h"
 
@@ -13,5 +15,13 @@ vk::Context& gpu();
 void check_validation_clean();
 // A scene small enough for exhaustive CPU-reference comparisons.
 OpticalSystem small_system(LensModel model);
+
+// Runs the prism binary with `args`, after the environment assignments in
+// `env`; stdout and stderr together.
+struct CommandResult {
+  int status;
+  std::string output;
+};
+CommandResult run_prism(const std::string& args, const std::string& env = "");
 
 }  // namespace prism::test

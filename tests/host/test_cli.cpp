@@ -12,23 +12,6 @@
 
 namespace {
 
-struct Run {
-  int status;
-  std::string output;  // stdout and stderr together
-};
-
-Run run(const std::string& args, const std::string& env = "") {
-  std::string cmd = env + " " + std::string(PRISM_BINARY) + " " + args + " 2>&1";
-  std::unique_ptr<FILE, int (*)(FILE*)> pipe(popen(cmd.c_str(), "r"), &pclose);
-  REQUIRE(pipe);
-  std::string out;
-  std::array<char, 4096> buf;
-  size_t n;
-  while ((n = fread(buf.data(), 1, buf.size(), pipe.get())) > 0) out.append(buf.data(), n);
-  int status = pclose(pipe.release());
-  return {WEXITSTATUS(status), out};
-}
-
 std::string temp_dir() {
   auto d = std::filesystem::temp_directory_path() / ("prism-cli-test-" + std::to_string(::getpid()));
   std::filesystem::create_directories(d);
@@ -38,10 +21,10 @@ std::string temp_dir() {
 }  // namespace
 
 TEST_CASE("prism --help names every subcommand") {
-  auto r = run("--help");
+  auto r = prism::test::run_prism("--help");
   CHECK(r.status == 0);
   for (const char* sub : {"crlb", "psf", "camera", "devices"}) CHECK(r.output.find(sub) != std::string::npos);
-  auto c = run("crlb --help");
+  auto c = prism::test::run_prism("crlb --help");
   for (const char* opt : {"--scene", "--depth-mm", "--x-mm", "--y-mm", "--rays", "--binning", "--lens-model",
                           "--photons", "--backend", "--csv", "--plot", "--device", "--fisher-estimator"})
     CHECK(c.output.find(opt) != std::string::npos);
@@ -49,7 +32,7 @@ TEST_CASE("prism --help names every subcommand") {
 
 TEST_CASE("prism crlb writes the documented CSV columns and a plot") {
   std::string dir = temp_dir();
-  auto r = run("crlb --scene prototype --scene single-f9 --depth-mm 5,30 --rays 1024 --binning 32 --csv " + dir +
+  auto r = prism::test::run_prism("crlb --scene prototype --scene single-f9 --depth-mm 5,30 --rays 1024 --binning 32 --csv " + dir +
                "/c.csv --plot " + dir + "/c.png");
   INFO(r.output);
   REQUIRE(r.status == 0);
@@ -68,7 +51,7 @@ TEST_CASE("prism crlb writes the documented CSV columns and a plot") {
 
 TEST_CASE("prism psf writes an OpenEXR that OpenEXR's own tools read, and a PNG preview") {
   std::string dir = temp_dir();
-  auto r = run("psf --scene prototype --source-mm 1,2,20 --rays 1024 --binning 16 --out " + dir + "/p.exr");
+  auto r = prism::test::run_prism("psf --scene prototype --source-mm 1,2,20 --rays 1024 --binning 16 --out " + dir + "/p.exr");
   INFO(r.output);
   REQUIRE(r.status == 0);
   int w = 0, h = 0;
@@ -92,21 +75,21 @@ TEST_CASE("prism psf writes an OpenEXR that OpenEXR's own tools read, and a PNG 
 
 TEST_CASE("bad input: the error names the problem and nothing is written") {
   std::string dir = temp_dir();
-  auto r = run("crlb --scene nonesuch --csv " + dir + "/x.csv");
+  auto r = prism::test::run_prism("crlb --scene nonesuch --csv " + dir + "/x.csv");
   CHECK(r.status == 1);
   CHECK(r.output.find("unknown scene 'nonesuch'") != std::string::npos);
   CHECK_FALSE(std::filesystem::exists(dir + "/x.csv"));
-  auto d = run("crlb --depth-mm 5:1:1");
+  auto d = prism::test::run_prism("crlb --depth-mm 5:1:1");
   CHECK(d.status == 1);
   CHECK(d.output.find("--depth-mm") != std::string::npos);
-  auto m = run("crlb --scene single-f3 --lens-model real --depth-mm 5");
+  auto m = prism::test::run_prism("crlb --scene single-f3 --lens-model real --depth-mm 5");
   CHECK(m.status == 1);
   CHECK(m.output.find("use lens_model thin") != std::string::npos);
   std::filesystem::remove_all(dir);
 }
 
 TEST_CASE("no Vulkan driver: one sentence naming the package, not a crash") {
-  auto r = run("devices", "VK_ICD_FILENAMES=/nonexistent/icd.json VK_DRIVER_FILES=/nonexistent/icd.json");
+  auto r = prism::test::run_prism("devices", "VK_ICD_FILENAMES=/nonexistent/icd.json VK_DRIVER_FILES=/nonexistent/icd.json");
   CHECK(r.status == 1);
   CHECK(r.output.find("mesa-vulkan-drivers") != std::string::npos);
 }

@@ -1,0 +1,161 @@
+// prism simulate: events (click lists) for given vertices, streamed to an
+// event file (host/EVENTS.md).
+#include <chrono>
+#include <cstdio>
+#include <filesystem>
+#include <optional>
+
+#include "host/cmd/commands.h"
+#include "host/cmd/options.h"
+#include "host/event_file.h"
+#include "host/event_sim.h"
+#include "host/progress.h"
+
+namespace prism::cmd {
+
+namespace {
+
+struct SimulateArgs {
+  std::string scene = "prototype";
+  std::vector<std::string> vertices;
+  double alpha = 100;
+  uint64_t events = 1000;
+  std::string out;
+  std::string truth = "forward";
+  std::string dictionary;
+  double jitter_mm = 0;
+  uint64_t seed = 1;
+  unsigned binning = 1;
+  bool binning_given = false;
+  unsigned rays = defaults::rays_per_lenslet;
+  std::string device;
+};
+
+std::vector<EventVertex> parse_vertices(const SimulateArgs& a) {
+  std::vector<EventVertex> out;
+  for (const auto& text : a.vertices) {
+    auto v = parse_list(text, "--vertex");
+    if (v.size() != 3 && v.size() != 4)
+      throw std::runtime_error("--vertex: expected X,Y,DEPTH[,ALPHA] (mm, mm, mm, photons), got '" + text + "'");
+    double alpha = v.size() == 4 ? v[3] : a.alpha;
+    if (!(alpha >= 0)) throw std::runtime_error("--vertex '" + text + "': ALPHA must be >= 0 expected photons");
+    out.push_back({v[0], v[1], v[2], alpha, 0});
+  }
+  return out;
+}
+
+void run(const SimulateArgs& a) {
+  Scene scene = load_scene(a.scene);
+  const auto base = parse_vertices(a);
+  if (a.jitter_mm < 0) throw std::runtime_error("--jitter-mm must be >= 0");
+
+  std::optional<vk::Context> ctx;  // only the forward model needs a device
+  std::optional<DictionaryReader> reader;
+  std::unique_ptr<EventTruth> truth;
+  EventFileHeader h;
+  if (a.truth == "dictionary") {
+    if (a.dictionary.empty()) throw std::runtime_error("--truth dictionary needs --dictionary DIR");
+    reader.emplace(a.dictionary, &scene.optics);
+    const auto& m = reader->manifest();
+    // Clicks lie on one stored level: binning = base binning * 2^level.
+    int level = 0;
+    if (a.binning_given) {
+      while (level < m.levels && (m.base_binning << level) < int(a.binning)) ++level;
+      if (level == m.levels || (m.base_binning << level) != int(a.binning))
+        throw std::runtime_error("--binning " + std::to_string(a.binning) + ": the dictionary stores binnings " +
+                                 std::to_string(m.base_binning) + " x 2^k only; choose one of those");
+    }
+    truth = std::make_unique<DictionaryTruth>(*reader, level);
+    h.truth = TruthModel::dictionary;
+  } else {
+    TraceSettings t;
+    t.rays_per_lenslet = a.rays;
+    t.binning = a.binning;
+    t.photons_emitted = scene.photons_emitted;
+    ctx.emplace(vk::ContextOptions{a.device});
+    truth = std::make_unique<ForwardTruth>(*ctx, scene, t);
+  }
+  h.sensor_width_px = uint32_t(scene.optics.sensor_width_px);
+  h.sensor_height_px = uint32_t(scene.optics.sensor_height_px);
+  h.pixel_um = scene.optics.pixel_um;
+  h.binning = uint32_t(truth->binning());
+  h.scene = scene.name;
+  h.seed = a.seed;
+  h.provenance = truth->provenance() + (a.jitter_mm > 0 ? ", jitter +-" + std::to_string(a.jitter_mm) + " mm" : "");
+
+  EventWriter writer(a.out, h);
+  Progress progress("simulate", a.events);
+  Event e;
+  std::vector<ClickSource> sources;
+  std::vector<std::shared_ptr<const PsfSampler>> held;
+  uint64_t clicks = 0;
+  auto start = std::chrono::steady_clock::now();
+  for (uint64_t id = 0; id < a.events; ++id) {
+    auto rng = event_rng(a.seed, id);
+    e.id = id;
+    e.vertices = base;
+    sources.clear();
+    held.clear();
+    std::uniform_real_distribution<double> jitter(-a.jitter_mm, a.jitter_mm);
+    for (auto& v : e.vertices) {
+      if (a.jitter_mm > 0) {
+        v.x_mm += jitter(rng);
+        v.y_mm += jitter(rng);
+        v.depth_mm += jitter(rng);
+      }
+      held.push_back(truth->psf({v.x_mm, v.y_mm, v.depth_mm}));
+      v.sensor_fraction = held.back()->sensor_fraction();
+      sources.push_back({held.back().get(), v.alpha});
+    }
+    sample_clicks(sources, rng, e.clicks);
+    clicks += e.clicks.size();
+    writer.write(e);
+    progress.update(id + 1);
+  }
+  writer.close();
+  progress.finish();
+  double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  std::printf("# device: %s\n", ctx ? ctx->describe().c_str() : "none (dictionary truth runs on the host)");
+  std::printf("%s: %llu events of %zu vertices, %.1f clicks per event on average, %llu bytes\n", a.out.c_str(),
+              (unsigned long long)writer.events(), base.size(), a.events ? double(clicks) / double(a.events) : 0.0,
+              (unsigned long long)std::filesystem::file_size(a.out));
+  double sampling_s = seconds - truth->render_seconds();
+  std::printf("truth: %s\n%zu PSFs rendered or read in %.2f s; sampling and writing %.2f s (%.0f events/s); "
+              "%.0f events/s overall\n",
+              h.provenance.c_str(), truth->renders(), truth->render_seconds(), sampling_s,
+              sampling_s > 0 ? double(a.events) / sampling_s : 0.0, seconds > 0 ? double(a.events) / seconds : 0.0);
+}
+
+}  // namespace
+
+void add_simulate(CLI::App& app) {
+  auto a = std::make_shared<SimulateArgs>();
+  CLI::App* c = app.add_subcommand("simulate", "simulate binary-sensor events (click lists) and write an event file");
+  c->add_option("--scene", a->scene, "built-in scene or JSON file")->capture_default_str();
+  c->add_option("--vertex", a->vertices,
+                "X,Y,DEPTH[,ALPHA]: a vertex in mm (depth from the scintillator face) with its expected photons; "
+                "repeat for K vertices per event")
+      ->required();
+  c->add_option("--alpha", a->alpha, "expected photons detected per vertex where --vertex gives none")
+      ->capture_default_str()->check(CLI::NonNegativeNumber);
+  c->add_option("--events", a->events, "number of events")->capture_default_str();
+  c->add_option("--out", a->out, "event file to write (format: host/EVENTS.md)")->required();
+  c->add_option("--truth", a->truth, "forward: ray-traced model at the exact positions; dictionary: shifted "
+                                      "dictionary PSFs (the paper's protocol)")
+      ->capture_default_str()->check(CLI::IsMember({"forward", "dictionary"}));
+  c->add_option("--dictionary", a->dictionary, "dictionary directory for --truth dictionary");
+  c->add_option("--jitter-mm", a->jitter_mm, "move each vertex uniformly within +-S mm in x, y and depth, per event "
+                                             "(each event then renders its own PSFs)")
+      ->capture_default_str();
+  c->add_option("--seed", a->seed, "random seed; event i depends only on (seed, i)")->capture_default_str();
+  c->add_option("--binning", a->binning, "clicks on B x B binned pixels (forward; dictionary: base binning x 2^k, "
+                                         "default its base binning)")
+      ->capture_default_str()->check(CLI::Range(1u, 1024u))->each([a](const std::string&) { a->binning_given = true; });
+  c->add_option("--rays", a->rays, "forward model: rays per 3 mm lenslet aperture")
+      ->capture_default_str()->check(CLI::Range(1u, 1u << 24));
+  c->add_option("--device", a->device, "Vulkan device: auto, gpu, cpu, an index or part of a name; default "
+                                       "$PRISM_DEVICE or auto");
+  c->callback([a] { run(*a); });
+}
+
+}  // namespace prism::cmd
