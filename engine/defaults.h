@@ -36,6 +36,7 @@ inline constexpr double scintillator_index = 1.58;   // plastic scintillator (PV
 inline constexpr double holder_bore_mm = 2.0;        // bore behind the lens plane
 inline constexpr double detection_efficiency = 1.0;  // fill factor x PDE
 inline constexpr double dark_counts_per_pixel = 0.0; // expected dark counts per pixel per event
+inline constexpr double source_sigma_mm = 0.3;       // Gaussian source extent, per axis (LED die ~0.5 mm)
 
 // Analysis defaults, chosen by the convergence study (README, "Convergence";
 // bench/bench_forward): with the split Fisher estimator, 65536 rays per

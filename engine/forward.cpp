@@ -53,7 +53,8 @@ double PixelImage::photons() const {
 // psf_splat.comp's specialisation constants: lens model, effects, derivatives.
 std::vector<uint32_t> specialisation(const OpticalSystem& s, bool derivatives) {
   return {uint32_t(s.lens_model == LensModel::real ? shared::LENS_REAL : shared::LENS_THIN),
-          uint32_t(s.effects.scintillator_refraction), uint32_t(s.effects.holder_vignetting), uint32_t(derivatives)};
+          uint32_t(s.effects.scintillator_refraction), uint32_t(s.effects.holder_vignetting), uint32_t(derivatives),
+          uint32_t(s.effects.source_extent)};
 }
 
 struct ForwardVulkan::Impl {
@@ -90,6 +91,7 @@ struct ForwardVulkan::Impl {
     params.photons_per_sr = float(t.photons_emitted * s.effects.detection_efficiency / (4.0 * M_PI));
     params.scint_index = float(s.effects.scintillator_index);
     params.holder_bore_mm = float(s.effects.holder_bore_mm);
+    params.source_sigma_mm = float(s.effects.source_sigma_mm);
     params.grid_w = grid.width;
     params.grid_h = grid.height;
     params.lens_count = uint32_t(s.lenslets.size());

@@ -28,6 +28,8 @@ struct Effects {
   double holder_bore_mm = defaults::holder_bore_mm;
   double detection_efficiency = defaults::detection_efficiency;
   double dark_counts_per_pixel = defaults::dark_counts_per_pixel;
+  bool source_extent = false;  // Gaussian source instead of a point
+  double source_sigma_mm = defaults::source_sigma_mm;
 };
 
 struct OpticalSystem {

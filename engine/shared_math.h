@@ -12,5 +12,5 @@ using uint = unsigned int;
 #undef PRISM_FN
 
 static_assert(sizeof(Lenslet) == 48, "Lenslet must match its std430 layout");
-static_assert(sizeof(TraceParams) == 64, "TraceParams must match its std430 push-constant layout");
+static_assert(sizeof(TraceParams) == 68, "TraceParams must match its std430 push-constant layout");
 }  // namespace prism::shared

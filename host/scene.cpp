@@ -200,9 +200,14 @@ Scene parse_scene(const json& j, const std::string& origin) {
       } else if (name == "dark_counts") {
         check_keys(rd, e, path, {"name", "per_pixel"});
         fx.dark_counts_per_pixel = rd.number(e, "per_pixel", path, 0, true);
+      } else if (name == "source_extent") {
+        check_keys(rd, e, path, {"name", "sigma_mm"});
+        fx.source_extent = true;
+        fx.source_sigma_mm = rd.number(e, "sigma_mm", path, fx.source_sigma_mm);
       } else {
         rd.fail(path + "name", "unknown effect '" + name +
-                                   "' (known: scintillator_refraction, holder_vignetting, detection_efficiency, dark_counts)");
+                                   "' (known: scintillator_refraction, holder_vignetting, detection_efficiency, "
+                                   "dark_counts, source_extent)");
       }
     }
   }
@@ -243,6 +248,7 @@ json to_json(const Scene& s) {
   if (e.holder_vignetting) fx.push_back({{"name", "holder_vignetting"}, {"bore_mm", e.holder_bore_mm}});
   if (e.detection_efficiency != 1.0) fx.push_back({{"name", "detection_efficiency"}, {"value", e.detection_efficiency}});
   if (e.dark_counts_per_pixel != 0.0) fx.push_back({{"name", "dark_counts"}, {"per_pixel", e.dark_counts_per_pixel}});
+  if (e.source_extent) fx.push_back({{"name", "source_extent"}, {"sigma_mm", e.source_sigma_mm}});
   return {{"name", s.name},
           {"lens_model", to_string(o.lens_model)},
           {"glass",

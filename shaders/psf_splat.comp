@@ -15,6 +15,7 @@ layout(constant_id = 1) const bool SCINT_REFRACTION = false;
 layout(constant_id = 2) const bool HOLDER = false;
 // Without derivatives a pixel is just b (dictionary synthesis, event simulation).
 layout(constant_id = 3) const bool DERIVATIVES = true;
+layout(constant_id = 4) const bool SOURCE_EXTENT = false;
 const uint PIXEL_FLOATS = DERIVATIVES ? 8u : 1u;
 
 layout(push_constant) uniform Push { TraceParams P; };
@@ -59,7 +60,7 @@ void main() {
     uint lens_index = lens_of_ray(r);
     uint sample_index = r - lenses[lens_index].first_ray;
     Hit hit = trace_sample(theta, lenses[lens_index], lens_index, sample_index, P, LENS_MODEL,
-                           SCINT_REFRACTION, HOLDER);
+                           SCINT_REFRACTION, HOLDER, SOURCE_EXTENT);
     Splat sp = splat_bilinear(hit, P);
     if (!sp.ok) continue;
     uint half_offset = 1u + 3u * ray_half(sample_index, lenses[lens_index].strata);

@@ -144,6 +144,16 @@ glm::dvec2 unit_disk_sample(uint32_t lens, uint32_t sample, uint32_t strata) {
   return {r * std::cos(phi), r * std::sin(phi)};
 }
 
+// Gaussian source offset of (lens, sample): the same hash draws as the device,
+// Box-Muller in double.
+glm::dvec3 source_offset(uint32_t lens, uint32_t sample, double sigma) {
+  uint32_t key = (lens * 3266489917u) ^ (sample * 668265263u) ^ 0x5bd1e995u;
+  double u1 = std::max(hash_unit(key), 1.0 / 16777216.0), u2 = hash_unit(key ^ 0x27d4eb2fu);
+  double u3 = std::max(hash_unit(key ^ 0x165667b1u), 1.0 / 16777216.0), u4 = hash_unit(key ^ 0x85ebca6bu);
+  double r1 = std::sqrt(-2.0 * std::log(u1)), r3 = std::sqrt(-2.0 * std::log(u3));
+  return sigma * glm::dvec3(r1 * std::cos(2 * M_PI * u2), r1 * std::sin(2 * M_PI * u2), r3 * std::cos(2 * M_PI * u4));
+}
+
 // Scintillator face: find the radial distance rho on the face, from the point
 // below the source, such that the refracted ray reaches radial distance pr on
 // the aperture plane a height w above the face: pr = rho + w tan(theta_air),
@@ -196,7 +206,9 @@ SampleHit trace_sample_impl(const OpticalSystem& sys, const TraceSettings& setti
   glm::dvec2 u = unit_disk_sample(uint32_t(lens), sample, strata);
   double z_ap = (sys.lens_model == LensModel::real && !sys.curved_toward_sensor) ? g.sag : 0.0;
   V3 p{D(g.cx + g.radius * u.x), D(g.cy + g.radius * u.y), D(z_ap)};
-  V3 s{D(theta.x, {1, 0, 0}), D(theta.y, {0, 1, 0}), D(-(theta.z + sys.working_distance_mm), {0, 0, -1})};
+  glm::dvec3 centre = theta;
+  if (sys.effects.source_extent) centre += source_offset(uint32_t(lens), sample, sys.effects.source_sigma_mm);
+  V3 s{D(centre.x, {1, 0, 0}), D(centre.y, {0, 1, 0}), D(-(centre.z + sys.working_distance_mm), {0, 0, -1})};
   double per_sample = settings.photons_emitted * sys.effects.detection_efficiency / (4 * M_PI) * M_PI * g.radius *
                       g.radius / double(strata * strata);
   V3 origin = s;

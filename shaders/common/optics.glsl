@@ -32,7 +32,7 @@ struct Lenslet {
   uint pad_;                  // std430: the struct aligns to its vec2
 };
 
-// Per-dispatch constants (push constants, std430, 64 bytes).
+// Per-dispatch constants (push constants, std430, 68 bytes).
 struct TraceParams {
   float pixel_mm;             // analysis pixel pitch (sensor pixel x binning)
   float sensor_half_w_mm;     // half the physical sensor width (x)
@@ -50,6 +50,7 @@ struct TraceParams {
   uint total_rays;            // rays per source, all lenslets together
   uint source_offset;         // first source of this dispatch
   uint source_count;          // sources in this dispatch
+  float source_sigma_mm;      // effect: Gaussian extent of the source (per axis)
 };
 
 // A ray on its way to the sensor, with the photons it carries.
@@ -105,6 +106,22 @@ PRISM_FN vec2 aperture_sample(uint lens, uint sample_index, uint strata) {
   float a = (float(i) + hash_unit(key)) / float(strata);
   float b = (float(j) + hash_unit(key ^ 0x9e3779b9u)) / float(strata);
   return concentric_disk(2.0f * a - 1.0f, 2.0f * b - 1.0f);
+}
+
+// Effect "source_extent": each ray leaves from the source centre plus a
+// Gaussian offset (sigma per axis), a fixed function of (lens, sample) like the
+// aperture point, so the PSF is the point PSF convolved with the source's
+// extent and derivatives in theta stay exact. Box-Muller on the hash.
+PRISM_FN vec3 source_offset(uint lens, uint sample_index, float sigma_mm) {
+  uint key = lens * 3266489917u ^ sample_index * 668265263u ^ 0x5bd1e995u;
+  float u1 = max(hash_unit(key), 1.0f / 16777216.0f);
+  float u2 = hash_unit(key ^ 0x27d4eb2fu);
+  float u3 = max(hash_unit(key ^ 0x165667b1u), 1.0f / 16777216.0f);
+  float u4 = hash_unit(key ^ 0x85ebca6bu);
+  const float two_pi = 6.28318530718f;
+  float r1 = sqrt(-2.0f * log(u1));
+  float r3 = sqrt(-2.0f * log(u3));
+  return sigma_mm * vec3(r1 * cos(two_pi * u2), r1 * sin(two_pi * u2), r3 * cos(two_pi * u4));
 }
 
 // The source theta = (x, y, depth) as a point with its identity Jacobian.
@@ -333,7 +350,8 @@ PRISM_FN Hit trace_real(Ray ray, Lenslet lens, float holder_bore_mm, float lens_
 // The effect switches are compile-time constants in the kernels (specialisation
 // constants), so an effect the scene does not name is compiled out.
 PRISM_FN Hit trace_sample(vec3 theta, Lenslet lens, uint lens_index, uint sample_index, TraceParams P,
-                          int lens_model, bool scint_refraction, bool holder) {
+                          int lens_model, bool scint_refraction, bool holder, bool source_extent) {
+  if (source_extent) theta = theta + source_offset(lens_index, sample_index, P.source_sigma_mm);
   vec2 unit = aperture_sample(lens_index, sample_index, lens.strata);
   // The entrance disk: the rim plane of a front sphere, else the plane z = 0.
   float aperture_z = (lens_model == LENS_REAL && lens.curved_toward_sensor == 0) ? lens.sag_mm : 0.0f;

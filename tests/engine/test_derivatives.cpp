@@ -63,3 +63,10 @@ TEST_CASE("reference derivatives match finite differences: scintillator refracti
   check_against_fd(sys, {1.3, -2.1, 17.0});
   check_against_fd(sys, {1.0, -1.0, 0.5});
 }
+
+TEST_CASE("reference derivatives match finite differences: extended source") {
+  auto sys = prism::test::small_system(prism::LensModel::real);
+  sys.effects.source_extent = true;
+  sys.effects.source_sigma_mm = 0.4;
+  check_against_fd(sys, {1.3, -2.1, 17.0});
+}

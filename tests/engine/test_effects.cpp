@@ -97,3 +97,42 @@ TEST_CASE("effects change the light as the physics says, in both backends") {
   CHECK(prism::ref::psf(eff, t, theta).photons() == doctest::Approx(0.5 * base).epsilon(1e-12));
   prism::test::check_validation_clean();
 }
+
+TEST_CASE("source extent: reduces to a point at tiny sigma, softens peaks, and both backends agree") {
+  auto plain = prism::test::small_system(prism::LensModel::real);
+  prism::TraceSettings t;
+  t.rays_per_lenslet = 1024;
+  t.binning = 8;
+  glm::dvec3 theta{1.0, 2.0, 15.0};
+  auto point = render(plain);
+
+  auto tiny = plain;
+  tiny.effects.source_extent = true;
+  tiny.effects.source_sigma_mm = 1e-6;
+  auto tiny_img = render(tiny);
+  CHECK(max_rel_diff(tiny_img, point, 0, 0) < 3e-4);
+
+  auto wide = plain;
+  wide.effects.source_extent = true;
+  wide.effects.source_sigma_mm = 0.5;
+  prism::ForwardVulkan fw(prism::test::gpu(), wide, t);
+  auto v = fw.psf(theta);
+  auto r = prism::ref::psf(wide, t, theta);
+  CHECK(v.photons() == doctest::Approx(r.photons()).epsilon(1e-4));
+  double ref_peak = 0, worst = 0;
+  for (const auto& [k, px] : r.pixels) ref_peak = std::max(ref_peak, px[0]);
+  for (const auto& [k, px] : r.pixels) worst = std::max(worst, std::abs(double(v.data[4 * size_t(k)]) - px[0]));
+  CHECK(worst < 3e-4 * ref_peak);
+
+  // Same light, spread out: the brightest pixel dims.
+  prism::ForwardVulkan fw_point(prism::test::gpu(), plain, t);
+  auto p = fw_point.psf(theta);
+  double peak_point = 0, peak_wide = 0;
+  for (size_t i = 0; i < p.data.size(); i += 4) {
+    peak_point = std::max(peak_point, double(p.data[i]));
+    peak_wide = std::max(peak_wide, double(v.data[i]));
+  }
+  CHECK(v.photons() == doctest::Approx(p.photons()).epsilon(0.02));
+  CHECK(peak_wide < 0.8 * peak_point);
+  prism::test::check_validation_clean();
+}

@@ -30,7 +30,7 @@ TEST_CASE("shared GLSL math compiled as C++ traces rays like the reference") {
         for (uint32_t s = 0; s < t.rays(); ++s) {
           auto r = prism::ref::trace_sample(sys, t, theta, l, s);
           auto h = sh::trace_sample(glm::vec3(theta), lens, uint32_t(l), s, P,
-                                    model == prism::LensModel::real ? sh::LENS_REAL : sh::LENS_THIN, face, false);
+                                    model == prism::LensModel::real ? sh::LENS_REAL : sh::LENS_THIN, face, false, false);
           REQUIRE(h.ok == r.ok);
           // Grazing rays that land far off the sensor amplify float rounding; they carry no signal.
           if (!r.ok || std::abs(r.x_mm) > 0.5 * sys.sensor_width_mm() || std::abs(r.y_mm) > 0.5 * sys.sensor_height_mm())
