@@ -10,29 +10,14 @@ namespace {
 
 using json = nlohmann::json;
 
-// The prototype's 42 lenslets (DESIGN.md): 6 rows x 7 columns on a hex grid,
-// odd rows shifted by half a pitch, centroid on the axis; every lenslet of
-// focal index (column + 3 row) mod 7, or all of one focal length.
+// The prototype's 42 lenslets (DESIGN.md): focal index (column + 3 row) mod 7,
+// or all of one focal length.
 std::vector<LensletGeometry> hex_array(double focal_or_zero) {
-  std::vector<LensletGeometry> out;
-  const double row_step = defaults::lenslet_pitch_mm * std::sqrt(3.0) / 2.0;
-  double cx = 0, cy = 0;
+  auto out = hex_positions(defaults::lenslet_rows, defaults::lenslet_columns, defaults::lenslet_pitch_mm);
   for (int row = 0; row < defaults::lenslet_rows; ++row)
-    for (int col = 0; col < defaults::lenslet_columns; ++col) {
-      LensletGeometry l;
-      l.x_mm = col * defaults::lenslet_pitch_mm + (row % 2 ? 0.5 * defaults::lenslet_pitch_mm : 0.0);
-      l.y_mm = row * row_step;
-      l.focal_mm = focal_or_zero > 0 ? focal_or_zero : defaults::focal_lengths_mm[(col + 3 * row) % 7];
-      cx += l.x_mm;
-      cy += l.y_mm;
-      out.push_back(l);
-    }
-  cx /= double(out.size());
-  cy /= double(out.size());
-  for (auto& l : out) {
-    l.x_mm -= cx;
-    l.y_mm -= cy;
-  }
+    for (int col = 0; col < defaults::lenslet_columns; ++col)
+      out[size_t(row * defaults::lenslet_columns + col)].focal_mm =
+          focal_or_zero > 0 ? focal_or_zero : defaults::focal_lengths_mm[(col + 3 * row) % 7];
   return out;
 }
 
@@ -88,6 +73,26 @@ LensModel parse_lens_model(const Reader& rd, const json& v, const std::string& f
 }
 
 }  // namespace
+
+std::vector<LensletGeometry> hex_positions(int rows, int columns, double pitch_mm) {
+  std::vector<LensletGeometry> out;
+  double cx = 0, cy = 0;
+  for (int row = 0; row < rows; ++row)
+    for (int col = 0; col < columns; ++col) {
+      LensletGeometry l;
+      l.x_mm = pitch_mm * (col + (row % 2 ? 0.5 : 0.0));
+      l.y_mm = pitch_mm * std::sqrt(3.0) / 2.0 * row;
+      l.focal_mm = 0;
+      cx += l.x_mm;
+      cy += l.y_mm;
+      out.push_back(l);
+    }
+  for (auto& l : out) {
+    l.x_mm -= cx / double(out.size());
+    l.y_mm -= cy / double(out.size());
+  }
+  return out;
+}
 
 std::vector<std::string> builtin_scene_names() {
   return {"prototype", "unifocal-f3", "unifocal-f9", "unifocal-f15", "single-f3", "single-f9", "single-f15"};

@@ -29,6 +29,11 @@ struct SceneError : std::runtime_error {
   using std::runtime_error::runtime_error;
 };
 
+// Lenslet centres on a hex grid as the prototype's (DESIGN.md): odd rows
+// shifted by half a pitch, rows pitch sqrt(3)/2 apart, centroid on the axis.
+// Focal lengths are left 0 for the caller to assign.
+std::vector<LensletGeometry> hex_positions(int rows, int columns, double pitch_mm);
+
 std::vector<std::string> builtin_scene_names();
 Scene builtin_scene(const std::string& name);
 // A built-in name, or the path of a JSON scene file.

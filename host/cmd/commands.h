@@ -7,6 +7,7 @@ namespace prism::cmd {
 void add_crlb(CLI::App& app);
 void add_psf(CLI::App& app);
 void add_camera(CLI::App& app);
+void add_sweep(CLI::App& app);
 // `prism dictionary ...`; its subcommands live in host/cmd/dictionary_*.cpp.
 void add_dictionary(CLI::App& app);
 void add_dictionary_merge_hdr(CLI::App& dictionary);

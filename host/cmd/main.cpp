@@ -10,6 +10,7 @@ int main(int argc, char** argv) {
   prism::cmd::add_crlb(app);
   prism::cmd::add_psf(app);
   prism::cmd::add_dictionary(app);
+  prism::cmd::add_sweep(app);
   prism::cmd::add_simulate(app);
 #ifdef PRISM_WITH_CAMERA
   prism::cmd::add_camera(app);

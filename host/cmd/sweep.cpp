@@ -1,0 +1,265 @@
+// prism sweep: search a design space for the lenslet array with the lowest
+// CRLB over a sample of the volume (host/sweep.h; host/SWEEP.md).
+#include <atomic>
+#include <cmath>
+#include <csignal>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <memory>
+
+#include "host/cmd/commands.h"
+#include "host/image_io.h"
+#include "host/plot.h"
+#include "host/progress.h"
+#include "host/sweep.h"
+
+namespace prism::cmd {
+
+namespace {
+
+struct SweepArgs {
+  std::string space, objective = "mean_crlb_3d", out, device, backend = "vulkan";
+  size_t budget = 100;
+  uint64_t seed = 1;
+  unsigned rays = 4096, binning = 32;
+  std::vector<std::string> bounds;
+  unsigned keep = 3, confirm = 0;
+};
+
+std::atomic<bool> interrupted{false};
+extern "C" void on_sigint(int) {
+  interrupted = true;
+  std::signal(SIGINT, SIG_DFL);  // a second Ctrl-C stops at once; the state file is safe either way
+}
+
+std::string fmt(double v) {
+  if (std::isinf(v)) return "inf";
+  char b[32];
+  std::snprintf(b, sizeof b, "%.6g", v);
+  return b;
+}
+
+std::string csv_field(const std::string& s) {
+  return s.find_first_of(",\"") == std::string::npos ? s : "\"" + s + "\"";
+}
+
+struct Baseline {
+  std::string name;
+  Objectives objectives;
+};
+
+void write_csv(const std::string& path, const Sweep& sweep, const std::vector<const Evaluated*>& ranked) {
+  write_atomically(path, [&](const std::string& tmp) {
+    std::ofstream out(tmp);
+    out << "rank,feasible,valid,origin";
+    for (const auto& c : DesignSpace::parameter_columns()) out << ',' << c;
+    out << ",mean_crlb_3d_mm,worst_crlb_3d_mm,mean_crlb_x_mm,mean_crlb_y_mm,mean_crlb_z_mm,mean_photons,depth_ratio,"
+           "seconds,reason,key\n";
+    size_t rank = 0;
+    for (const Evaluated* e : ranked) {
+      bool feasible = e->valid;
+      for (const auto& b : sweep.settings().bounds) feasible = feasible && b.holds(e->objectives);
+      out << ++rank << ',' << feasible << ',' << e->valid << ',' << e->origin;
+      for (const auto& p : sweep.space().parameters(e->design)) out << ',' << csv_field(p);
+      const Objectives& o = e->objectives;
+      if (e->valid)
+        out << ',' << fmt(o.mean_crlb_3d_mm) << ',' << fmt(o.worst_crlb_3d_mm) << ',' << fmt(o.mean_crlb_x_mm) << ','
+            << fmt(o.mean_crlb_y_mm) << ',' << fmt(o.mean_crlb_z_mm) << ',' << fmt(o.mean_photons) << ','
+            << fmt(o.depth_ratio) << ',' << fmt(e->seconds) << ',';
+      else
+        out << ",,,,,,,,," << csv_field(e->reason);
+      out << ',' << e->key << '\n';
+    }
+    if (!out) throw std::runtime_error("cannot write " + path);
+  });
+}
+
+// A small X at (x, y) drawn as one line series (plot_lines draws lines only).
+Series marker(const std::string& label, double x, double y, double dx) {
+  return {label, {x - dx, x + dx, x, x - dx, x + dx}, {y * 0.93, y * 1.07, y, y * 1.07, y * 0.93}};
+}
+
+void write_plots(const SweepArgs& a, const Sweep& sweep, const std::vector<const Evaluated*>& ranked,
+                 const std::vector<Baseline>& baselines, const std::string& stated) {
+  // Pareto front: the best objective among designs with at least x photons.
+  std::string y_name = objective_is_maximised(a.objective) ? "mean_crlb_3d" : a.objective;
+  std::vector<std::pair<double, double>> pts;
+  for (const Evaluated* e : ranked)
+    if (e->valid) pts.push_back({e->objectives.mean_photons, objective_value(e->objectives, y_name)});
+  if (pts.empty()) return;
+  std::sort(pts.begin(), pts.end(), [](auto& p, auto& q) { return p.first > q.first || (p.first == q.first && p.second < q.second); });
+  Series front{"Pareto front (" + std::to_string(pts.size()) + " designs)", {}, {}};
+  double best = INFINITY;
+  for (const auto& [photons, v] : pts)
+    if (v < best && std::isfinite(v)) {
+      if (!front.x.empty()) {  // staircase
+        front.x.push_back(photons);
+        front.y.push_back(best);
+      }
+      best = v;
+      front.x.push_back(photons);
+      front.y.push_back(v);
+    }
+  double dx = 0.01 * std::max(1.0, pts.front().first - pts.back().first);
+  std::vector<Series> series{front};
+  const Evaluated& top = *ranked.front();
+  series.push_back(marker("best-1", top.objectives.mean_photons, objective_value(top.objectives, y_name), dx));
+  for (const auto& b : baselines)
+    series.push_back(marker(b.name, b.objectives.mean_photons, objective_value(b.objectives, y_name), dx));
+  plot_lines(a.out + "/pareto.png",
+             {y_name + " vs detected photons, " + stated, "mean detected photons over the samples", y_name + " (mm)", true},
+             series);
+
+  std::vector<Series> depth;
+  const auto& z = sweep.space().samples.depth_mm;
+  for (size_t k = 0; k < ranked.size() && k < a.keep; ++k)
+    if (ranked[k]->valid) depth.push_back({"best-" + std::to_string(k + 1), z, ranked[k]->objectives.crlb_3d_by_depth_mm});
+  for (const auto& b : baselines) depth.push_back({b.name, z, b.objectives.crlb_3d_by_depth_mm, true});
+  plot_lines(a.out + "/crlb-depth.png",
+             {"3D CRLB (lateral mean) vs depth, " + stated, "depth from scintillator face (mm)",
+              "3D CRLB (mm)", true},
+             depth);
+}
+
+void run(const SweepArgs& a) {
+  DesignSpace space = DesignSpace::load(a.space);
+  SweepSettings s;
+  s.trace.rays_per_lenslet = a.rays;
+  s.trace.binning = a.binning;
+  s.trace.photons_emitted = space.base.photons_emitted;
+  s.backend = a.backend == "cpu" ? Backend::cpu : Backend::vulkan;
+  s.objective = a.objective;
+  s.budget = a.budget;
+  s.seed = a.seed;
+  for (const auto& b : a.bounds) s.bounds.push_back(parse_bound(b));
+  std::filesystem::create_directories(a.out);
+  Sweep sweep(space, s, a.out + "/evaluated.jsonl");
+
+  std::unique_ptr<vk::Context> ctx;
+  std::string device = "CPU reference (double precision)";
+  if (s.backend == Backend::vulkan) {
+    ctx = std::make_unique<vk::Context>(vk::ContextOptions{a.device});
+    device = ctx->describe();
+  }
+  AnalysisGrid g = AnalysisGrid::of(space.base.optics, a.binning);
+  std::string stated = std::to_string(s.trace.rays()) + " rays/lenslet, " + fmt(g.pixel_mm * 1e3) + " um pixels";
+  std::printf("# space: %s (%s designs), objective: minimise %s%s\n", a.space.c_str(), fmt(space.size()).c_str(),
+              objective_is_maximised(a.objective) ? ("-" + a.objective).c_str() : a.objective.c_str(),
+              s.bounds.empty() ? "" : ", bounds:");
+  for (const auto& b : s.bounds) std::printf("#   %s\n", b.text().c_str());
+  std::printf("# device: %s\n# rays per 3 mm lenslet: %u, analysis pixel: %u x %u binned = %.1f um, split Fisher "
+              "estimator, poisson sensor, %s photons emitted\n",
+              device.c_str(), s.trace.rays(), a.binning, a.binning, g.pixel_mm * 1e3,
+              fmt(s.trace.photons_emitted).c_str());
+  std::printf("# volume samples: %s\n", space.samples.describe().c_str());
+  std::printf("# state: %s/evaluated.jsonl (%zu designs already scored), seed %llu, budget %zu\n", a.out.c_str(),
+              sweep.evaluated().size(), static_cast<unsigned long long>(a.seed), a.budget);
+  std::fflush(stdout);
+
+  interrupted = false;
+  auto previous = std::signal(SIGINT, on_sigint);
+  Progress progress("prism sweep: designs", a.budget);
+  size_t fresh = 0;
+  sweep.run(
+      ctx.get(), [] { return interrupted.load(); },
+      [&](const Evaluated&, size_t done) {
+        ++fresh;
+        progress.update(done);
+      });
+  progress.finish();
+  std::signal(SIGINT, previous);
+  if (interrupted)
+    std::fprintf(stderr, "prism sweep: interrupted; %zu designs kept in %s/evaluated.jsonl; rerun the same command to resume\n",
+                 sweep.evaluated().size(), a.out.c_str());
+
+  auto ranked = sweep.ranked();
+  write_csv(a.out + "/ranked.csv", sweep, ranked);
+  for (size_t k = 0; k < ranked.size() && k < a.keep && ranked[k]->valid; ++k) {
+    Scene best = space.scene_of(ranked[k]->design, space.name + "-best-" + std::to_string(k + 1));
+    std::string path = a.out + "/best-" + std::to_string(k + 1) + ".json";
+    write_atomically(path, [&](const std::string& tmp) {
+      std::ofstream out(tmp);
+      out << to_json(best).dump(2) << '\n';
+      if (!out) throw std::runtime_error("cannot write " + path);
+    });
+  }
+
+  // Baselines at the same settings and samples: the prototype and the unifocal arrays.
+  std::vector<Baseline> baselines;
+  for (const char* name : {"prototype", "unifocal-f3", "unifocal-f9", "unifocal-f15"}) {
+    Scene b = builtin_scene(name);
+    b.volume = space.base.volume;
+    baselines.push_back({name, score(b, space.samples, s.trace, s.backend, ctx.get())});
+  }
+  write_plots(a, sweep, ranked, baselines, stated);
+
+  std::printf("%-4s %-10s %12s %12s %10s %8s  %s\n", "rank", "origin", "mean_3d_mm", "worst_3d_mm", "photons",
+              "d_ratio", "focal_mm");
+  auto row = [&](const std::string& rank, const std::string& origin, const Objectives& o, const std::string& focal) {
+    std::printf("%-4s %-10s %12s %12s %10s %8s  %s\n", rank.c_str(), origin.c_str(), fmt(o.mean_crlb_3d_mm).c_str(),
+                fmt(o.worst_crlb_3d_mm).c_str(), fmt(o.mean_photons).c_str(), fmt(o.depth_ratio).c_str(), focal.c_str());
+  };
+  for (size_t k = 0; k < ranked.size() && k < 5; ++k)
+    row(std::to_string(k + 1), ranked[k]->origin, ranked[k]->objectives,
+        ranked[k]->valid ? space.parameters(ranked[k]->design)[2] : ranked[k]->reason);
+  for (const auto& b : baselines) row("-", b.name, b.objectives, "");
+  if (!ranked.empty() && ranked.front()->valid) {
+    double best = objective_value(ranked.front()->objectives, a.objective);
+    double proto = objective_value(baselines.front().objectives, a.objective);
+    std::printf("# best-1 (%s/best-1.json): %s = %s vs prototype %s (%+.2f%%); %zu designs scored this run, %zu replayed%s\n",
+                a.out.c_str(), a.objective.c_str(), fmt(best).c_str(), fmt(proto).c_str(), 100 * (best / proto - 1), fresh - sweep.replayed(),
+                sweep.replayed(), sweep.exhausted() ? ", space exhausted" : "");
+  }
+
+  // The double-precision reference re-scores the top designs: does it rank them the same way?
+  if (a.confirm > 0) {
+    std::printf("# CPU reference check of the top %u designs (same rays, binning and samples):\n", a.confirm);
+    std::printf("%-4s %14s %14s %8s\n", "rank", "device_value", "cpu_value", "cpu_rank");
+    std::vector<std::pair<double, size_t>> cpu;
+    std::vector<double> dev;
+    for (size_t k = 0; k < ranked.size() && k < a.confirm && ranked[k]->valid; ++k) {
+      Scene sc = space.scene_of(ranked[k]->design, "confirm");
+      double v = objective_value(score(sc, space.samples, s.trace, Backend::cpu, nullptr), a.objective);
+      cpu.push_back({objective_is_maximised(a.objective) ? -v : v, k});
+      dev.push_back(objective_value(ranked[k]->objectives, a.objective));
+    }
+    auto order = cpu;
+    std::sort(order.begin(), order.end());
+    for (size_t k = 0; k < cpu.size(); ++k) {
+      size_t r = size_t(std::find_if(order.begin(), order.end(), [&](auto& p) { return p.second == k; }) - order.begin());
+      std::printf("%-4zu %14s %14s %8zu\n", k + 1, fmt(dev[k]).c_str(),
+                  fmt(objective_is_maximised(a.objective) ? -cpu[k].first : cpu[k].first).c_str(), r + 1);
+    }
+  }
+  std::fprintf(stderr, "prism sweep: wrote %s/ranked.csv, best-*.json, pareto.png, crlb-depth.png\n", a.out.c_str());
+}
+
+}  // namespace
+
+void add_sweep(CLI::App& app) {
+  auto a = std::make_shared<SweepArgs>();
+  CLI::App* c = app.add_subcommand("sweep", "search a design space of lenslet arrays for the lowest CRLB (host/SWEEP.md)");
+  c->add_option("--space", a->space, "design space JSON file (host/spaces/*.json)")->required();
+  std::string names;
+  for (const auto& n : objective_names()) names += (names.empty() ? "" : ", ") + n;
+  c->add_option("--objective", a->objective, "what to minimise (photons is maximised): " + names)
+      ->capture_default_str()->check(CLI::IsMember(objective_names()));
+  c->add_option("--budget", a->budget, "designs to score (rejected ones count); the whole space when it is smaller")
+      ->capture_default_str()->check(CLI::Range(size_t(1), size_t(1) << 30));
+  c->add_option("--out", a->out, "output folder; holds the state to resume from")->required();
+  c->add_option("--seed", a->seed, "random start and local search; the same seed gives the same sweep")->capture_default_str();
+  c->add_option("--rays", a->rays, "rays per 3 mm lenslet per source (other sizes: same rays per mm^2)")
+      ->capture_default_str()->check(CLI::Range(1u, 1u << 24));
+  c->add_option("--binning", a->binning, "analyse on B x B binned sensor pixels")
+      ->capture_default_str()->check(CLI::Range(1u, 1024u));
+  c->add_option("--device", a->device, "Vulkan device: auto, gpu, cpu (lavapipe), an index or part of a name");
+  c->add_option("--backend", a->backend, "vulkan, or cpu (double-precision reference; slow)")
+      ->capture_default_str()->check(CLI::IsMember({"vulkan", "cpu"}));
+  c->add_option("--bound", a->bounds, "constraint NAME>=X or NAME<=X, e.g. photons>=100; repeatable");
+  c->add_option("--keep", a->keep, "write the best K designs as best-1.json ... best-K.json")->capture_default_str();
+  c->add_option("--confirm", a->confirm, "re-score the top K designs with the CPU reference and show its ranking");
+  c->callback([a] { run(*a); });
+}
+
+}  // namespace prism::cmd
