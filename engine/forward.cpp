@@ -57,31 +57,89 @@ std::vector<uint32_t> specialisation(const OpticalSystem& s, bool derivatives) {
           uint32_t(s.effects.source_extent)};
 }
 
+// The lenslets of every design, one after the other, and each design's range.
+struct DesignBuffers {
+  std::vector<shared::Lenslet> lenses;
+  std::vector<shared::DesignRange> ranges;
+  uint32_t max_rays = 0;
+};
+
+DesignBuffers design_buffers(const std::vector<OpticalSystem>& designs, const TraceSettings& t) {
+  DesignBuffers b;
+  for (const auto& sys : designs) {
+    std::vector<shared::Lenslet> dev = device_lenslets(sys, t);
+    uint32_t rays = dev.back().first_ray + dev.back().strata * dev.back().strata;
+    b.ranges.push_back({uint32_t(b.lenses.size()), uint32_t(dev.size()), rays, 0u});
+    b.max_rays = std::max(b.max_rays, rays);
+    b.lenses.insert(b.lenses.end(), dev.begin(), dev.end());
+  }
+  return b;
+}
+
+// Designs traced together may differ only in their lenslets.
+void check_batchable(const std::vector<OpticalSystem>& designs) {
+  if (designs.empty()) throw std::invalid_argument("ForwardVulkan: no design given");
+  const OpticalSystem& a = designs.front();
+  for (size_t k = 1; k < designs.size(); ++k) {
+    const OpticalSystem& b = designs[k];
+    const Effects &ea = a.effects, &eb = b.effects;
+    const char* what = nullptr;
+    if (a.sensor_width_px != b.sensor_width_px || a.sensor_height_px != b.sensor_height_px || a.pixel_um != b.pixel_um)
+      what = "the sensor";
+    else if (a.lens_to_sensor_mm != b.lens_to_sensor_mm || a.working_distance_mm != b.working_distance_mm)
+      what = "the lens-to-sensor or working distance";
+    else if (a.lens_model != b.lens_model)
+      what = "the lens model";
+    else if (ea.scintillator_refraction != eb.scintillator_refraction || ea.scintillator_index != eb.scintillator_index ||
+             ea.holder_vignetting != eb.holder_vignetting || ea.holder_bore_mm != eb.holder_bore_mm ||
+             ea.detection_efficiency != eb.detection_efficiency || ea.dark_counts_per_pixel != eb.dark_counts_per_pixel ||
+             ea.source_extent != eb.source_extent || ea.source_sigma_mm != eb.source_sigma_mm)
+      what = "the effects";
+    if (what)
+      throw std::invalid_argument("design " + std::to_string(k) + " differs from design 0 in " + what +
+                                  "; designs traced together may differ only in their lenslets");
+  }
+}
+
 struct ForwardVulkan::Impl {
   vk::Context& ctx;
   OpticalSystem sys;
   TraceSettings settings;
   shared::TraceParams params{};
+  DesignBuffers layout;
   vk::Buffer lenses;
+  vk::Buffer designs;
+  vk::Buffer design_zero;  // source_design for single-source renders: design 0
   vk::Kernel splat;
   vk::Kernel splat_values;  // b only
   vk::Kernel reduce;
   uint32_t band_rows;       // grid rows per band
   uint32_t sources_per_batch;
 
-  Impl(vk::Context& c, const OpticalSystem& s, const TraceSettings& t, const AnalysisGrid& grid, uint64_t budget)
+  Impl(vk::Context& c, const std::vector<OpticalSystem>& all, const TraceSettings& t, const AnalysisGrid& grid,
+       uint64_t budget)
+      : Impl(c, all, t, grid, budget, design_buffers(all, t)) {}
+
+  Impl(vk::Context& c, const std::vector<OpticalSystem>& all, const TraceSettings& t, const AnalysisGrid& grid,
+       uint64_t budget, DesignBuffers b)
       : ctx(c),
-        sys(s),
+        sys(all.front()),
         settings(t),
-        lenses(c, s.lenslets.size() * sizeof(shared::Lenslet)),
-        splat(c, "psf_splat", spirv(spv_psf_splat), 3, sizeof(shared::TraceParams), specialisation(s, true)),
-        splat_values(c, "psf_splat (values)", spirv(spv_psf_splat), 3, sizeof(shared::TraceParams),
-                     specialisation(s, false)),
+        layout(std::move(b)),
+        lenses(c, layout.lenses.size() * sizeof(shared::Lenslet)),
+        designs(c, layout.ranges.size() * sizeof(shared::DesignRange)),
+        design_zero(c, sizeof(uint32_t)),
+        splat(c, "psf_splat", spirv(spv_psf_splat), 5, sizeof(shared::TraceParams), specialisation(sys, true)),
+        splat_values(c, "psf_splat (values)", spirv(spv_psf_splat), 5, sizeof(shared::TraceParams),
+                     specialisation(sys, false)),
         reduce(c, "fisher_reduce", spirv(spv_fisher_reduce), 2, 3 * sizeof(uint32_t),
                {uint32_t(t.estimator == FisherEstimator::split ? shared::FISHER_SPLIT : shared::FISHER_NAIVE)}) {
-    std::vector<shared::Lenslet> dev = device_lenslets(s, t);
-    lenses.upload(std::span<const shared::Lenslet>(dev));
-    params.total_rays = dev.back().first_ray + dev.back().strata * dev.back().strata;
+    const OpticalSystem& s = sys;
+    lenses.upload(std::span<const shared::Lenslet>(layout.lenses));
+    designs.upload(std::span<const shared::DesignRange>(layout.ranges));
+    uint32_t zero = 0;
+    design_zero.upload(&zero, sizeof(zero));
+    params.total_rays = layout.max_rays;
 
     params.pixel_mm = float(grid.pixel_mm);
     params.sensor_half_w_mm = float(0.5 * s.sensor_width_mm());
@@ -94,7 +152,7 @@ struct ForwardVulkan::Impl {
     params.source_sigma_mm = float(s.effects.source_sigma_mm);
     params.grid_w = grid.width;
     params.grid_h = grid.height;
-    params.lens_count = uint32_t(s.lenslets.size());
+    params.lens_count = uint32_t(layout.lenses.size());
 
     // One image buffer of at most maxStorageBufferRange and the budget: bands
     // of rows when one image is larger, batches of sources when it is smaller.
@@ -116,17 +174,30 @@ struct ForwardVulkan::Impl {
 
 ForwardVulkan::ForwardVulkan(vk::Context& ctx, const OpticalSystem& sys, const TraceSettings& settings,
                              uint64_t image_budget_bytes)
-    : grid_(AnalysisGrid::of(sys, settings.binning)) {
-  validate(sys);
-  impl_ = std::make_unique<Impl>(ctx, sys, settings, grid_, image_budget_bytes);
+    : ForwardVulkan(ctx, std::vector<OpticalSystem>{sys}, settings, image_budget_bytes) {}
+
+ForwardVulkan::ForwardVulkan(vk::Context& ctx, const std::vector<OpticalSystem>& designs,
+                             const TraceSettings& settings, uint64_t image_budget_bytes) {
+  check_batchable(designs);
+  for (const auto& d : designs) validate(d);
+  grid_ = AnalysisGrid::of(designs.front(), settings.binning);
+  impl_ = std::make_unique<Impl>(ctx, designs, settings, grid_, image_budget_bytes);
 }
 
 ForwardVulkan::~ForwardVulkan() = default;
 
-uint64_t ForwardVulkan::rays_per_source() const { return impl_->params.total_rays; }
+uint64_t ForwardVulkan::rays_per_source() const { return impl_->layout.ranges.front().total_rays; }
 
 std::vector<FisherResult> ForwardVulkan::fisher(std::span<const glm::dvec3> theta) {
+  std::vector<uint32_t> design0(theta.size(), 0);
+  return fisher(theta, design0);
+}
+
+std::vector<FisherResult> ForwardVulkan::fisher(std::span<const glm::dvec3> theta, std::span<const uint32_t> design_of) {
   Impl& m = *impl_;
+  if (design_of.size() != theta.size()) throw std::invalid_argument("fisher: one design index per source");
+  for (uint32_t d : design_of)
+    if (d >= m.layout.ranges.size()) throw std::invalid_argument("fisher: design index " + std::to_string(d) + " out of range");
   std::vector<FisherResult> out(theta.size());
   last_kernel_ms_ = 0;
   if (theta.empty()) return out;
@@ -135,6 +206,8 @@ std::vector<FisherResult> ForwardVulkan::fisher(std::span<const glm::dvec3> thet
   for (size_t i = 0; i < theta.size(); ++i) src[i] = glm::vec4(glm::vec3(theta[i]), 0.0f);
   vk::Buffer sources(m.ctx, src.size() * sizeof(glm::vec4));
   sources.upload(std::span<const glm::vec4>(src));
+  vk::Buffer source_designs(m.ctx, design_of.size() * sizeof(uint32_t));
+  source_designs.upload(design_of);
   vk::Buffer images(m.ctx, uint64_t(batch) * grid_.width * m.band_rows * kPixelBytes);
   const uint32_t max_pixels = uint32_t(grid_.width) * m.band_rows;
   const uint32_t max_chunks = (max_pixels + kReduceChunk - 1) / kReduceChunk;
@@ -155,7 +228,8 @@ std::vector<FisherResult> ForwardVulkan::fisher(std::span<const glm::dvec3> thet
       p.source_count = uint32_t(std::min<size_t>(batch, theta.size() - first));
       stream.fill_zero(images);
       stream.barrier();
-      stream.dispatch(m.splat, {&m.lenses, &sources, &images}, &p, m.splat_groups(), p.source_count);
+      stream.dispatch(m.splat, {&m.lenses, &sources, &images, &source_designs, &m.designs}, &p, m.splat_groups(),
+                      p.source_count);
       stream.barrier();
       stream.dispatch(m.reduce, {&images, &partials}, &rp, rp.chunks, p.source_count);
       last_kernel_ms_ += stream.submit();
@@ -199,7 +273,7 @@ double render_bands(ForwardVulkan::Impl& m, const AnalysisGrid& grid, vk::Kernel
     p.source_count = 1;
     stream.fill_zero(images);
     stream.barrier();
-    stream.dispatch(kernel, {&m.lenses, &sources, &images}, &p, m.splat_groups(), 1);
+    stream.dispatch(kernel, {&m.lenses, &sources, &images, &m.design_zero, &m.designs}, &p, m.splat_groups(), 1);
     ms += stream.submit();
     images.download(pixels.data(), uint64_t(p.band_rows) * grid.width * pixel_floats * sizeof(float));
     consume(row0, uint32_t(p.band_rows), pixels.data());

@@ -32,10 +32,17 @@ class ForwardVulkan {
  public:
   ForwardVulkan(vk::Context& ctx, const OpticalSystem& sys, const TraceSettings& settings,
                 uint64_t image_budget_bytes = 256ull << 20);
+  // Several designs traced in the same dispatches (design sweeps). They must
+  // share the sensor, distances, lens model and effects; only the lenslets
+  // differ. Each design traces the very rays it would trace alone.
+  ForwardVulkan(vk::Context& ctx, const std::vector<OpticalSystem>& designs, const TraceSettings& settings,
+                uint64_t image_budget_bytes = 256ull << 20);
   ~ForwardVulkan();
 
-  // theta = (x_mm, y_mm, depth_mm) per source.
+  // theta = (x_mm, y_mm, depth_mm) per source, through design 0.
   std::vector<FisherResult> fisher(std::span<const glm::dvec3> theta);
+  // Source i through design design_of[i].
+  std::vector<FisherResult> fisher(std::span<const glm::dvec3> theta, std::span<const uint32_t> design_of);
   PixelImage psf(const glm::dvec3& theta);
   // Expected photons per pixel only, row-major: 4 bytes per pixel on the
   // device instead of 32 (no derivatives); for dictionaries and events.

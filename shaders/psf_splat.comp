@@ -24,6 +24,8 @@ layout(std430, binding = 1) readonly buffer Sources { vec4 sources[]; };  // xyz
 // Per pixel 8 floats: b, grad b from ray half A (x2), grad b from half B (x2), unused;
 // or b alone without DERIVATIVES.
 layout(std430, binding = 2) buffer Images { float images[]; };  // [source][row][col][PIXEL_FLOATS]
+layout(std430, binding = 3) readonly buffer SourceDesigns { uint source_design[]; };  // design of each source
+layout(std430, binding = 4) readonly buffer Designs { DesignRange designs[]; };
 
 void add_tap(uint image_base, ivec2 px, vec4 tap, uint half_offset) {
   int row = px.y - P.band_row0;
@@ -37,10 +39,10 @@ void add_tap(uint image_base, ivec2 px, vec4 tap, uint half_offset) {
   atomicAdd(images[i + half_offset + 2u], 2.0f * tap.w);
 }
 
-// The lenslet that ray r belongs to: the last one whose first_ray <= r.
-uint lens_of_ray(uint r) {
-  uint lo = 0u;
-  uint hi = P.lens_count - 1u;
+// The lenslet of design d that ray r belongs to: the last whose first_ray <= r.
+uint lens_of_ray(DesignRange d, uint r) {
+  uint lo = d.first_lens;
+  uint hi = d.first_lens + d.lens_count - 1u;
   while (lo < hi) {
     uint mid = (lo + hi + 1u) / 2u;
     if (lenses[mid].first_ray <= r) lo = mid;
@@ -50,16 +52,19 @@ uint lens_of_ray(uint r) {
 }
 
 void main() {
-  uint total = P.total_rays;
   uint s = gl_GlobalInvocationID.y;
   if (s >= P.source_count) return;
+  DesignRange design = designs[source_design[P.source_offset + s]];
+  uint total = design.total_rays;
   vec3 theta = sources[P.source_offset + s].xyz;
   uint image_base = s * uint(P.grid_w) * uint(P.band_rows) * PIXEL_FLOATS;
   uint stride = gl_NumWorkGroups.x * gl_WorkGroupSize.x;
   for (uint r = gl_GlobalInvocationID.x; r < total; r += stride) {
-    uint lens_index = lens_of_ray(r);
+    uint lens_index = lens_of_ray(design, r);
     uint sample_index = r - lenses[lens_index].first_ray;
-    Hit hit = trace_sample(theta, lenses[lens_index], lens_index, sample_index, P, LENS_MODEL,
+    // Hash by the lens's index within its design: a design traces the same
+    // rays batched with others as alone.
+    Hit hit = trace_sample(theta, lenses[lens_index], lens_index - design.first_lens, sample_index, P, LENS_MODEL,
                            SCINT_REFRACTION, HOLDER, SOURCE_EXTENT);
     Splat sp = splat_bilinear(hit, P);
     if (!sp.ok) continue;

@@ -28,8 +28,17 @@ struct Lenslet {
   float glass_index;          // refractive index of the glass (real model)
   int curved_toward_sensor;   // real model: 0 = curved face toward the source, 1 = flipped
   uint strata;                // aperture samples = strata^2 (equal density over lens sizes)
-  uint first_ray;             // index of this lenslet's first ray among all lenslets' rays
+  uint first_ray;             // index of its first ray among its design's rays
   uint pad_;                  // std430: the struct aligns to its vec2
+};
+
+// One optical design's lenslets within the lens buffer (std430, 16 bytes):
+// a dispatch may trace several designs that share sensor, distances and effects.
+struct DesignRange {
+  uint first_lens;  // index of its first lenslet in the lens buffer
+  uint lens_count;
+  uint total_rays;  // rays per source through all its lenslets
+  uint pad_;
 };
 
 // Per-dispatch constants (push constants, std430, 68 bytes).
@@ -46,8 +55,8 @@ struct TraceParams {
   int grid_h;                 // analysis grid height in pixels
   int band_row0;              // first grid row this pass keeps
   int band_rows;              // rows this pass keeps (chunking of large sensors)
-  uint lens_count;            // lenslets in the scene
-  uint total_rays;            // rays per source, all lenslets together
+  uint lens_count;            // lenslets in the lens buffer (all designs)
+  uint total_rays;            // rays per source of the design with the most
   uint source_offset;         // first source of this dispatch
   uint source_count;          // sources in this dispatch
   float source_sigma_mm;      // effect: Gaussian extent of the source (per axis)

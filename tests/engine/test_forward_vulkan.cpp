@@ -220,3 +220,34 @@ TEST_CASE("the values-only PSF kernel equals the b channel of the full one, at a
   }
   prism::test::check_validation_clean();
 }
+
+TEST_CASE("several designs in one dispatch give what each gives alone") {
+  std::vector<prism::OpticalSystem> designs{prism::builtin_scene("prototype").optics,
+                                            prism::builtin_scene("unifocal-f9").optics,
+                                            prism::test::small_system(prism::LensModel::real)};
+  prism::TraceSettings t;
+  t.rays_per_lenslet = 1024;
+  t.binning = 16;
+  std::vector<glm::dvec3> theta;
+  std::vector<uint32_t> design_of;
+  for (uint32_t d = 0; d < designs.size(); ++d)
+    for (double depth : {5.0, 30.0}) {
+      theta.push_back({1.0, -1.0, depth});
+      design_of.push_back(d);
+    }
+  prism::ForwardVulkan batch(prism::test::gpu(), designs, t);
+  auto together = batch.fisher(theta, design_of);
+  for (size_t i = 0; i < theta.size(); ++i) {
+    prism::ForwardVulkan alone(prism::test::gpu(), designs[design_of[i]], t);
+    auto a = alone.fisher(std::span<const glm::dvec3>(&theta[i], 1)).front();
+    CAPTURE(i);
+    CHECK(together[i].photons == doctest::Approx(a.photons).epsilon(1e-5));
+    for (int k = 0; k < 6; ++k)
+      CHECK(together[i].poisson[k] == doctest::Approx(a.poisson[k]).epsilon(1e-4).scale(a.poisson[0]));
+  }
+  auto other = designs[1];
+  other.effects.holder_vignetting = true;
+  CHECK_THROWS_WITH_AS(prism::ForwardVulkan(prism::test::gpu(), std::vector{designs[0], other}, t),
+                       doctest::Contains("differs from design 0 in the effects"), std::invalid_argument);
+  prism::test::check_validation_clean();
+}
