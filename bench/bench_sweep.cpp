@@ -86,15 +86,20 @@ int main(int argc, char** argv) {
     double vk_s = 0, cpu_s = 0;
     scores(small, few, t, Backend::vulkan, &ctx, &vk_s);  // warm up
     auto dev = scores(small, few, t, Backend::vulkan, &ctx, &vk_s);
+    // All designs in one multi-design dispatch, as the sweep scores a batch.
+    double batched_s = bench::median_seconds(3, [&] { evaluate_designs(small, few, t, Backend::vulkan, &ctx); }) /
+                       double(few.size());
     auto cpu = scores(small, few, t, Backend::cpu, nullptr, &cpu_s);
     std::printf("\n## 1. Designs per second: 42 lenslets (real), %u rays/lenslet, 32x32 binning, %s\n", t.rays(),
                 small.samples.describe().c_str());
     std::printf("%-36s %12s %12s\n", "backend", "s/design", "designs/s");
-    std::printf("%-36s %12.3f %12.3f\n", "Vulkan (all samples in one call)", vk_s, 1 / vk_s);
+    std::printf("%-36s %12.3f %12.3f\n", "Vulkan (one design per call)", vk_s, 1 / vk_s);
+    std::printf("%-36s %12.3f %12.3f\n", "Vulkan (all designs in one dispatch)", batched_s, 1 / batched_s);
     std::printf("%-36s %12.3f %12.3f\n", "CPU reference (double, 1 thread)", cpu_s, 1 / cpu_s);
     double err = 0;
     for (size_t i = 0; i < dev.size(); ++i) err = std::max(err, std::abs(dev[i] / cpu[i] - 1));
-    std::printf("ratio: Vulkan %.1fx faster; largest difference in mean 3D CRLB: %.2f%%\n", cpu_s / vk_s, 100 * err);
+    std::printf("ratio: Vulkan (batched) %.1fx faster than the CPU reference; largest difference in mean 3D CRLB: %.2f%%\n",
+                cpu_s / batched_s, 100 * err);
   }
 
   // 2. Ranking against accuracy.

@@ -10,6 +10,7 @@
 #include <fstream>
 #include <sstream>
 
+#include "engine/forward.h"
 #include "host/image_io.h"
 
 namespace prism {
@@ -632,9 +633,10 @@ std::vector<std::string> DesignSpace::parameters(const Design& d) const {
 
 // ---- Scoring ----------------------------------------------------------------
 
-Objectives score(const Scene& scene, const SampleGrid& grid, const TraceSettings& settings, Backend backend,
-                 vk::Context* ctx) {
-  auto rows = crlb_study(scene, grid.positions(), settings, backend, SensorModel::poisson, ctx);
+namespace {
+
+// The objectives of one design from its CRLB at the grid's positions.
+Objectives objectives_of(const std::vector<CrlbRow>& rows, const SampleGrid& grid) {
   Objectives o;
   double n = double(rows.size()), sum3 = 0, sx = 0, sy = 0, sz = 0, photons = 0, worst = 0;
   for (const auto& r : rows) {
@@ -662,23 +664,85 @@ Objectives score(const Scene& scene, const SampleGrid& grid, const TraceSettings
   return o;
 }
 
+// All scenes at all the grid's positions in one multi-design dispatch.
+std::vector<Objectives> score_together(const std::vector<Scene>& scenes, const SampleGrid& grid,
+                                       const TraceSettings& settings, vk::Context& ctx) {
+  std::vector<OpticalSystem> systems;
+  for (const auto& s : scenes) systems.push_back(s.optics);
+  ForwardVulkan fw(ctx, systems, settings);
+  auto positions = grid.positions();
+  std::vector<glm::dvec3> theta;
+  std::vector<uint32_t> design_of;
+  for (uint32_t d = 0; d < scenes.size(); ++d)
+    for (const auto& p : positions) {
+      theta.push_back(p);
+      design_of.push_back(d);
+    }
+  auto fisher = fw.fisher(theta, design_of);
+  std::vector<Objectives> out;
+  for (size_t d = 0; d < scenes.size(); ++d) {
+    std::vector<CrlbRow> rows;
+    for (size_t i = 0; i < positions.size(); ++i) {
+      const FisherResult& f = fisher[d * positions.size() + i];
+      rows.push_back({scenes[d].name, scenes[d].optics.lens_model, positions[i], f.photons,
+                      crlb_from_fisher(f.poisson, f.photons), settings.rays()});
+    }
+    out.push_back(objectives_of(rows, grid));
+  }
+  return out;
+}
+
+}  // namespace
+
+Objectives score(const Scene& scene, const SampleGrid& grid, const TraceSettings& settings, Backend backend,
+                 vk::Context* ctx) {
+  return objectives_of(crlb_study(scene, grid.positions(), settings, backend, SensorModel::poisson, ctx), grid);
+}
+
+std::vector<Evaluated> evaluate_designs(const DesignSpace& space, const std::vector<Design>& designs,
+                                        const TraceSettings& settings, Backend backend, vk::Context* ctx) {
+  std::vector<Evaluated> out(designs.size());
+  std::vector<size_t> valid;
+  std::vector<Scene> scenes;
+  for (size_t i = 0; i < designs.size(); ++i) {
+    Evaluated& e = out[i];
+    e.design = designs[i];
+    e.key = designs[i].key();
+    Scene scene = space.scene_of(designs[i], space.name);
+    try {
+      validate(scene.optics);
+    } catch (const std::invalid_argument& err) {
+      e.valid = false;
+      e.reason = err.what();
+      continue;
+    }
+    valid.push_back(i);
+    scenes.push_back(std::move(scene));
+  }
+  if (valid.empty()) return out;
+  auto start = std::chrono::steady_clock::now();
+  std::vector<Objectives> scores;
+  bool together = backend == Backend::vulkan && scenes.size() > 1;
+  if (together) {
+    try {
+      scores = score_together(scenes, space.samples, settings, *ctx);
+    } catch (const std::invalid_argument&) {
+      together = false;  // designs that differ in more than their lenslets: one dispatch each
+    }
+  }
+  if (!together)
+    for (const auto& scene : scenes) scores.push_back(score(scene, space.samples, settings, backend, ctx));
+  double per_design = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() / double(scenes.size());
+  for (size_t k = 0; k < valid.size(); ++k) {
+    out[valid[k]].objectives = scores[k];
+    out[valid[k]].seconds = per_design;
+  }
+  return out;
+}
+
 Evaluated evaluate_design(const DesignSpace& space, const Design& d, const TraceSettings& settings, Backend backend,
                           vk::Context* ctx) {
-  Evaluated e;
-  e.design = d;
-  e.key = d.key();
-  Scene scene = space.scene_of(d, space.name);
-  try {
-    validate(scene.optics);
-  } catch (const std::invalid_argument& err) {
-    e.valid = false;
-    e.reason = err.what();
-    return e;
-  }
-  auto start = std::chrono::steady_clock::now();
-  e.objectives = score(scene, space.samples, settings, backend, ctx);
-  e.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  return e;
+  return evaluate_designs(space, {d}, settings, backend, ctx).front();
 }
 
 // ---- Sweep ------------------------------------------------------------------
@@ -744,6 +808,7 @@ json Sweep::header() const {
           {"estimator", to_string(t.estimator)},
           {"photons_emitted", t.photons_emitted},
           {"backend", settings_.backend == Backend::cpu ? "cpu" : "vulkan"},
+          {"batch", settings_.batch},
           {"samples", {{"x_mm", space_.samples.x_mm}, {"y_mm", space_.samples.y_mm}, {"depth_mm", space_.samples.depth_mm}}}};
 }
 
@@ -836,20 +901,31 @@ std::vector<const Evaluated*> Sweep::ranked() const {
   return r;
 }
 
-const Evaluated& Sweep::consume(const Design& d, const std::string& origin, vk::Context* ctx) {
-  std::string key = d.key();
-  seen_.insert(key);
-  auto it = stored_.find(key);
-  if (it != stored_.end()) {
-    ++replayed_;
-    for (const auto& e : done_)
-      if (e.key == key) return e;
+void Sweep::consume(const std::vector<std::pair<Design, std::string>>& queue, vk::Context* ctx,
+                    std::vector<size_t>& pool, const std::function<void(const Evaluated&, size_t)>& on_design) {
+  // Score what the state file does not hold yet, all together.
+  std::vector<Design> fresh;
+  for (const auto& [d, origin] : queue)
+    if (!stored_.count(d.key())) fresh.push_back(d);
+  std::vector<Evaluated> scored = evaluate_designs(space_, fresh, settings_.trace, settings_.backend, ctx);
+  size_t next = 0;
+  size_t consumed = seen_.size() - queue.size();
+  for (const auto& [d, origin] : queue) {
+    std::string key = d.key();
+    size_t index = done_.size();
+    if (stored_.count(key)) {
+      ++replayed_;
+      for (size_t i = 0; i < done_.size(); ++i)
+        if (done_[i].key == key) index = i;
+    } else {
+      Evaluated e = std::move(scored[next++]);
+      e.origin = origin;
+      append(e);
+      done_.push_back(std::move(e));
+    }
+    pool.push_back(index);
+    if (on_design) on_design(done_[index], ++consumed);
   }
-  Evaluated e = evaluate_design(space_, d, settings_.trace, settings_.backend, ctx);
-  e.origin = origin;
-  append(e);
-  done_.push_back(std::move(e));
-  return done_.back();
 }
 
 void Sweep::run(vk::Context* ctx, const std::function<bool()>& stop, const std::function<void(const Evaluated&, size_t)>& on_design) {
@@ -859,19 +935,28 @@ void Sweep::run(vk::Context* ctx, const std::function<bool()>& stop, const std::
   exhausted_ = false;
   std::vector<size_t> pool;  // indices into done_ of the designs this run consumed, in order
   auto more = [&] { return seen_.size() < settings_.budget && !(stop && stop()); };
+  // Candidates queue up and are scored a batch at a time (one dispatch).
+  std::vector<std::pair<Design, std::string>> queue;
+  auto flush = [&] {
+    if (queue.empty()) return;
+    consume(queue, ctx, pool, on_design);
+    queue.clear();
+  };
   auto take = [&](const Design& d, const std::string& origin) {
-    const Evaluated& e = consume(d, origin, ctx);
-    pool.push_back(size_t(&e - done_.data()));
-    if (on_design) on_design(e, seen_.size());
+    seen_.insert(d.key());
+    queue.emplace_back(d, origin);
+    if (queue.size() >= std::max<size_t>(1, settings_.batch)) flush();
   };
 
   // The base scene first when the space holds it: the sweep reports it beside
   // whatever it finds, and never does worse.
   if (auto base = space_.encode(space_.base); base && more()) take(*base, "base");
+  flush();  // the base design alone: the local search may start from it
 
   if (space_.size() <= double(settings_.budget)) {
     for (const auto& d : space_.enumerate())
       if (!seen_.count(d.key()) && more()) take(d, "enumerated");
+    flush();
     exhausted_ = seen_.size() >= size_t(space_.size());
     return;
   }
@@ -885,6 +970,7 @@ void Sweep::run(vk::Context* ctx, const std::function<bool()>& stop, const std::
     for (int tries = 0; seen_.count(d.key()) && tries < 100; ++tries) d = space_.random(rng);
     if (!seen_.count(d.key())) take(d, "start");
   }
+  flush();
   while (more()) {
     std::vector<size_t> order;
     for (size_t i : pool)
@@ -906,11 +992,13 @@ void Sweep::run(vk::Context* ctx, const std::function<bool()>& stop, const std::
       if (!seen_.count(d.key())) child = d;
     }
     if (!child) {
+      flush();
       exhausted_ = true;  // nothing new near the best nor at random
       return;
     }
     take(*child, "search");
   }
+  flush();
 }
 
 }  // namespace prism

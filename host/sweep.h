@@ -134,6 +134,7 @@ struct SweepSettings {
   std::vector<Bound> bounds;
   size_t budget = 100;  // designs in the state file, rejected ones included
   uint64_t seed = 1;
+  size_t batch = 8;  // candidates generated and scored together (one dispatch on Vulkan)
 };
 
 struct Evaluated {
@@ -167,7 +168,10 @@ class Sweep {
   size_t replayed() const { return replayed_; }
 
  private:
-  const Evaluated& consume(const Design& d, const std::string& origin, vk::Context* ctx);
+  // Scores the queued candidates together (replaying those already stored)
+  // and appends each to the state file.
+  void consume(const std::vector<std::pair<Design, std::string>>& queue, vk::Context* ctx, std::vector<size_t>& pool,
+               const std::function<void(const Evaluated&, size_t)>& on_design);
   bool better(const Evaluated& a, const Evaluated& b) const;
   void append(const Evaluated& e) const;
   nlohmann::json header() const;
@@ -182,8 +186,11 @@ class Sweep {
   bool exhausted_ = false;
 };
 
-// Validate and score one design; a design validate() refuses is returned
-// with valid = false and the reason.
+// Validate and score designs, the valid ones together (one multi-design
+// dispatch when they differ only in their lenslets); a design validate()
+// refuses is returned with valid = false and the reason.
+std::vector<Evaluated> evaluate_designs(const DesignSpace& space, const std::vector<Design>& designs,
+                                        const TraceSettings& settings, Backend backend, vk::Context* ctx);
 Evaluated evaluate_design(const DesignSpace& space, const Design& d, const TraceSettings& settings, Backend backend,
                           vk::Context* ctx);
 

@@ -22,6 +22,7 @@ struct SweepArgs {
   std::string space, objective = "mean_crlb_3d", out, device, backend = "vulkan";
   size_t budget = 100;
   uint64_t seed = 1;
+  size_t batch = 8;
   unsigned rays = 4096, binning = 32;
   std::vector<std::string> bounds;
   unsigned keep = 3, confirm = 0;
@@ -132,6 +133,7 @@ void run(const SweepArgs& a) {
   s.objective = a.objective;
   s.budget = a.budget;
   s.seed = a.seed;
+  s.batch = a.batch;
   for (const auto& b : a.bounds) s.bounds.push_back(parse_bound(b));
   std::filesystem::create_directories(a.out);
   Sweep sweep(space, s, a.out + "/evaluated.jsonl");
@@ -249,6 +251,8 @@ void add_sweep(CLI::App& app) {
       ->capture_default_str()->check(CLI::Range(size_t(1), size_t(1) << 30));
   c->add_option("--out", a->out, "output folder; holds the state to resume from")->required();
   c->add_option("--seed", a->seed, "random start and local search; the same seed gives the same sweep")->capture_default_str();
+  c->add_option("--batch", a->batch, "candidates generated and scored together, in one dispatch")
+      ->capture_default_str()->check(CLI::Range(size_t(1), size_t(4096)));
   c->add_option("--rays", a->rays, "rays per 3 mm lenslet per source (other sizes: same rays per mm^2)")
       ->capture_default_str()->check(CLI::Range(1u, 1u << 24));
   c->add_option("--binning", a->binning, "analyse on B x B binned sensor pixels")
