@@ -48,6 +48,6 @@ fi
 mkdir -p out
 ./build/host/prism crlb --scene prototype --scene unifocal-f3 --scene unifocal-f9 --scene unifocal-f15 \
   --scene single-f3 --scene single-f9 --scene single-f15 --depth-mm 0:50:5 \
-  --csv out/crlb.csv --plot out/crlb.png
+  --converge 0.02 --max-rays 262144 --csv out/crlb.csv --plot out/crlb.png
 ./build/host/prism psf --scene prototype --source-mm 0,0,25 --binning 4 --out out/psf-prototype.exr
 echo "setup: results in out/ (crlb.csv, crlb.png, psf-prototype.exr, psf-prototype.png)"

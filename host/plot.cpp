@@ -43,7 +43,12 @@ void plot_lines(const std::string& path, const PlotSpec& spec, const std::vector
     pls->col0(15);  // black on white after the background swap below
     pls->scol0(15, 0, 0, 0);
     pls->col0(15);
-    pls->env(xmin, xmax, ymin, ymax, 0, spec.log_y ? 20 : 0);
+    // Plot area on the left, legend outside it on the right: curves that fill
+    // the whole range are never hidden.
+    pls->adv(0);
+    pls->vpor(0.10, 0.70, 0.11, 0.90);
+    pls->wind(xmin, xmax, ymin, ymax);
+    pls->box("bcnst", 0.0, 0, spec.log_y ? "bcnstlv" : "bcnstv", 0.0, 0);
     pls->lab(spec.x_label.c_str(), spec.y_label.c_str(), spec.title.c_str());
     const int colours[][3] = {{0, 0, 0},     {228, 26, 28},  {55, 126, 184}, {77, 175, 74},  {152, 78, 163},
                               {255, 127, 0}, {166, 86, 40},  {247, 129, 191}, {100, 100, 100}, {23, 190, 207}};
@@ -77,7 +82,7 @@ void plot_lines(const std::string& path, const PlotSpec& spec, const std::vector
     std::vector<int> zeros(series.size(), 0), text_colors(series.size(), 15);
     std::vector<PLFLT> zf(series.size(), 0.0);
     PLFLT lw, lh;
-    pls->legend(&lw, &lh, PL_LEGEND_BACKGROUND | PL_LEGEND_BOUNDING_BOX, PL_POSITION_LEFT | PL_POSITION_TOP, 0.01, 0.01,
+    pls->legend(&lw, &lh, PL_LEGEND_BACKGROUND | PL_LEGEND_BOUNDING_BOX, PL_POSITION_OUTSIDE | PL_POSITION_RIGHT, 0.02, 0.0,
                 0.1, 0, 15, 1, 0, 0, int(series.size()), opt.data(), 1.0, 0.8, 2.0, 1.0, text_colors.data(),
                 texts.data(), nullptr, nullptr, nullptr, nullptr, line_colors.data(), line_styles.data(),
                 widths.data(), nullptr, nullptr, nullptr, nullptr);
