@@ -8,10 +8,17 @@
 
 namespace prism::test {
 
+namespace {
+vk::Context* created = nullptr;
+}
+
 vk::Context& gpu() {
   static vk::Context ctx(vk::ContextOptions{"", true});
+  created = &ctx;
   return ctx;
 }
+
+size_t validation_message_count() { return created ? created->validation_messages().size() : 0; }
 
 void check_validation_clean() {
   const auto& m = gpu().validation_messages();

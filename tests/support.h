@@ -13,6 +13,8 @@ namespace prism::test {
 vk::Context& gpu();
 // Fails the current test if the validation layer printed anything.
 void check_validation_clean();
+// Messages the validation layer printed in this process (0 if no GPU test ran).
+size_t validation_message_count();
 // A scene small enough for exhaustive CPU-reference comparisons.
 OpticalSystem small_system(LensModel model);
 
