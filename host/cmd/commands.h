@@ -15,4 +15,5 @@ void add_dictionary_build(CLI::App& dictionary);
 void add_dictionary_info(CLI::App& dictionary);
 void add_simulate(CLI::App& app);
 void add_reconstruct(CLI::App& app);
+void add_evaluate(CLI::App& app);
 }  // namespace prism::cmd

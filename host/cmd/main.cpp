@@ -13,6 +13,7 @@ int main(int argc, char** argv) {
   prism::cmd::add_sweep(app);
   prism::cmd::add_simulate(app);
   prism::cmd::add_reconstruct(app);
+  prism::cmd::add_evaluate(app);
 #ifdef PRISM_WITH_CAMERA
   prism::cmd::add_camera(app);
 #endif
