@@ -1,6 +1,7 @@
 #include "host/dictionary_service.h"
 
 #include <algorithm>
+#include <cstring>
 
 namespace prism {
 
@@ -9,15 +10,17 @@ std::string mib(uint64_t b) { return std::to_string((b + (1 << 20) - 1) >> 20) +
 }  // namespace
 
 DictionaryService::DictionaryService(const DictionaryReader& reader, vk::Context* ctx, int coarse_level,
-                                     ServiceBudget budget)
-    : reader_(reader), coarse_level_(coarse_level), budget_(budget) {
+                                     ServiceBudget budget, bool device_half)
+    : reader_(reader), coarse_level_(coarse_level), budget_(budget), device_half_(device_half) {
   const DictionaryManifest& m = reader.manifest();
   if (coarse_level < 0 || coarse_level >= m.levels)
     throw DictionaryError(reader.dir() + ": no level " + std::to_string(coarse_level) + " (levels 0.." +
                           std::to_string(m.levels - 1) + ")");
-  const uint64_t psf_floats = uint64_t(m.level_width(coarse_level)) * m.level_height(coarse_level);
-  const uint64_t psf_bytes = psf_floats * sizeof(float);
-  const uint64_t sat_bytes = uint64_t(m.level_width(coarse_level) + 1) * (m.level_height(coarse_level) + 1) * sizeof(double);
+  const uint64_t w = uint64_t(m.level_width(coarse_level)), h = uint64_t(m.level_height(coarse_level));
+  const uint64_t p_words = device_half ? (w * h + 1) / 2 : w * h;
+  const uint64_t sat_words = (w + 1) * (h + 1);
+  const uint64_t psf_bytes = (p_words + sat_words) * 4;  // on the device: values, then the float table
+  const uint64_t sat_bytes = (w + 1) * (h + 1) * sizeof(double);
   const size_t n = m.grid.size();
   auto finer_hint = [&] {
     return coarse_level + 1 < m.levels ? "; level " + std::to_string(coarse_level + 1) + " needs a quarter of it" : "";
@@ -27,12 +30,13 @@ DictionaryService::DictionaryService(const DictionaryReader& reader, vk::Context
                           mib(sat_bytes * n) + ", more than the host budget of " + mib(budget.host_bytes) + finer_hint());
   if (ctx && psf_bytes * n > budget.device_bytes)
     throw DictionaryError(reader.dir() + ": level " + std::to_string(coarse_level) + " needs " + mib(psf_bytes * n) +
-                          " on the device, more than the device budget of " + mib(budget.device_bytes) + finer_hint());
+                          " on the device (values and summed-area tables), more than the device budget of " +
+                          mib(budget.device_bytes) + finer_hint());
 
   // Pack the coarse level into chunks no larger than one storage buffer may be.
   uint64_t chunk_cap = ctx ? std::min<uint64_t>(ctx->max_storage_buffer_bytes(), 128ull << 20) : 0;
   uint64_t per_chunk = ctx ? std::max<uint64_t>(1, chunk_cap / psf_bytes) : 0;
-  std::vector<float> staging;
+  std::vector<uint32_t> words(p_words + sat_words);
   for (size_t i = 0; i < n; ++i) {
     PsfLevel lv = reader.has(i) ? reader.read_level(i, coarse_level)
                                 : throw DictionaryError(reader.path_of(i) + ": missing; finish `prism dictionary build`");
@@ -46,9 +50,42 @@ DictionaryService::DictionaryService(const DictionaryReader& reader, vk::Context
       chunks_.push_back(std::make_unique<vk::Buffer>(*ctx, count * psf_bytes));
       stats_.device_bytes += count * psf_bytes;
     }
-    chunks_[chunk]->upload(lv.p.data(), psf_bytes, in_chunk * psf_bytes);
-    slots_.push_back({chunk, in_chunk * psf_floats});
+    std::fill(words.begin(), words.end(), 0u);
+    if (device_half) {
+      for (size_t k = 0; k < lv.p.size(); ++k) {
+        uint32_t half = glm::packHalf2x16(glm::vec2(lv.p[k] * device_half_scale, 0.0f)) & 0xffffu;
+        words[k / 2] |= half << (16 * (k % 2));
+      }
+    } else {
+      std::memcpy(words.data(), lv.p.data(), lv.p.size() * 4);
+    }
+    const auto& table = sats_.back().table();
+    for (size_t k = 0; k < table.size(); ++k) {
+      float v = float(table[k]);
+      std::memcpy(&words[p_words + k], &v, 4);
+    }
+    chunks_[chunk]->upload(words.data(), psf_bytes, in_chunk * psf_bytes);
+    const uint64_t first = in_chunk * psf_bytes / 4;
+    slots_.push_back({chunk, first, first + p_words});
   }
+}
+
+ScanLevel DictionaryService::scan_level() const {
+  if (chunks_.empty())
+    throw DictionaryError(reader_.dir() + ": the dictionary service was made without a device; the Vulkan "
+                          "reconstruction needs one");
+  const DictionaryManifest& m = reader_.manifest();
+  ScanLevel s;
+  s.width = m.level_width(coarse_level_);
+  s.height = m.level_height(coarse_level_);
+  s.half = device_half_;
+  s.half_scale = device_half_ ? device_half_scale : 1.0f;
+  for (const auto& c : chunks_) s.chunks.push_back(c.get());
+  for (const Slot& slot : slots_) {
+    if (slot.sat_offset > 0xffffffffull) throw DictionaryError("scan level: a chunk offset exceeds 32 bits");
+    s.psfs.push_back({slot.chunk, uint32_t(slot.offset), uint32_t(slot.sat_offset), 0});
+  }
+  return s;
 }
 
 void DictionaryService::account(int64_t delta) {

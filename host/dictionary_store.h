@@ -104,6 +104,8 @@ class SummedArea {
   // Mass still on the sensor after shifting the PSF by (dx, dy) pixels.
   double mass_shifted(int dx, int dy) const { return mass(-dx, -dy, width_ - dx, height_ - dy); }
   size_t bytes() const { return table_.size() * sizeof(double); }
+  // (width + 1) x (height + 1), row-major: entry (x, y) sums columns < x, rows < y.
+  const std::vector<double>& table() const { return table_; }
 
  private:
   int width_, height_;

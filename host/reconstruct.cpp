@@ -1,6 +1,7 @@
 #include "host/reconstruct.h"
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <limits>
 #include <map>
@@ -209,50 +210,92 @@ double fit_weights(const std::vector<const std::vector<double>*>& p, const std::
   return f;
 }
 
+using Scored = SupportScore;
+
+glm::ivec3 grid_node(const DictionaryManifest& m, size_t psf) {
+  size_t nx = m.grid.x_mm.size(), ny = m.grid.y_mm.size();
+  return {int(psf % nx), int(psf / nx % ny), int(psf / (nx * ny))};
+}
+double magnification(const DictionaryManifest& m, double depth_mm) {
+  const auto& o = m.scene.optics;
+  return o.lens_to_sensor_mm / (depth_mm + o.working_distance_mm);
+}
+// tau on the sensor in pixels of `level` for the PSF's depth plane.
+int scan_radius_px(const DictionaryManifest& m, double tau_mm, size_t psf, int level) {
+  double depth = m.grid.depth_mm[size_t(grid_node(m, psf).z)];
+  return int(std::ceil(tau_mm * magnification(m, depth) / m.pixel_mm(level) - 1e-9));
+}
+int search_level_of(const DictionaryService& d, const ReconstructionSettings& s, int level) {
+  return std::clamp(s.search_level < 0 ? d.coarse_level() : s.search_level, level, d.manifest().levels - 1);
+}
+
 class EventFit {
  public:
   EventFit(const Event& e, int level, DictionaryService& d, const ReconstructionSettings& s)
       : d_(d), m_(d.manifest()), s_(s), level_(level) {
     const int w = m_.level_width(level);
     for (uint32_t c : e.clicks) clicks_[level].push_back({int(c % uint32_t(w)), int(c / uint32_t(w))});
-    search_level_ = std::clamp(s.search_level < 0 ? d.coarse_level() : s.search_level, level, m_.levels - 1);
+    search_level_ = search_level_of(d, s, level);
     dark_.assign(clicks_[level].size(), s.dark_rate);
   }
 
-  std::vector<ReconstructedVertex> run() {
-    const size_t K = size_t(s_.vertices), n_clicks = clicks_[level_].size();
-    if (n_clicks == 0) {
-      std::vector<ReconstructedVertex> out(K);
+  // Another vertex to add (the event has clicks and fewer than K so far).
+  bool wants_vertex() { return !clicks_[level_].empty() && vs_.size() < size_t(s_.vertices); }
+
+  // The support scan's input for the next vertex: the clicks on the search
+  // level and the current model's rate there (dense: at every pixel).
+  ScanEvent scan_input(bool dense) {
+    ScanEvent e;
+    e.clicks = clicks_at(search_level_);
+    e.rate = rates(search_level_, vs_);
+    if (dense) e.dense_rate = dense_rates(search_level_);
+    return e;
+  }
+
+  // The reference scan: every PSF at its best shift on the search level, its
+  // weight fitted against the current model.
+  std::vector<Scored> scan_cpu() {
+    const int Ls = search_level_;
+    auto w = gradient_weights(Ls, vs_);
+    auto background = rates(Ls, vs_);
+    std::vector<Scored> scored;
+    for (size_t m = 0; m < m_.grid.size(); ++m) {
+      int r = radius_px(m, Ls);
+      Shift sh = best_shift(m, Ls, Shift(0), r, r, w, std::max(1, s_.scan_step_px));
+      auto v = values(m, Ls, {sh});
+      std::vector<double> p(v.begin(), v.end());
+      double alpha = 0, f = fit_one(p, sensor_mass(m, Ls, sh), background, alpha);
+      scored.push_back({m, sh, f, alpha});
+    }
+    return scored;
+  }
+
+  // Steps 3-6 for the next vertex from the scan's results.
+  void add_vertex(std::vector<Scored> scored) {
+    vs_.push_back(refine(std::move(scored)));
+    fit(vs_);
+    descend(vs_);
+  }
+
+  std::vector<ReconstructedVertex> result() {
+    if (clicks_[level_].empty()) {
+      std::vector<ReconstructedVertex> out(size_t(s_.vertices));
       for (auto& v : out) v.flags = no_clicks | few_clicks | alpha_zero;
       return out;
     }
-    std::vector<Vertex> vs;
-    for (size_t k = 0; k < K; ++k) {
-      vs.push_back(search(vs));
-      fit(vs);
-      descend(vs);
-    }
-    return finish(vs);
+    return finish(vs_);
   }
 
  private:
   // --- geometry ---
-  glm::ivec3 node(size_t psf) const {
-    size_t nx = m_.grid.x_mm.size(), ny = m_.grid.y_mm.size();
-    return {int(psf % nx), int(psf / nx % ny), int(psf / (nx * ny))};
-  }
+  glm::ivec3 node(size_t psf) const { return grid_node(m_, psf); }
   size_t psf_at(glm::ivec3 n) const {
     return size_t(n.x) + m_.grid.x_mm.size() * (size_t(n.y) + m_.grid.y_mm.size() * size_t(n.z));
   }
-  double magnification(double depth_mm) const {
-    const auto& o = m_.scene.optics;
-    return o.lens_to_sensor_mm / (depth_mm + o.working_distance_mm);
-  }
+  double magnification(double depth_mm) const { return prism::magnification(m_, depth_mm); }
   double depth_of(size_t psf) const { return m_.grid.depth_mm[size_t(node(psf).z)]; }
   // tau on the sensor in pixels of `level` for the PSF's depth plane.
-  int radius_px(size_t psf, int level) const {
-    return int(std::ceil(s_.tau_mm * magnification(depth_of(psf)) / m_.pixel_mm(level) - 1e-9));
-  }
+  int radius_px(size_t psf, int level) const { return scan_radius_px(m_, s_.tau_mm, psf, level); }
   // Lateral source position of a vertex, its shift read at depth `depth_mm`.
   glm::dvec2 source_xy(const Vertex& v, double depth_mm) const {
     glm::ivec3 n = node(v.psf);
@@ -337,6 +380,23 @@ class EventFit {
     return lam;
   }
 
+  // lambda at every pixel of `level` (the dense baseline's input).
+  std::vector<double> dense_rates(int level) {
+    const int w = m_.level_width(level), h = m_.level_height(level);
+    std::vector<double> lam(size_t(w) * size_t(h), s_.dark_rate * double(1 << (2 * (level - level_))));
+    std::vector<glm::ivec2> px(lam.size());
+    for (const Vertex& v : vs_) {
+      if (v.alpha <= 0) continue;
+      double f = std::ldexp(1.0, level_ - level);
+      Shift sh(int(std::lround(v.shift.x * f)), int(std::lround(v.shift.y * f)));
+      for (int y = 0; y < h; ++y)
+        for (int x = 0; x < w; ++x) px[size_t(y) * size_t(w) + size_t(x)] = glm::ivec2(x, y) - sh;
+      auto p = d_.values(v.psf, level, px);
+      for (size_t i = 0; i < lam.size(); ++i) lam[i] += v.alpha * double(p[i]);
+    }
+    return lam;
+  }
+
   // --- weights ---
   // All weights of `vs` jointly at the click level; returns the event's NLL.
   double fit(std::vector<Vertex>& vs) {
@@ -366,11 +426,14 @@ class EventFit {
   }
 
   // --- support search (eqs. 17-19) ---
-  // The shift around `center` (+-reach, within +-radius) with the lowest <g, P>.
-  Shift best_shift(size_t psf, int level, Shift center, int reach, int radius, const std::vector<double>& w) {
+  // The shift around `center` (multiples of step within +-reach, and within
+  // +-radius) with the lowest <g, P>; ties to the first in row-major order.
+  Shift best_shift(size_t psf, int level, Shift center, int reach, int radius, const std::vector<double>& w,
+                   int step = 1) {
     std::vector<Shift> shifts;
-    for (int dy = -reach; dy <= reach; ++dy)
-      for (int dx = -reach; dx <= reach; ++dx) {
+    const int first = -(reach / step) * step;
+    for (int dy = first; dy <= reach; dy += step)
+      for (int dx = first; dx <= reach; dx += step) {
         Shift sh = center + Shift(dx, dy);
         if (std::abs(sh.x) <= radius && std::abs(sh.y) <= radius) shifts.push_back(sh);
       }
@@ -392,39 +455,29 @@ class EventFit {
     return lam;
   }
 
-  Vertex search(const std::vector<Vertex>& vs) {
-    const int Ls = search_level_;
-    auto w = gradient_weights(Ls, vs);
-    auto background = rates(Ls, vs);
-    struct Scored {
-      size_t psf;
-      Shift shift;
-      double nll, alpha;
-    };
-    std::vector<Scored> scored;
-    for (size_t m = 0; m < m_.grid.size(); ++m) {
-      int r = radius_px(m, Ls);
-      Shift sh = best_shift(m, Ls, Shift(0), r, r, w);
-      auto v = values(m, Ls, {sh});
-      std::vector<double> p(v.begin(), v.end());
-      double alpha = 0, f = fit_one(p, sensor_mass(m, Ls, sh), background, alpha);
-      scored.push_back({m, sh, f, alpha});
-    }
+  // Pruning (eq. 19): the refine_candidates best PSFs of the scan go down
+  // level by level to the click grid (shift doubled, +-1 re-searched; first
+  // +-(step - 1) on the search level when the scan skipped shifts), and the
+  // lowest click-level NLL wins.
+  Vertex refine(std::vector<Scored> scored) {
+    const int Ls = search_level_, step = std::max(1, s_.scan_step_px);
     size_t keep = std::min(scored.size(), size_t(std::max(1, s_.refine_candidates)));
-    std::partial_sort(scored.begin(), scored.begin() + long(keep), scored.end(),
-                      [](const Scored& a, const Scored& b) { return a.nll < b.nll; });
+    std::partial_sort(scored.begin(), scored.begin() + long(keep), scored.end(), [](const Scored& a, const Scored& b) {
+      return a.nll < b.nll || (a.nll == b.nll && a.psf < b.psf);
+    });
     std::map<int, std::vector<double>> weights;  // per level, shared by the candidates
-    auto background_click = rates(level_, vs);
+    auto weights_at = [&](int l) -> const std::vector<double>& {
+      if (!weights.count(l)) weights[l] = gradient_weights(l, vs_);
+      return weights[l];
+    };
+    auto background_click = rates(level_, vs_);
     Vertex best;
     double best_nll = std::numeric_limits<double>::infinity();
     for (size_t j = 0; j < keep; ++j) {
       size_t m = scored[j].psf;
       Shift sh = scored[j].shift;
-      for (int l = Ls - 1; l >= level_; --l) {
-        if (!weights.count(l)) weights[l] = gradient_weights(l, vs);
-        int r = radius_px(m, l);
-        sh = best_shift(m, l, sh * 2, 1, r, weights[l]);
-      }
+      if (step > 1) sh = best_shift(m, Ls, sh, step - 1, radius_px(m, Ls), weights_at(Ls));
+      for (int l = Ls - 1; l >= level_; --l) sh = best_shift(m, l, sh * 2, 1, radius_px(m, l), weights_at(l));
       const Column& c = column(m, sh);
       double alpha = scored[j].alpha;
       double f = fit_one(c.p, c.s, background_click, alpha);
@@ -581,26 +634,149 @@ class EventFit {
   std::vector<double> dark_;                       // dark rate at each click-level click
   std::map<std::tuple<size_t, int, int>, Column> columns_;
   std::vector<glm::ivec2> pixels_;  // scratch
+  std::vector<Vertex> vs_;          // the model so far
 };
 
 }  // namespace
 
+namespace {
+// The device's results of event j as scores.
+std::vector<SupportScore> to_scores(const std::vector<ScanResult>& results, size_t j, size_t n_psf) {
+  std::vector<SupportScore> scored(n_psf);
+  for (size_t psf = 0; psf < n_psf; ++psf) {
+    const ScanResult& r = results[j * n_psf + psf];
+    scored[psf] = {psf, r.shift, double(r.nll), double(r.alpha)};
+  }
+  return scored;
+}
+}  // namespace
+
+const char* to_string(ReconstructionBackend b) {
+  switch (b) {
+    case ReconstructionBackend::cpu: return "cpu";
+    case ReconstructionBackend::vulkan: return "vulkan";
+    case ReconstructionBackend::dense: return "dense";
+  }
+  return "?";
+}
+
+ReconstructionBackend backend_from_string(const std::string& s) {
+  for (auto b : {ReconstructionBackend::cpu, ReconstructionBackend::vulkan, ReconstructionBackend::dense})
+    if (s == to_string(b)) return b;
+  throw std::invalid_argument("reconstruction backend '" + s + "': choose cpu, vulkan or dense");
+}
+
+Reconstructor::Reconstructor(DictionaryService& dictionary, int click_level, ReconstructionSettings settings,
+                             ReconstructionBackend backend, vk::Context* ctx)
+    : d_(dictionary), level_(click_level), s_(settings), backend_(backend) {
+  const auto& m = dictionary.manifest();
+  if (s_.vertices < 1 || s_.vertices > 8)
+    throw std::invalid_argument("reconstruction: vertices = " + std::to_string(s_.vertices) + "; choose K in 1..8");
+  if (!(s_.dark_rate > 0) || !(s_.tau_mm >= 0) || !(s_.alpha_max > 0))
+    throw std::invalid_argument("reconstruction: dark_rate and alpha_max must be > 0 and tau_mm >= 0");
+  if (s_.scan_step_px < 1) throw std::invalid_argument("reconstruction: the scan step must be >= 1 pixel");
+  if (level_ < 0 || level_ >= m.levels)
+    throw std::invalid_argument("reconstruction: click level " + std::to_string(level_) + " is not in the dictionary");
+  if (backend_ == ReconstructionBackend::cpu) return;
+  const int Ls = search_level_of(dictionary, s_, level_);
+  if (!ctx) throw std::invalid_argument(std::string("reconstruction: the ") + to_string(backend_) + " backend needs a Vulkan device");
+  if (Ls != dictionary.coarse_level())
+    throw std::invalid_argument("reconstruction: the device scans the level the dictionary service keeps on the device (" +
+                                std::to_string(dictionary.coarse_level()) + "), not level " + std::to_string(Ls) +
+                                "; make the service with the search level as its coarse level");
+  scan_level_ = dictionary.scan_level();
+  for (size_t i = 0; i < scan_level_.psfs.size(); ++i)
+    scan_level_.psfs[i].radius_px = scan_radius_px(m, s_.tau_mm, i, Ls);
+  device_ = std::make_unique<SupportScanVulkan>(
+      *ctx, backend_ == ReconstructionBackend::dense ? ScanKernel::dense : ScanKernel::sparse, scan_level_.half);
+}
+
+Reconstructor::~Reconstructor() = default;
+
+void Reconstructor::check_clicks(std::span<const Event> events) const {
+  const auto& m = d_.manifest();
+  const uint64_t pixels = uint64_t(m.level_width(level_)) * uint64_t(m.level_height(level_));
+  for (const Event& e : events)
+    for (uint32_t c : e.clicks)
+      if (c >= pixels)
+        throw std::invalid_argument("event " + std::to_string(e.id) + ": click " + std::to_string(c) +
+                                    " lies beyond the " + std::to_string(pixels) + "-pixel click grid");
+}
+
+std::vector<std::vector<SupportScore>> Reconstructor::first_scan(std::span<const Event> events) {
+  check_clicks(events);
+  std::vector<EventFit> fits;
+  fits.reserve(events.size());
+  for (const Event& e : events) fits.emplace_back(e, level_, d_, s_);
+  std::vector<std::vector<SupportScore>> out(events.size());
+  std::vector<size_t> active;
+  for (size_t i = 0; i < fits.size(); ++i)
+    if (fits[i].wants_vertex()) active.push_back(i);
+  if (backend_ == ReconstructionBackend::cpu) {
+    for (size_t i : active) out[i] = fits[i].scan_cpu();
+    return out;
+  }
+  std::vector<ScanEvent> inputs;
+  for (size_t i : active) inputs.push_back(fits[i].scan_input(backend_ == ReconstructionBackend::dense));
+  ScanSettings scan{s_.scan_step_px, s_.newton_iterations, s_.alpha_max};
+  auto results = device_->run(scan_level_, inputs, scan);
+  for (size_t j = 0; j < active.size(); ++j) out[active[j]] = to_scores(results, j, d_.manifest().grid.size());
+  return out;
+}
+
+std::vector<std::vector<ReconstructedVertex>> Reconstructor::run(std::span<const Event> events) {
+  using clock = std::chrono::steady_clock;
+  auto seconds = [](clock::time_point a, clock::time_point b) { return std::chrono::duration<double>(b - a).count(); };
+  const auto& m = d_.manifest();
+  check_clicks(events);
+  auto t0 = clock::now();
+  std::vector<EventFit> fits;
+  fits.reserve(events.size());
+  for (const Event& e : events) fits.emplace_back(e, level_, d_, s_);
+  ScanSettings scan{s_.scan_step_px, s_.newton_iterations, s_.alpha_max};
+  const size_t n_psf = m.grid.size();
+  double host_s = seconds(t0, clock::now());
+  // K passes in lockstep: each pass scans every event that wants a vertex.
+  for (int pass = 0; pass < s_.vertices; ++pass) {
+    std::vector<size_t> active;
+    for (size_t i = 0; i < fits.size(); ++i)
+      if (fits[i].wants_vertex()) active.push_back(i);
+    if (active.empty()) break;
+    timings_.scans += active.size();
+    if (backend_ == ReconstructionBackend::cpu) {
+      for (size_t i : active) {
+        auto a = clock::now();
+        auto scored = fits[i].scan_cpu();
+        auto b = clock::now();
+        fits[i].add_vertex(std::move(scored));
+        timings_.scan_s += seconds(a, b);
+        host_s += seconds(b, clock::now());
+      }
+      continue;
+    }
+    auto a = clock::now();
+    std::vector<ScanEvent> inputs;
+    for (size_t i : active) inputs.push_back(fits[i].scan_input(backend_ == ReconstructionBackend::dense));
+    auto b = clock::now();
+    auto results = device_->run(scan_level_, inputs, scan);
+    auto c = clock::now();
+    timings_.scan_kernel_ms += device_->last_kernel_ms();
+    timings_.scan_device_bytes = std::max(timings_.scan_device_bytes, device_->last_device_bytes());
+    for (size_t j = 0; j < active.size(); ++j) fits[active[j]].add_vertex(to_scores(results, j, n_psf));
+    timings_.scan_s += seconds(b, c);
+    host_s += seconds(a, b) + seconds(c, clock::now());
+  }
+  auto d = clock::now();
+  std::vector<std::vector<ReconstructedVertex>> out;
+  for (auto& f : fits) out.push_back(f.result());
+  timings_.host_s += host_s + seconds(d, clock::now());
+  return out;
+}
+
 std::vector<ReconstructedVertex> reconstruct(const Event& event, int level, DictionaryService& dictionary,
                                              const ReconstructionSettings& settings) {
-  const auto& m = dictionary.manifest();
-  if (settings.vertices < 1 || settings.vertices > 8)
-    throw std::invalid_argument("reconstruction: vertices = " + std::to_string(settings.vertices) +
-                                "; choose K in 1..8");
-  if (!(settings.dark_rate > 0) || !(settings.tau_mm >= 0) || !(settings.alpha_max > 0))
-    throw std::invalid_argument("reconstruction: dark_rate and alpha_max must be > 0 and tau_mm >= 0");
-  if (level < 0 || level >= m.levels)
-    throw std::invalid_argument("reconstruction: click level " + std::to_string(level) + " is not in the dictionary");
-  const uint64_t pixels = uint64_t(m.level_width(level)) * uint64_t(m.level_height(level));
-  for (uint32_t c : event.clicks)
-    if (c >= pixels)
-      throw std::invalid_argument("event " + std::to_string(event.id) + ": click " + std::to_string(c) +
-                                  " lies beyond the " + std::to_string(pixels) + "-pixel click grid");
-  return EventFit(event, level, dictionary, settings).run();
+  Reconstructor r(dictionary, level, settings);
+  return r.run(std::span<const Event>(&event, 1)).at(0);
 }
 
 }  // namespace prism

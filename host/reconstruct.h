@@ -9,15 +9,26 @@
 // Newton weights; (4) pruning to the lowest NLL; (5) parabolic depth
 // refinement through neighbouring planes, lateral offset rescaled by the
 // magnification at the refined depth; (6) K passes, each followed by a joint
-// local descent of all vertices. The Vulkan kernels and the dense baseline are
-// checked against this.
+// local descent of all vertices.
+//
+// Step (2) over every PSF is where the time goes, and where the three
+// backends differ: `cpu` is the double-precision reference; `vulkan` runs it
+// as shaders/support_scan.comp over a batch of events per dispatch (sums over
+// clicks); `dense` as shaders/support_scan_dense.comp (sums over every pixel
+// of the scan level: the paper's way, the baseline). Everything after the scan
+// (the refinement of the surviving candidates down to the click level from
+// disk tiles, weights, descent, depth parabola) is the same double-precision
+// host code for all three, so they differ only where the scan does.
 #pragma once
 #include <cstdint>
+#include <memory>
+#include <span>
 #include <string>
 #include <vector>
 
 #include <glm/glm.hpp>
 
+#include "engine/support_scan.h"
 #include "host/dictionary_service.h"
 #include "host/event_file.h"
 
@@ -34,7 +45,13 @@ struct ReconstructionSettings {
   int descent_rounds = 12;       // cap on rounds of the joint local descent after each new vertex
   double alpha_max = 1e6;        // upper bound on a weight, expected photons; reaching it sets alpha_at_bound
   int min_clicks = 3;            // fewer clicks than this in the event sets few_clicks (3D needs more)
+  int scan_step_px = 1;          // the scan tries shifts on multiples of this (search-level pixels); the
+                                 // candidates are then re-searched +-(step - 1) around their best
 };
+
+enum class ReconstructionBackend { cpu, vulkan, dense };
+const char* to_string(ReconstructionBackend b);
+ReconstructionBackend backend_from_string(const std::string& s);  // throws naming the choices
 
 // Why a vertex's numbers should not be trusted; several may be set.
 enum VertexFlag : uint32_t {
@@ -63,8 +80,53 @@ struct ReconstructedVertex {
 int click_level(const DictionaryManifest& m, const EventFileHeader& h, const std::string& events_path,
                 const std::string& dictionary_dir);
 
-// K rows (fewer never; rows with alpha 0 are flagged). `level` is the click
-// level from click_level(). Bounded work: every loop has a cap in settings.
+// One PSF's result of the support scan: its best shift on the search level,
+// and the NLL and weight fitted there.
+struct SupportScore {
+  size_t psf = 0;
+  glm::ivec2 shift{};
+  double nll = 0, alpha = 0;
+};
+
+// Where the time of a batch went.
+struct ReconstructionTimings {
+  double scan_s = 0;         // the support scans over every PSF (device: dispatch to results on the host)
+  double scan_kernel_ms = 0; // of which the kernels themselves (GPU timestamps), device backends
+  double host_s = 0;         // everything else: gradients, refinement, weights, descent, depth
+  uint64_t scans = 0;        // events x passes scanned
+  uint64_t scan_device_bytes = 0;  // peak event/result buffers of one scan call
+};
+
+// Reconstructs batches of events with one backend. The events of a batch go
+// through the K passes in lockstep, so each pass scans the whole batch in one
+// call (one dispatch per dictionary chunk on the device). Device backends need
+// a service made with a device (and its coarse level is the scan level).
+class Reconstructor {
+ public:
+  Reconstructor(DictionaryService& dictionary, int click_level, ReconstructionSettings settings,
+                ReconstructionBackend backend = ReconstructionBackend::cpu, vk::Context* ctx = nullptr);
+  ~Reconstructor();
+  // Per event, K rows (fewer never; rows with alpha 0 are flagged). Bounded
+  // work: every loop has a cap in settings.
+  std::vector<std::vector<ReconstructedVertex>> run(std::span<const Event> events);
+  // The first pass's support scan alone, per event one score per PSF (tests
+  // compare the backends with it; events without clicks give none).
+  std::vector<std::vector<SupportScore>> first_scan(std::span<const Event> events);
+  const ReconstructionTimings& timings() const { return timings_; }
+  const ReconstructionSettings& settings() const { return s_; }
+
+ private:
+  DictionaryService& d_;
+  int level_;
+  ReconstructionSettings s_;
+  ReconstructionBackend backend_;
+  std::unique_ptr<SupportScanVulkan> device_;
+  ScanLevel scan_level_;
+  ReconstructionTimings timings_;
+  void check_clicks(std::span<const Event> events) const;
+};
+
+// One event on the CPU reference. `level` is the click level from click_level().
 std::vector<ReconstructedVertex> reconstruct(const Event& event, int level, DictionaryService& dictionary,
                                              const ReconstructionSettings& settings);
 

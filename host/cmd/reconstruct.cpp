@@ -1,12 +1,15 @@
 // prism reconstruct: vertices of every event of an event file, one CSV row per
-// vertex (host/reconstruct.h). The CPU reference runs events on --threads
-// workers, each with its own dictionary service (the tile cache is not shared).
+// vertex (host/reconstruct.h). The device backends (vulkan: sparse, dense: the
+// paper's dense correlation) scan --batch events per dispatch; the CPU
+// reference runs events on --threads workers, each with its own dictionary
+// service (the tile cache is not shared).
 #include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <fstream>
 #include <memory>
+#include <span>
 #include <thread>
 
 #include "host/cmd/commands.h"
@@ -19,7 +22,10 @@ namespace {
 
 struct ReconstructArgs {
   std::string dictionary, events, out;
-  std::string backend = "cpu";
+  std::string backend = "vulkan";
+  std::string device;
+  std::string precision = "float";
+  size_t batch = 64;
   int level = -1;
   double budget_mib = 1024;
   unsigned threads = 1;
@@ -41,12 +47,20 @@ void run(const ReconstructArgs& a) {
                              a.dictionary + ")");
   s.search_level = search;
 
-  const unsigned threads = std::max(1u, a.threads);
+  const ReconstructionBackend backend = backend_from_string(a.backend);
+  const bool on_device = backend != ReconstructionBackend::cpu;
+  std::unique_ptr<vk::Context> ctx;
+  if (on_device) ctx = std::make_unique<vk::Context>(vk::ContextOptions{a.device});
+  const unsigned threads = on_device ? 1u : std::max(1u, a.threads);
   ServiceBudget budget;
   budget.host_bytes = uint64_t(a.budget_mib / threads * double(1 << 20));
   std::vector<std::unique_ptr<DictionaryService>> services;
-  for (unsigned t = 0; t < threads; ++t)
-    services.push_back(std::make_unique<DictionaryService>(reader, nullptr, search, budget));
+  std::vector<std::unique_ptr<Reconstructor>> workers;
+  for (unsigned t = 0; t < threads; ++t) {
+    services.push_back(
+        std::make_unique<DictionaryService>(reader, ctx.get(), search, budget, a.precision == "half"));
+    workers.push_back(std::make_unique<Reconstructor>(*services.back(), level, s, backend, ctx.get()));
+  }
 
   std::ofstream csv(a.out);
   if (!csv) throw std::runtime_error(a.out + ": cannot open for writing; check the directory exists and is writable");
@@ -54,7 +68,7 @@ void run(const ReconstructArgs& a) {
   csv.precision(10);
 
   Progress progress("reconstruct", events.header().event_count);
-  const size_t batch = 32 * threads;
+  const size_t batch = on_device ? std::max<size_t>(1, a.batch) : 32 * threads;
   std::vector<Event> in(batch);
   std::vector<std::vector<ReconstructedVertex>> out(batch);
   uint64_t done = 0, flagged = 0, clicks = 0, scored = 0;
@@ -68,7 +82,13 @@ void run(const ReconstructArgs& a) {
     for (unsigned t = 0; t < threads; ++t)
       pool.emplace_back([&, t] {
         try {
-          for (size_t i = t; i < n; i += threads) out[i] = reconstruct(in[i], level, *services[t], s);
+          if (on_device) {
+            auto rows = workers[0]->run(std::span<const Event>(in.data(), n));
+            std::move(rows.begin(), rows.end(), out.begin());
+            return;
+          }
+          for (size_t i = t; i < n; i += threads)
+            out[i] = std::move(workers[t]->run(std::span<const Event>(&in[i], 1)).at(0));
         } catch (...) {
           failures[t] = std::current_exception();
         }
@@ -100,12 +120,20 @@ void run(const ReconstructArgs& a) {
   csv.close();
   if (!csv) throw std::runtime_error(a.out + ": write failed (disk full?)");
   double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  std::printf("# device: CPU reference (double precision, %u thread%s)\n", threads, threads == 1 ? "" : "s");
+  if (on_device)
+    std::printf("# device: %s; %s scan, %s dictionary on the device, batches of %zu events\n",
+                ctx->describe().c_str(), to_string(backend), a.precision.c_str(), batch);
+  else
+    std::printf("# device: CPU reference (double precision, %u thread%s)\n", threads, threads == 1 ? "" : "s");
   std::printf("%s: %llu events, K = %d, %.1f clicks per event; clicks on level %d, search on level %d, tau %.2f mm\n",
               a.out.c_str(), (unsigned long long)done, s.vertices, done ? double(clicks) / double(done) : 0.0, level,
               search, s.tau_mm);
   std::printf("%.2f s, %.1f events/s; %llu vertices flagged\n", seconds, seconds > 0 ? double(done) / seconds : 0.0,
               (unsigned long long)flagged);
+  double scan_s = 0, host_s = 0;
+  for (const auto& w : workers) scan_s += w->timings().scan_s, host_s += w->timings().host_s;
+  std::printf("time: support scans %.2f s, the rest on the host %.2f s%s\n", scan_s, host_s,
+              threads > 1 ? " (summed over threads)" : "");
   if (scored)
     std::printf("single-vertex truth: mean 3D error %.3f mm over %llu unflagged events\n",
                 error_sum_mm / double(scored), (unsigned long long)scored);
@@ -121,14 +149,23 @@ void add_reconstruct(CLI::App& app) {
   c->add_option("--vertices", a->settings.vertices, "K: vertices per event")
       ->capture_default_str()->check(CLI::Range(1, 8));
   c->add_option("--out", a->out, "CSV: event,vertex,x_mm,y_mm,depth_mm,alpha,nll,clicks,flags")->required();
-  c->add_option("--backend", a->backend, "cpu: the double-precision reference")
-      ->capture_default_str()->check(CLI::IsMember({"cpu"}));
+  c->add_option("--backend", a->backend,
+                 "vulkan: sparse scan on the device; dense: the paper's dense correlation on the device (baseline); "
+                 "cpu: the double-precision reference")
+      ->capture_default_str()->check(CLI::IsMember({"vulkan", "dense", "cpu"}));
+  c->add_option("--device", a->device, "Vulkan device (see `prism devices`)");
+  c->add_option("--precision", a->precision, "the scan level's values on the device: float or half")
+      ->capture_default_str()->check(CLI::IsMember({"float", "half"}));
+  c->add_option("--batch", a->batch, "events per device scan")->capture_default_str()->check(CLI::Range(1, 65535));
+  c->add_option("--scan-step", a->settings.scan_step_px, "the scan tries shifts on multiples of this (pixels of the "
+                 "scan level); the best candidates are re-searched around theirs")
+      ->capture_default_str()->check(CLI::Range(1, 64));
   c->add_option("--level", a->level, "dictionary level of the scan over all PSFs (default: clicks' level + 2)");
   c->add_option("--tau-mm", a->settings.tau_mm, "lateral search half-width around each grid node, source mm")
       ->capture_default_str()->check(CLI::NonNegativeNumber);
   c->add_option("--budget-mib", a->budget_mib, "host memory for summed-area tables and tiles, all threads together")
       ->capture_default_str()->check(CLI::PositiveNumber);
-  c->add_option("--threads", a->threads, "worker threads")->capture_default_str()->check(CLI::Range(1u, 256u));
+  c->add_option("--threads", a->threads, "worker threads of the cpu backend")->capture_default_str()->check(CLI::Range(1u, 256u));
   c->callback([a] { run(*a); });
 }
 

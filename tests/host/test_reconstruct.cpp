@@ -87,6 +87,16 @@ std::vector<prism::ReconstructedVertex> run(const prism::Event& e, const prism::
   return prism::reconstruct(e, 0, service, s);
 }
 
+// The same events through a device backend: a service with the scan level on
+// the device (float or half values).
+struct DeviceRun {
+  prism::DictionaryService service;
+  prism::Reconstructor reconstructor;
+  DeviceRun(prism::ReconstructionBackend b, const prism::ReconstructionSettings& s, bool half = false)
+      : service(*small_dictionary().reader, &prism::test::gpu(), 2, {}, half),
+        reconstructor(service, 0, s, b, &prism::test::gpu()) {}
+};
+
 bool finite(const prism::ReconstructedVertex& v) {
   return std::isfinite(v.x_mm) && std::isfinite(v.y_mm) && std::isfinite(v.depth_mm) && std::isfinite(v.alpha) &&
          std::isfinite(v.nll);
@@ -345,4 +355,145 @@ TEST_CASE("prism reconstruct: CSV rows per vertex, summary, and errors that say 
                                         "/none.events --vertices 1 --out " + csv);
   CHECK(missing.status != 0);
   CHECK(missing.output.find("none.events") != std::string::npos);
+}
+
+// --- The device backends against the CPU reference --------------------------
+//
+// Tolerances: the kernels score in float what the reference scores in double.
+// On ordinary events the best shift of every PSF must agree exactly where the
+// reference's best shift wins by more than float resolves (its score margin
+// over the runner-up); the fitted weight and NLL of each PSF to 1e-4 relative
+// (float sums of ~100 terms of size ~10). The chosen vertex (PSF and shift
+// after refinement) must be the same.
+
+namespace {
+
+struct ScanComparison {
+  size_t psfs = 0, same_shift = 0;
+  double max_nll_rel = 0, max_alpha_rel = 0;
+};
+
+ScanComparison compare_scans(const std::vector<prism::SupportScore>& ref, const std::vector<prism::SupportScore>& dev) {
+  REQUIRE(ref.size() == dev.size());
+  ScanComparison c;
+  c.psfs = ref.size();
+  for (size_t m = 0; m < ref.size(); ++m) {
+    CAPTURE(m);
+    REQUIRE(std::isfinite(dev[m].nll));
+    REQUIRE(std::isfinite(dev[m].alpha));
+    if (ref[m].shift != dev[m].shift) continue;
+    ++c.same_shift;
+    c.max_nll_rel = std::max(c.max_nll_rel, std::abs(dev[m].nll - ref[m].nll) / (1 + std::abs(ref[m].nll)));
+    c.max_alpha_rel = std::max(c.max_alpha_rel, std::abs(dev[m].alpha - ref[m].alpha) / (1 + ref[m].alpha));
+  }
+  return c;
+}
+
+}  // namespace
+
+TEST_CASE("support scan on the device: sparse, dense and half agree with the CPU reference per PSF") {
+  using B = prism::ReconstructionBackend;
+  std::vector<prism::Event> events;
+  for (double alpha : {10.0, 100.0, 1e3, 1e4})
+    events.push_back(make_event({{{1, 1, 31}, alpha}}, 71, events.size()));
+  events.push_back(make_event({{{-3, 2, 22}, 200}, {{3, -2, 33}, 200}}, 71, events.size()));
+  prism::Event one;
+  one.clicks = {events[1].clicks.at(events[1].clicks.size() / 2)};
+  events.push_back(one);
+  prism::Event stray = events[1];
+  stray.clicks.insert(stray.clicks.begin(), 0u);
+  events.push_back(stray);
+  events.push_back(prism::Event{});  // no clicks: nothing to scan
+
+  prism::DictionaryService cpu_service(*small_dictionary().reader, nullptr, 2, {});
+  prism::Reconstructor cpu(cpu_service, 0, settings(1));
+  auto ref = cpu.first_scan(events);
+  for (auto [backend, half] : {std::pair{B::vulkan, false}, std::pair{B::vulkan, true}, std::pair{B::dense, false}}) {
+    DeviceRun d(backend, settings(1), half);
+    auto got = d.reconstructor.first_scan(events);
+    REQUIRE(got.size() == events.size());
+    for (size_t i = 0; i < events.size(); ++i) {
+      const std::string name = std::string(to_string(backend)) + (half ? " half" : "");
+      CAPTURE(name);
+      CAPTURE(i);
+      CAPTURE(events[i].clicks.size());
+      if (events[i].clicks.empty()) {
+        CHECK(got[i].empty());
+        continue;
+      }
+      auto c = compare_scans(ref[i], got[i]);
+      MESSAGE(name << ", event " << i << " (" << events[i].clicks.size()
+                                 << " clicks): same best shift for " << c.same_shift << " of " << c.psfs
+                                 << " PSFs; max relative NLL difference " << c.max_nll_rel << ", alpha "
+                                 << c.max_alpha_rel);
+      CHECK(c.same_shift >= c.psfs - 2);  // ties within float resolution may go either way
+      CHECK(c.max_nll_rel < 1e-4);
+      CHECK(c.max_alpha_rel < 1e-3);
+    }
+  }
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("reconstruction on the device: the hazard events give the reference's vertices (sparse, dense, half)") {
+  // Ordinary events and the hazards of DESIGN.md, each through the whole
+  // algorithm: the chosen PSF and shift must match the reference's exactly,
+  // position to the grid's resolution, weight to 1e-3 and NLL to 1e-5
+  // relative (the host refines in double from the device's candidates; only
+  // their order and starting weights come from float), and the flags alike.
+  using B = prism::ReconstructionBackend;
+  struct Case {
+    std::string what;
+    std::vector<Source> sources;
+    int k;
+  };
+  const std::vector<Case> cases{
+      {"ordinary, 100 photons", {{{1, 1, 31}, 100}}, 1},
+      {"ordinary, off-axis", {{{2, -1.5, 23}, 100}}, 1},
+      {"10 photons", {{{-1, 2, 27}, 10}}, 1},
+      {"1e4 photons (lambda >> 1 at the peaks)", {{{-1, 2, 27}, 1e4}}, 1},
+      {"two vertices", {{{-3, 2, 22}, 200}, {{3, -2, 33}, 200}}, 2},
+      {"two at the same place", {{{1, 1, 28}, 100}, {{1, 1, 28}, 100}}, 2},
+      {"two 1 mm apart", {{{1, 1, 28}, 150}, {{2, 1, 28}, 150}}, 2},
+      {"outside the field", {{{8, 0, 30}, 200}}, 1},
+  };
+  std::vector<prism::Event> events;
+  std::vector<int> ks;
+  for (const auto& c : cases)
+    for (int i = 0; i < 2; ++i) events.push_back(make_event(c.sources, 81, events.size())), ks.push_back(c.k);
+  prism::Event one;
+  one.clicks = {events[0].clicks.at(events[0].clicks.size() / 2)};
+  events.push_back(one), ks.push_back(1);
+  events.push_back(prism::Event{}), ks.push_back(2);
+
+  for (int k : {1, 2}) {
+    std::vector<prism::Event> mine;
+    for (size_t i = 0; i < events.size(); ++i)
+      if (ks[i] == k) mine.push_back(events[i]);
+    prism::DictionaryService cpu_service(*small_dictionary().reader, nullptr, 2, {});
+    prism::Reconstructor cpu(cpu_service, 0, settings(k));
+    auto ref = cpu.run(mine);
+    for (auto [backend, half] : {std::pair{B::vulkan, false}, std::pair{B::vulkan, true}, std::pair{B::dense, false}}) {
+      DeviceRun d(backend, settings(k), half);
+      auto got = d.reconstructor.run(mine);  // the whole batch in one scan per pass
+      REQUIRE(got.size() == mine.size());
+      for (size_t i = 0; i < mine.size(); ++i)
+        for (size_t v = 0; v < size_t(k); ++v) {
+          const std::string name = std::string(to_string(backend)) + (half ? " half" : "");
+          CAPTURE(name);
+          CAPTURE(k);
+          CAPTURE(i);
+          CAPTURE(v);
+          const auto &r = ref[i].at(v), &g = got[i].at(v);
+          REQUIRE(finite(g));
+          CHECK(g.psf == r.psf);
+          CHECK(g.shift_px == r.shift_px);
+          CHECK(g.flags == r.flags);
+          CHECK(std::abs(g.x_mm - r.x_mm) < 1e-6);
+          CHECK(std::abs(g.depth_mm - r.depth_mm) < 1e-3);
+          CHECK(g.alpha == doctest::Approx(r.alpha).epsilon(1e-3));
+          CHECK(g.nll == doctest::Approx(r.nll).epsilon(1e-5));
+        }
+    }
+  }
+  prism::test::check_validation_clean();
 }

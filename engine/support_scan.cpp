@@ -1,0 +1,172 @@
+#include "engine/support_scan.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <string>
+
+#include "engine/vk/error.h"
+#include "spv/support_scan.spv.h"
+#include "spv/support_scan_dense.spv.h"
+
+namespace prism {
+
+namespace {
+
+// scan.glsl's ScanOut.
+struct ScanOut {
+  int32_t shift_x, shift_y;
+  float score, nll, alpha;
+  uint32_t newton, shifts, pad;
+};
+static_assert(sizeof(ScanOut) == 32);
+
+uint32_t pack_click(glm::ivec2 c) { return uint32_t(c.x) | (uint32_t(c.y) << 16); }
+
+}  // namespace
+
+struct SupportScanVulkan::Impl {
+  vk::Context& ctx;
+  ScanKernel which;
+  vk::Kernel kernel;
+  Impl(vk::Context& c, ScanKernel k, bool half)
+      : ctx(c),
+        which(k),
+        kernel(c, k == ScanKernel::sparse ? "support_scan" : "support_scan_dense",
+               k == ScanKernel::sparse ? std::span<const uint32_t>(spv_support_scan, std::size(spv_support_scan))
+                                       : std::span<const uint32_t>(spv_support_scan_dense, std::size(spv_support_scan_dense)),
+               k == ScanKernel::sparse ? 6 : 4, sizeof(shared::ScanParams), {half ? 1u : 0u}) {}
+};
+
+SupportScanVulkan::SupportScanVulkan(vk::Context& ctx, ScanKernel kernel, bool half)
+    : impl_(std::make_unique<Impl>(ctx, kernel, half)) {}
+SupportScanVulkan::~SupportScanVulkan() = default;
+
+std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span<const ScanEvent> events,
+                                               const ScanSettings& s) {
+  vk::Context& ctx = impl_->ctx;
+  const bool dense = impl_->which == ScanKernel::dense;
+  const size_t n_psf = level.psfs.size(), n_events = events.size();
+  std::vector<ScanResult> out(n_events * n_psf);
+  last_kernel_ms_ = 0;
+  last_device_bytes_ = 0;
+  if (n_events == 0 || n_psf == 0) return out;
+  if (level.width > 65535 || level.height > 65535)
+    throw vk::Error("support scan: a scan level of " + std::to_string(level.width) + " x " +
+                    std::to_string(level.height) + " pixels does not fit 16-bit click coordinates; scan a coarser level");
+  if (s.step_px < 1) throw vk::Error("support scan: the shift step must be >= 1 pixel");
+
+  const uint64_t cap = ctx.max_storage_buffer_bytes();
+  const uint64_t pixels = uint64_t(level.width) * uint64_t(level.height);
+  const uint32_t dense_words = dense ? uint32_t(2 * pixels + (pixels + 31) / 32) : 0;
+
+  // Events in batches: results of a batch, and its images for the dense kernel,
+  // within one storage buffer.
+  size_t batch = std::max<uint64_t>(1, cap / (n_psf * sizeof(ScanOut)));
+  if (dense) batch = std::min<uint64_t>(batch, std::max<uint64_t>(1, cap / (uint64_t(dense_words) * 4)));
+  batch = std::min<size_t>(batch, std::min<size_t>(n_events, ctx.properties().limits.maxComputeWorkGroupCount[1]));
+
+  vk::Buffer psfs(ctx, n_psf * sizeof(ScanPsf));
+  psfs.upload(level.psfs.data(), n_psf * sizeof(ScanPsf));
+  vk::Buffer results(ctx, batch * n_psf * sizeof(ScanOut));
+  last_device_bytes_ += psfs.bytes() + results.bytes();
+
+  shared::ScanParams p{};
+  p.psf_total = uint32_t(n_psf);
+  p.width = uint32_t(level.width);
+  p.height = uint32_t(level.height);
+  p.step = uint32_t(s.step_px);
+  p.max_newton = uint32_t(std::max(0, s.newton_iterations));
+  p.half_scale = level.half_scale;
+  p.alpha_max = float(s.alpha_max);
+  p.dense_words = dense_words;
+
+  // PSF ranges per chunk (consecutive by contract).
+  struct Range {
+    uint32_t chunk, first, count;
+  };
+  std::vector<Range> ranges;
+  for (uint32_t m = 0; m < n_psf; ++m) {
+    if (ranges.empty() || ranges.back().chunk != level.psfs[m].chunk) {
+      if (!ranges.empty() && level.psfs[m].chunk < ranges.back().chunk)
+        throw vk::Error("support scan: PSFs of one chunk must be consecutive");
+      ranges.push_back({level.psfs[m].chunk, m, 0});
+    }
+    ++ranges.back().count;
+  }
+
+  std::vector<ScanOut> raw(batch * n_psf);
+  for (size_t e0 = 0; e0 < n_events; e0 += batch) {
+    const size_t ne = std::min(batch, n_events - e0);
+    std::unique_ptr<vk::Buffer> b_events, b_clicks, b_rates, b_images;
+    if (!dense) {
+      std::vector<uint32_t> ranges_words, xy;
+      std::vector<float> rw;
+      for (size_t e = 0; e < ne; ++e) {
+        const ScanEvent& ev = events[e0 + e];
+        ranges_words.push_back(uint32_t(xy.size()));
+        ranges_words.push_back(uint32_t(ev.clicks.size()));
+        for (size_t c = 0; c < ev.clicks.size(); ++c) {
+          xy.push_back(pack_click(ev.clicks[c]));
+          const double lambda = ev.rate.at(c);
+          rw.push_back(float(lambda));
+          rw.push_back(float(1.0 / -std::expm1(-lambda)));  // the gradient's click weight, in double
+        }
+      }
+      if (xy.empty()) xy.push_back(0), rw.push_back(1), rw.push_back(1);  // no zero-sized buffers
+      b_events = std::make_unique<vk::Buffer>(ctx, ranges_words.size() * 4);
+      b_events->upload(std::span<const uint32_t>(ranges_words));
+      b_clicks = std::make_unique<vk::Buffer>(ctx, xy.size() * 4);
+      b_clicks->upload(std::span<const uint32_t>(xy));
+      b_rates = std::make_unique<vk::Buffer>(ctx, rw.size() * 4);
+      b_rates->upload(std::span<const float>(rw));
+      last_device_bytes_ = std::max(last_device_bytes_, psfs.bytes() + results.bytes() + b_events->bytes() +
+                                                            b_clicks->bytes() + b_rates->bytes());
+    } else {
+      std::vector<uint32_t> words(ne * dense_words, 0);
+      for (size_t e = 0; e < ne; ++e) {
+        const ScanEvent& ev = events[e0 + e];
+        if (ev.dense_rate.size() != pixels)
+          throw vk::Error("support scan (dense): event " + std::to_string(e0 + e) + " has " +
+                          std::to_string(ev.dense_rate.size()) + " rates for " + std::to_string(pixels) + " pixels");
+        uint32_t* img = &words[e * dense_words];
+        std::vector<uint8_t> y(pixels, 0);
+        for (auto c : ev.clicks) y[size_t(c.y) * size_t(level.width) + size_t(c.x)] = 1;
+        for (size_t i = 0; i < pixels; ++i) {
+          const double lambda = ev.dense_rate[i];
+          const float g = float(1.0 - (y[i] ? 1.0 / -std::expm1(-lambda) : 0.0));
+          const float l = float(lambda);
+          std::memcpy(&img[i], &g, 4);
+          std::memcpy(&img[pixels + i], &l, 4);
+          if (y[i]) img[2 * pixels + i / 32] |= 1u << (i % 32);
+        }
+      }
+      b_images = std::make_unique<vk::Buffer>(ctx, words.size() * 4);
+      b_images->upload(std::span<const uint32_t>(words));
+      last_device_bytes_ = std::max(last_device_bytes_, psfs.bytes() + results.bytes() + b_images->bytes());
+    }
+
+    vk::Stream stream(ctx, uint32_t(ranges.size()) + 1);
+    p.event_first = 0;
+    p.event_count = uint32_t(ne);
+    for (const Range& r : ranges) {
+      p.psf_first = r.first;
+      p.psf_count = r.count;
+      const vk::Buffer* chunk = level.chunks.at(r.chunk);
+      if (dense)
+        stream.dispatch(impl_->kernel, {chunk, &psfs, b_images.get(), &results}, &p, r.count, uint32_t(ne));
+      else
+        stream.dispatch(impl_->kernel, {chunk, &psfs, b_events.get(), b_clicks.get(), b_rates.get(), &results}, &p,
+                        r.count, uint32_t(ne));
+    }
+    last_kernel_ms_ += stream.submit();
+    results.download(raw.data(), ne * n_psf * sizeof(ScanOut));
+    for (size_t i = 0; i < ne * n_psf; ++i) {
+      const ScanOut& o = raw[i];
+      out[e0 * n_psf + i] = {glm::ivec2(o.shift_x, o.shift_y), o.score, o.nll, o.alpha, o.newton, o.shifts};
+    }
+  }
+  return out;
+}
+
+}  // namespace prism

@@ -1,0 +1,93 @@
+// The support search of the reconstruction on the device (paper eqs. 17-18):
+// for a batch of events and every PSF of the dictionary's scan level, the
+// lateral shift within +-radius with the lowest gradient correlation <g, P>,
+// and the weight alpha fitted there by projected Newton. Two kernels give the
+// same answer: shaders/support_scan.comp sums over each event's clicks (the
+// sparse likelihood), shaders/support_scan_dense.comp over every pixel of the
+// scan level (the paper's dense way, kept as the baseline to measure against).
+// The double-precision reference is the CPU scan in host/reconstruct.cpp.
+#pragma once
+#include <cstdint>
+#include <memory>
+#include <span>
+#include <vector>
+
+#include <glm/glm.hpp>
+
+#include "engine/vk/compute.h"
+
+namespace prism {
+
+namespace shared {
+using namespace glm;
+using uint = unsigned int;
+#define PRISM_FN inline
+#include "common/likelihood.glsl"
+#undef PRISM_FN
+static_assert(sizeof(ScanParams) == 48, "ScanParams must match its std430 push-constant layout");
+}  // namespace shared
+
+// One PSF of the scan level on the device (std430, 16 bytes; scan.glsl's ScanPsf).
+struct ScanPsf {
+  uint32_t chunk = 0;     // index into ScanLevel::chunks
+  uint32_t p_word = 0;    // first word of its values in that chunk
+  uint32_t sat_word = 0;  // first word of its summed-area table
+  int32_t radius_px = 0;  // shifts within +-radius per axis
+};
+static_assert(sizeof(ScanPsf) == 16);
+
+// The dictionary's scan level as it lies on the device (host/dictionary_service.h
+// puts it there). PSFs of one chunk are consecutive.
+struct ScanLevel {
+  int width = 0, height = 0;
+  bool half = false;        // values as half floats times half_scale
+  float half_scale = 1.0f;
+  std::vector<const vk::Buffer*> chunks;
+  std::vector<ScanPsf> psfs;
+};
+
+// One event as the scan sees it, on the scan level.
+struct ScanEvent {
+  std::vector<glm::ivec2> clicks;  // distinct clicked pixels of the scan level
+  std::vector<double> rate;        // lambda of the current model at each click, dark rate included (> 0)
+  // Dense kernel only: lambda at every pixel of the scan level, row-major.
+  std::vector<double> dense_rate;
+};
+
+struct ScanResult {
+  glm::ivec2 shift{};  // best shift, pixels of the scan level
+  float score = 0;     // <g, P(shifted)> there
+  float nll = 0;       // NLL of the candidate with its fitted weight, against the event's current model
+  float alpha = 0;     // fitted weight, expected photons
+  uint32_t newton_iterations = 0;
+  uint32_t shifts = 0;  // shifts scored
+};
+
+struct ScanSettings {
+  int step_px = 1;          // shifts on multiples of this
+  int newton_iterations = 60;
+  double alpha_max = 1e6;
+};
+
+enum class ScanKernel { sparse, dense };
+
+class SupportScanVulkan {
+ public:
+  SupportScanVulkan(vk::Context& ctx, ScanKernel kernel, bool half);
+  ~SupportScanVulkan();
+
+  // results[e * psfs + m]. Events go to the device in batches whose buffers
+  // stay within maxStorageBufferRange.
+  std::vector<ScanResult> run(const ScanLevel& level, std::span<const ScanEvent> events, const ScanSettings& s);
+
+  double last_kernel_ms() const { return last_kernel_ms_; }
+  uint64_t last_device_bytes() const { return last_device_bytes_; }  // event and result buffers of the last run
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+  double last_kernel_ms_ = 0;
+  uint64_t last_device_bytes_ = 0;
+};
+
+}  // namespace prism
