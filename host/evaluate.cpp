@@ -1,6 +1,7 @@
 #include "host/evaluate.h"
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
@@ -150,7 +151,8 @@ const std::vector<std::string>& evaluation_experiments() {
 }
 
 std::vector<EvaluationRow> evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader& dictionary,
-                                    const EvaluationOptions& o, const std::function<void(size_t, size_t)>& progress) {
+                                    const EvaluationOptions& o, const std::function<void(size_t, size_t)>& progress,
+                                    EvaluationCost* cost) {
   if (o.trials < 3) throw std::invalid_argument("--trials: at least 3 (the best and the worst are dropped)");
   const auto& m = dictionary.manifest();
   if (o.level < 0 || o.level >= m.levels)
@@ -171,7 +173,10 @@ std::vector<EvaluationRow> evaluate(vk::Context& ctx, const Scene& scene, const 
   ForwardTruth truth(ctx, scene, t, 64);
   ReconstructionSettings s = o.settings;
   if (s.search_level < 0) s.search_level = std::min(o.level + 2, m.levels - 1);
-  DictionaryService service(dictionary, nullptr, s.search_level, {});
+  const bool on_device = o.backend != ReconstructionBackend::cpu;
+  DictionaryService service(dictionary, on_device ? &ctx : nullptr, s.search_level, {}, o.device_half);
+  std::map<int, std::unique_ptr<Reconstructor>> reconstructors;  // per K
+  EvaluationCost spent;
 
   std::vector<EvaluationRow> rows;
   const size_t total = points.size() * size_t(o.trials);
@@ -189,12 +194,21 @@ std::vector<EvaluationRow> evaluate(vk::Context& ctx, const Scene& scene, const 
     const size_t n = p.vertices.size();
     std::vector<std::vector<double>> err(n), alpha_err(n);
     std::vector<int> flagged(n, 0);
-    for (int trial = 0; trial < o.trials; ++trial) {
-      Event e;
+    std::vector<Event> events(size_t(o.trials));
+    for (auto& e : events) {
       e.id = event_id++;
       auto rng = event_rng(o.seed, e.id);
       sample_clicks(sources, rng, e.clicks);
-      auto est = reconstruct(e, o.level, service, ps);
+    }
+    auto& r = reconstructors[ps.vertices];
+    if (!r) r = std::make_unique<Reconstructor>(service, o.level, ps, o.backend, &ctx);
+    const auto before = r->timings();
+    auto start = std::chrono::steady_clock::now();
+    auto estimates = r->run(events);
+    spent.reconstruct_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    spent.scan_s += r->timings().scan_s - before.scan_s;
+    spent.events += events.size();
+    for (const auto& est : estimates) {
       auto which = match(est, p.vertices);
       for (size_t k = 0; k < n; ++k) {
         const auto& v = est.at(which[k]);
@@ -218,6 +232,7 @@ std::vector<EvaluationRow> evaluate(vk::Context& ctx, const Scene& scene, const 
       rows.push_back(r);
     }
   }
+  if (cost) *cost = spent;
   return rows;
 }
 

@@ -1,6 +1,7 @@
-// `prism evaluate`: the paper's evaluation protocol (issue 4, point 5) with the
-// CPU reference reconstruction (host/reconstruct.h) on forward-model events
-// (host/event_sim.h, ForwardTruth at the dictionary's click binning).
+// `prism evaluate`: the paper's evaluation protocol (issue 4, point 5) with a
+// reconstruction backend of host/reconstruct.h (the trials of a point go
+// through it as one batch) on forward-model events (host/event_sim.h,
+// ForwardTruth at the dictionary's click binning).
 //
 // Per point: `trials` events, each reconstructed; the best and the worst trial
 // by 3D error are dropped and the mean and sample standard deviation of the
@@ -57,6 +58,15 @@ struct EvaluationOptions {
   uint64_t seed = 1;
   bool quick = false;          // few points per experiment (use with few trials)
   ReconstructionSettings settings;  // search_level -1: level + 2, capped at the coarsest
+  ReconstructionBackend backend = ReconstructionBackend::vulkan;
+  bool device_half = false;    // device backends: the scan level as half floats
+};
+
+// What the reconstructions of an evaluation cost.
+struct EvaluationCost {
+  uint64_t events = 0;
+  double reconstruct_s = 0;  // wall time inside the reconstructions
+  double scan_s = 0;         // of which the support scans
 };
 
 struct EvaluationRow {
@@ -76,7 +86,8 @@ const std::vector<std::string>& evaluation_experiments();
 // Runs the chosen experiments; progress(done, total) after each trial.
 std::vector<EvaluationRow> evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader& dictionary,
                                     const EvaluationOptions& options,
-                                    const std::function<void(size_t, size_t)>& progress = {});
+                                    const std::function<void(size_t, size_t)>& progress = {},
+                                    EvaluationCost* cost = nullptr);
 
 // <dir>/<experiment>.csv and .png for every experiment present in rows.
 // Returns the paths written.

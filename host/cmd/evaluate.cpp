@@ -1,6 +1,6 @@
 // prism evaluate: the paper's evaluation protocol (host/evaluate.h) on
-// forward-model events with the CPU reference reconstruction; a CSV and a PNG
-// per experiment and a table on stdout.
+// forward-model events with a reconstruction backend; a CSV and a PNG per
+// experiment, a table and the reconstruction rate on stdout.
 #include <cstdio>
 #include <memory>
 
@@ -14,8 +14,9 @@ namespace prism::cmd {
 namespace {
 
 struct EvaluateArgs {
-  std::string dictionary, scene, out = "evaluation", backend = "cpu", experiments = "single-lines,photons,double";
+  std::string dictionary, scene, out = "evaluation", backend = "vulkan", experiments = "single-lines,photons,double";
   std::string device;
+  std::string precision = "float";
   unsigned binning = 0;  // 0: the dictionary's base binning
   bool quick = false;
   EvaluationOptions options;
@@ -52,18 +53,28 @@ void run(EvaluateArgs a) {
     throw std::runtime_error("--binning " + std::to_string(binning) + ": the dictionary stores binnings " +
                              std::to_string(m.base_binning) + " x 2^k only; choose one of those");
 
+  o.backend = backend_from_string(a.backend);
+  o.device_half = a.precision == "half";
   vk::Context ctx(vk::ContextOptions{a.device});
-  std::printf("# reconstruction: CPU reference (double precision, 1 thread); events and CRLB: %s\n",
-              ctx.describe().c_str());
+  if (o.backend == ReconstructionBackend::cpu)
+    std::printf("# reconstruction: CPU reference (double precision, 1 thread); events and CRLB: %s\n",
+                ctx.describe().c_str());
+  else
+    std::printf("# reconstruction: %s scan (%s dictionary) and events and CRLB on %s\n", to_string(o.backend),
+                a.precision.c_str(), ctx.describe().c_str());
   std::printf("# scene %s, dictionary %s, clicks on %u x %u binned pixels, %d trials per point, seed %llu\n",
               scene.name.c_str(), a.dictionary.c_str(), binning, binning, o.trials, (unsigned long long)o.seed);
   std::printf("# best and worst trial (3D error) dropped; alpha error = |alpha - true photons|; CRLB: Poisson, "
               "Fisher information scaled to the point's detected photons\n");
   std::unique_ptr<Progress> progress;
-  auto rows = evaluate(ctx, scene, *reader, o, [&](size_t done, size_t total) {
-    if (!progress) progress = std::make_unique<Progress>("evaluate", total);
-    progress->update(done);
-  });
+  EvaluationCost cost;
+  auto rows = evaluate(
+      ctx, scene, *reader, o,
+      [&](size_t done, size_t total) {
+        if (!progress) progress = std::make_unique<Progress>("evaluate", total);
+        progress->update(done);
+      },
+      &cost);
   if (progress) progress->finish();
 
   std::printf("%-20s %7s %7s %7s %8s %5s %10s %10s %10s %10s %10s %7s\n", "experiment", "x_mm", "y_mm", "depth",
@@ -73,6 +84,9 @@ void run(EvaluateArgs a) {
                 (r.experiment + (r.series.empty() ? "" : ":" + r.series)).c_str(), r.position_mm.x, r.position_mm.y,
                 r.position_mm.z, r.photons, r.stats.trials_used, r.stats.err3d_mean, r.stats.err3d_std,
                 r.stats.alpha_err_mean, r.stats.alpha_err_std, r.crlb_3d_mm, r.flagged);
+  std::printf("reconstruction: %llu events in %.2f s, %.1f events/s (support scans %.2f s of it; %s backend)\n",
+              (unsigned long long)cost.events, cost.reconstruct_s,
+              cost.reconstruct_s > 0 ? double(cost.events) / cost.reconstruct_s : 0.0, cost.scan_s, a.backend.c_str());
   for (const auto& path : write_evaluation(a.out, rows)) std::fprintf(stderr, "prism evaluate: wrote %s\n", path.c_str());
 }
 
@@ -98,9 +112,13 @@ void add_evaluate(CLI::App& app) {
   c->add_option("--seed", a->options.seed, "random seed of the events")->capture_default_str();
   c->add_flag("--quick", a->quick, "a reduced grid (2 points per line, 2 photon counts, 1 double) with 5 trials");
   c->add_option("--backend", a->backend,
-                "reconstruction backend; cpu (the double-precision reference) is the only one for now")
-      ->capture_default_str()->check(CLI::IsMember({"cpu"}));
-  c->add_option("--device", a->device, "Vulkan device for the event truth and the CRLB (see `prism devices`)");
+                "reconstruction backend: vulkan (sparse scan on the device), dense (the paper's dense correlation "
+                "on the device), cpu (the double-precision reference)")
+      ->capture_default_str()->check(CLI::IsMember({"vulkan", "dense", "cpu"}));
+  c->add_option("--precision", a->precision, "device backends: the scan level's values as float or half")
+      ->capture_default_str()->check(CLI::IsMember({"float", "half"}));
+  c->add_option("--device", a->device, "Vulkan device for the reconstruction, the event truth and the CRLB (see "
+                                       "`prism devices`)");
   c->callback([a] { run(*a); });
 }
 

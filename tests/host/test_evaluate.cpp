@@ -112,7 +112,8 @@ TEST_CASE("prism evaluate: --quick from the CLI, and errors that say what to do"
                                   "--rays 1024 --seed 5 --out " + out);
   INFO(r.output);
   REQUIRE(r.status == 0);
-  CHECK(r.output.find("CPU reference") != std::string::npos);
+  CHECK(r.output.find("vulkan scan") != std::string::npos);  // the default backend
+  CHECK(r.output.find("events/s") != std::string::npos);
   CHECK(r.output.find("photons.csv") != std::string::npos);
   auto csv = lines_of(out + "/photons.csv");
   REQUIRE(csv.size() == 3);
@@ -121,7 +122,7 @@ TEST_CASE("prism evaluate: --quick from the CLI, and errors that say what to do"
   CHECK(!fs::exists(out + "/double.csv"));
 
   auto help = prism::test::run_prism("evaluate --help");
-  CHECK(help.output.find("only one for now") != std::string::npos);
+  CHECK(help.output.find("dense") != std::string::npos);
   auto bad = prism::test::run_prism("evaluate --dictionary " + d.dir + "/dict --experiments lines --out " + out);
   CHECK(bad.status != 0);
   CHECK(bad.output.find("single-lines, photons, double") != std::string::npos);

@@ -347,6 +347,29 @@ TEST_CASE("prism reconstruct: CSV rows per vertex, summary, and errors that say 
   CHECK(rows == 20);
   CHECK(err / rows < 1.5);  // the paper's protocol: shifted dictionary PSFs
 
+  // The device backends write the same vertices (the tests above bound the
+  // differences; here the CSV's printed digits agree to 1e-4 in x, y, depth).
+  for (std::string backend : {"vulkan", "dense"}) {
+    const std::string dev_csv = d.dir + "/v-" + backend + ".csv";
+    auto rd = prism::test::run_prism("reconstruct --dictionary " + d.dir + "/dict --events " + events +
+                                     " --vertices 1 --out " + dev_csv + " --backend " + backend + " --batch 7");
+    INFO(rd.output);
+    REQUIRE(rd.status == 0);
+    CHECK(rd.output.find(backend + " scan") != std::string::npos);
+    std::ifstream a(csv), b(dev_csv);
+    std::string la, lb;
+    int compared = 0;
+    while (std::getline(a, la) && std::getline(b, lb)) {
+      if (compared++ == 0) continue;  // header
+      std::stringstream sa(la), sb(lb);
+      std::string fa[9], fb[9];
+      for (int i = 0; i < 9; ++i) std::getline(sa, fa[i], ','), std::getline(sb, fb[i], ',');
+      CHECK(fa[0] == fb[0]);
+      for (int i : {2, 3, 4}) CHECK(std::stod(fa[i]) == doctest::Approx(std::stod(fb[i])).epsilon(1e-4));
+    }
+    CHECK(compared == 21);
+  }
+
   auto bad_level = prism::test::run_prism("reconstruct --dictionary " + d.dir + "/dict --events " + events +
                                           " --vertices 1 --out " + csv + " --level 99");
   CHECK(bad_level.status != 0);
