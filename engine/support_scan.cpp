@@ -23,6 +23,12 @@ static_assert(sizeof(ScanOut) == 32);
 
 uint32_t pack_click(glm::ivec2 c) { return uint32_t(c.x) | (uint32_t(c.y) << 16); }
 
+// Loop iterations one invocation may run on a CPU device. llvmpipe (lavapipe)
+// counts the iterations of all loops of an invocation together and ends them
+// after 65535 (gallivm's loop limiter, there against hung shaders), silently;
+// half of that leaves room for the weight fit's loops. GPUs have no such limit.
+constexpr uint64_t kCpuLoopBudget = 32768;
+
 }  // namespace
 
 struct SupportScanVulkan::Impl {
@@ -35,7 +41,7 @@ struct SupportScanVulkan::Impl {
         kernel(c, k == ScanKernel::sparse ? "support_scan" : "support_scan_dense",
                k == ScanKernel::sparse ? std::span<const uint32_t>(spv_support_scan, std::size(spv_support_scan))
                                        : std::span<const uint32_t>(spv_support_scan_dense, std::size(spv_support_scan_dense)),
-               k == ScanKernel::sparse ? 6 : 4, sizeof(shared::ScanParams), {half ? 1u : 0u}) {}
+               k == ScanKernel::sparse ? 7 : 5, sizeof(shared::ScanParams), {half ? 1u : 0u}) {}
 };
 
 SupportScanVulkan::SupportScanVulkan(vk::Context& ctx, ScanKernel kernel, bool half)
@@ -95,6 +101,11 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
     ++ranges.back().count;
   }
 
+  int max_half = 0;
+  for (const ScanPsf& psf : level.psfs) max_half = std::max(max_half, psf.radius_px / s.step_px);
+  const uint64_t max_shifts = uint64_t(2 * max_half + 1) * uint64_t(2 * max_half + 1);
+  const uint64_t group = 64;  // scan.glsl's GROUP
+
   std::vector<ScanOut> raw(batch * n_psf);
   for (size_t e0 = 0; e0 < n_events; e0 += batch) {
     const size_t ne = std::min(batch, n_events - e0);
@@ -146,18 +157,51 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
       last_device_bytes_ = std::max(last_device_bytes_, psfs.bytes() + results.bytes() + b_images->bytes());
     }
 
-    vk::Stream stream(ctx, uint32_t(ranges.size()) + 1);
+    // Blocks of shifts per workgroup (phase 0): on a CPU device, few enough
+    // that one invocation stays within the loop budget.
+    uint64_t block = max_shifts;
+    if (ctx.is_cpu()) {
+      if (dense) {
+        const uint64_t per_shift = (pixels + group - 1) / group;  // pixel iterations per shift and invocation
+        if (per_shift > kCpuLoopBudget)
+          throw vk::Error("support scan (dense): a scan level of " + std::to_string(pixels) + " pixels needs more " +
+                          "loop iterations per invocation than " + ctx.describe() + " runs; scan a coarser level");
+        block = std::max<uint64_t>(1, kCpuLoopBudget / per_shift);
+      } else {
+        uint64_t clicks = 1;
+        for (size_t e = 0; e < ne; ++e) clicks = std::max<uint64_t>(clicks, events[e0 + e].clicks.size());
+        if (clicks > kCpuLoopBudget)
+          throw vk::Error("support scan: an event with " + std::to_string(clicks) + " clicks on the scan level needs " +
+                          "more loop iterations per invocation than " + ctx.describe() + " runs; scan a coarser level");
+        block = group * std::max<uint64_t>(1, kCpuLoopBudget / clicks);
+      }
+      block = std::min(block, max_shifts);
+    }
+    const uint64_t blocks = (max_shifts + block - 1) / block;
+    vk::Buffer block_best(ctx, std::max<uint64_t>(8, ne * n_psf * blocks * 8));
+    last_device_bytes_ += block_best.bytes();
+    p.block_shifts = uint32_t(block);
+    p.blocks = uint32_t(blocks);
+
+    vk::Stream stream(ctx, 2 * uint32_t(ranges.size()) + 2);
     p.event_first = 0;
     p.event_count = uint32_t(ne);
-    for (const Range& r : ranges) {
-      p.psf_first = r.first;
-      p.psf_count = r.count;
-      const vk::Buffer* chunk = level.chunks.at(r.chunk);
-      if (dense)
-        stream.dispatch(impl_->kernel, {chunk, &psfs, b_images.get(), &results}, &p, r.count, uint32_t(ne));
-      else
-        stream.dispatch(impl_->kernel, {chunk, &psfs, b_events.get(), b_clicks.get(), b_rates.get(), &results}, &p,
-                        r.count, uint32_t(ne));
+    for (uint32_t phase : {0u, 1u}) {
+      p.phase = phase;
+      for (const Range& r : ranges) {
+        p.psf_first = r.first;
+        p.psf_count = r.count;
+        const vk::Buffer* chunk = level.chunks.at(r.chunk);
+        const uint32_t z = phase == 0 ? uint32_t(blocks) : 1u;
+        if (dense)
+          stream.dispatch(impl_->kernel, {chunk, &psfs, b_images.get(), &results, &block_best}, &p, r.count,
+                          uint32_t(ne), z);
+        else
+          stream.dispatch(impl_->kernel,
+                          {chunk, &psfs, b_events.get(), b_clicks.get(), b_rates.get(), &results, &block_best}, &p,
+                          r.count, uint32_t(ne), z);
+      }
+      stream.barrier();
     }
     last_kernel_ms_ += stream.submit();
     results.download(raw.data(), ne * n_psf * sizeof(ScanOut));

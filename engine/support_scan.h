@@ -24,7 +24,7 @@ using uint = unsigned int;
 #define PRISM_FN inline
 #include "common/likelihood.glsl"
 #undef PRISM_FN
-static_assert(sizeof(ScanParams) == 48, "ScanParams must match its std430 push-constant layout");
+static_assert(sizeof(ScanParams) == 60, "ScanParams must match its std430 push-constant layout");
 }  // namespace shared
 
 // One PSF of the scan level on the device (std430, 16 bytes; scan.glsl's ScanPsf).

@@ -11,6 +11,7 @@
 #version 460
 #extension GL_GOOGLE_include_directive : require
 #define PRISM_FN
+#define BLOCK_BINDING 6
 #include "likelihood.glsl"
 #include "scan.glsl"
 
@@ -62,25 +63,34 @@ void main() {
   click_count = ec.y;
   p_base = psf.p_word;
 
-  // Score every shift of the lattice; each invocation keeps its best.
   int n = lattice_half(psf.radius);
   uint shifts = uint((2 * n + 1) * (2 * n + 1));
-  float best = 1.0f / 0.0f;
-  uint arg = 0xffffffffu;
-  for (uint j = gl_LocalInvocationID.x; j < shifts; j += GROUP) {
-    ivec2 sh = lattice_shift(j, n);
-    float score = mass_shifted(psf.sat_word, sh.x, sh.y);
-    for (uint c = 0u; c < click_count; ++c) {
-      ivec2 q = click_at(c) - sh;
-      score -= rate_weight[first_click + c].y * psf_value(p_base, q.x, q.y);
+  uint row = e * P.psf_total + m;
+
+  if (P.phase == 0u) {
+    // Score this block's shifts; each invocation keeps its best.
+    uint j0 = gl_WorkGroupID.z * P.block_shifts, j1 = min(j0 + P.block_shifts, shifts);
+    float best = 1.0f / 0.0f;
+    uint arg = 0xffffffffu;
+    for (uint j = j0 + gl_LocalInvocationID.x; j < j1; j += GROUP) {
+      ivec2 sh = lattice_shift(j, n);
+      float score = mass_shifted(psf.sat_word, sh.x, sh.y);
+      for (uint c = 0u; c < click_count; ++c) {
+        ivec2 q = click_at(c) - sh;
+        score -= rate_weight[first_click + c].y * psf_value(p_base, q.x, q.y);
+      }
+      if (score < best) {
+        best = score;
+        arg = j;
+      }
     }
-    if (score < best) {
-      best = score;
-      arg = j;
-    }
+    uint j = group_argmin(best, arg);
+    if (gl_LocalInvocationID.x == 0u) block_best[row * P.blocks + gl_WorkGroupID.z] = BlockBest(group_min_score, j);
+    return;
   }
-  uint j = group_argmin(best, arg);
-  best_shift = lattice_shift(j, n);
+
+  float best_score;
+  best_shift = lattice_shift(best_of_blocks(row, best_score), n);
   best_mass = mass_shifted(psf.sat_word, best_shift.x, best_shift.y);
 
   // The weight at that shift.
@@ -96,12 +106,12 @@ void main() {
     ScanOut o;
     o.shift_x = best_shift.x;
     o.shift_y = best_shift.y;
-    o.score = group_min_score;
+    o.score = best_score;
     o.nll = fit.f;
     o.alpha = fit.alpha;
     o.newton = fit.iterations;
     o.shifts = shifts;
     o.pad = 0u;
-    results[e * P.psf_total + m] = o;
+    results[row] = o;
   }
 }

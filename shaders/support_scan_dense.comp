@@ -4,7 +4,7 @@
 // weight fit and same output as support_scan.comp, which gets the same
 // numbers from sums over the clicks alone; bench_reconstruct measures what
 // the difference costs. One workgroup per (event, PSF), invocations over
-// shifts, as in the sparse kernel, so the two differ only in the work.
+// pixels (a workgroup sum per shift).
 //
 //   <g, P(shifted)> = sum_pixels g_i P(i - shift),  g_i = 1 - y_i / (1 - exp(-lambda_i))
 //   f(alpha) = sum_pixels (1 - y_i) alpha P_i - y_i [lambda0_i + log(1 - exp(-lambda_i))]
@@ -12,6 +12,7 @@
 #version 460
 #extension GL_GOOGLE_include_directive : require
 #define PRISM_FN
+#define BLOCK_BINDING 4
 #include "likelihood.glsl"
 #include "scan.glsl"
 
@@ -69,23 +70,33 @@ void main() {
 
   int n = lattice_half(psf.radius);
   uint shifts = uint((2 * n + 1) * (2 * n + 1));
-  float best = 1.0f / 0.0f;
-  uint arg = 0xffffffffu;
-  for (uint j = gl_LocalInvocationID.x; j < shifts; j += GROUP) {
-    ivec2 sh = lattice_shift(j, n);
-    float score = 0.0f;
-    for (uint i = 0u; i < pixels; ++i) {
-      ivec2 q = ivec2(int(i % P.width), int(i / P.width)) - sh;
-      score += gradient_at(i) * psf_value(p_base, q.x, q.y);
+  uint row = e * P.psf_total + m;
+
+  if (P.phase == 0u) {
+    // Each shift's correlation as a workgroup sum over the pixels (invocations
+    // split the image); the block's lowest kept, ties to the lowest index.
+    uint j0 = gl_WorkGroupID.z * P.block_shifts, j1 = min(j0 + P.block_shifts, shifts);
+    float best = 1.0f / 0.0f;
+    uint arg = 0xffffffffu;
+    for (uint j = j0; j < j1; ++j) {
+      ivec2 sh = lattice_shift(j, n);
+      float part = 0.0f;
+      for (uint i = gl_LocalInvocationID.x; i < pixels; i += GROUP) {
+        ivec2 q = ivec2(int(i % P.width), int(i / P.width)) - sh;
+        part += gradient_at(i) * psf_value(p_base, q.x, q.y);
+      }
+      float total = group_sum(part);
+      if (total < best) {
+        best = total;
+        arg = j;
+      }
     }
-    if (score < best) {
-      best = score;
-      arg = j;
-    }
+    if (gl_LocalInvocationID.x == 0u) block_best[row * P.blocks + gl_WorkGroupID.z] = BlockBest(best, arg);
+    return;
   }
-  uint j = group_argmin(best, arg);
-  best_shift = lattice_shift(j, n);
-  float score = group_min_score;
+
+  float score;
+  best_shift = lattice_shift(best_of_blocks(row, score), n);
 
   // The weight at that shift, from the same start as the sparse kernel.
   vec2 reached_mass = vec2(0.0f);
@@ -106,6 +117,6 @@ void main() {
     o.newton = fit.iterations;
     o.shifts = shifts;
     o.pad = 0u;
-    results[e * P.psf_total + m] = o;
+    results[row] = o;
   }
 }

@@ -48,7 +48,7 @@ PRISM_FN float click_curvature(float lambda) {
   return exp(-lambda) / p / p;
 }
 
-// Push constants of both support-scan kernels (std430, 48 bytes).
+// Push constants of both support-scan kernels (std430, 60 bytes).
 struct ScanParams {
   uint psf_first;     // dictionary entry of the first PSF in this dispatch (its chunk)
   uint psf_count;     // PSFs in this dispatch
@@ -62,6 +62,9 @@ struct ScanParams {
   float half_scale;   // half-float PSF values are stored times this (the dictionary's 2^15)
   float alpha_max;    // upper bound on a weight, expected photons
   uint dense_words;   // uint words per event image of the dense kernel (0 for the sparse one)
+  uint phase;         // 0: score one block of shifts per workgroup (z); 1: pick the best block, fit the weight
+  uint block_shifts;  // shifts per block: keeps one invocation's loop iterations bounded (see support_scan.cpp)
+  uint blocks;        // blocks per (event, PSF)
 };
 
 #endif

@@ -2,6 +2,13 @@
 // reductions): the dictionary's scan level as stored on the device, the
 // per-PSF table, the output record, and sums over the workgroup.
 //
+// Each kernel runs in two phases (two dispatches): phase 0 scores one block
+// of the shift lattice per workgroup and keeps the block's best; phase 1
+// picks the best block's shift and fits the weight there. Blocks bound the
+// loop iterations of one invocation: Mesa's llvmpipe (lavapipe) ends every
+// shader loop after 65535 iterations of all loops together, silently, so an
+// unsplit scan of 529 shifts x 7875 pixels came back wrong there.
+//
 // Device layout of one PSF (host/dictionary_service.cpp writes it): its
 // values, width x height row-major, as float bits or, with HALF, as pairs of
 // half floats times half_scale in one word (low half first); then, from
@@ -23,6 +30,13 @@ struct ScanPsf {
   int radius;     // shifts within +-radius pixels per axis (tau times the magnification at its depth)
 };
 layout(std430, binding = 1) readonly buffer Psfs { ScanPsf psfs[]; };
+// Per (event, PSF, block of shifts): the best score in the block and its
+// index, from phase 0 for phase 1.
+struct BlockBest {
+  float score;
+  uint j;
+};
+layout(std430, binding = BLOCK_BINDING) buffer Blocks { BlockBest block_best[]; };  // [event][PSF][block]
 // Per (event, PSF): the best shift, its score <g, P>, and the weight fitted there.
 struct ScanOut {
   int shift_x;
@@ -163,6 +177,21 @@ WeightFit fit_weight(float alpha0) {
 // on-sensor mass.
 float initial_alpha(float reached, float s) {
   return clamp(max(reached, 1.0f) / max(s, 1e-3f), 1e-3f, P.alpha_max);
+}
+
+// Phase 1's start: the best of the blocks' bests (blocks hold increasing
+// shift indices, so strict < keeps the lowest index among ties).
+uint best_of_blocks(uint row, out float score) {
+  score = 1.0f / 0.0f;
+  uint j = 0u;
+  for (uint b = 0u; b < P.blocks; ++b) {
+    BlockBest o = block_best[row * P.blocks + b];
+    if (o.score < score) {
+      score = o.score;
+      j = o.j;
+    }
+  }
+  return j;
 }
 
 #endif

@@ -428,11 +428,17 @@ TEST_CASE("support scan on the device: sparse, dense and half agree with the CPU
   events.push_back(stray);
   events.push_back(prism::Event{});  // no clicks: nothing to scan
 
+  // tau 6 mm: 529 shifts per PSF at depth 20, so that one unsplit workgroup
+  // would pass lavapipe's 65535-iteration loop limit (support_scan.cpp).
+  for (double tau : {2.5, 6.0}) {
+  auto st = settings(1);
+  st.tau_mm = tau;
+  CAPTURE(tau);
   prism::DictionaryService cpu_service(*small_dictionary().reader, nullptr, 2, {});
-  prism::Reconstructor cpu(cpu_service, 0, settings(1));
+  prism::Reconstructor cpu(cpu_service, 0, st);
   auto ref = cpu.first_scan(events);
   for (auto [backend, half] : {std::pair{B::vulkan, false}, std::pair{B::vulkan, true}, std::pair{B::dense, false}}) {
-    DeviceRun d(backend, settings(1), half);
+    DeviceRun d(backend, st, half);
     auto got = d.reconstructor.first_scan(events);
     REQUIRE(got.size() == events.size());
     for (size_t i = 0; i < events.size(); ++i) {
@@ -453,6 +459,7 @@ TEST_CASE("support scan on the device: sparse, dense and half agree with the CPU
       CHECK(c.max_nll_rel < 1e-4);
       CHECK(c.max_alpha_rel < 1e-3);
     }
+  }
   }
   prism::test::check_validation_clean();
 }

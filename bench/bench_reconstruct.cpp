@@ -1,0 +1,263 @@
+// What reconstruction accuracy costs in time, in one run (issue 4): events per
+// second and 3D error together for the CPU reference, the dense baseline (the
+// paper's way) and the sparse Vulkan path on the same events; then, on the
+// sparse path, the scan tier, the shift step, half vs float dictionary, and
+// K = 1 vs 2. Memory on the device and the host for each. Writes a CSV and a
+// plot of error against time per event.
+//
+//   bench_reconstruct [--device D] [--dictionary DIR] [--out DIR] [--events-per-position N]
+//
+// Without --dictionary it builds (or resumes) the paper's 1210-PSF grid at
+// 16 x 16 binning, 4096 rays per lenslet, in /tmp. Events: the ray-traced
+// forward model (16384 rays per lenslet) at six off-grid positions over the
+// field, 100 photons each, clicks on 110 um pixels; two-vertex events pair
+// neighbouring positions at 125 + 125 photons.
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <numeric>
+#include <memory>
+#include <string>
+
+#include "bench_util.h"
+#include "host/dictionary_build.h"
+#include "host/event_sim.h"
+#include "host/plot.h"
+#include "host/reconstruct.h"
+
+using namespace prism;
+namespace fs = std::filesystem;
+
+namespace {
+
+struct Truth {
+  std::vector<glm::dvec3> vertices;
+};
+
+// One configuration's measurement.
+struct Row {
+  std::string group, name;
+  size_t events = 0;
+  double seconds_per_event = 0;  // median over repeats
+  double err_mean_mm = 0, err_median_mm = 0;
+  double scan_share = 0;         // of the time, the support scans
+  uint64_t device_bytes = 0, host_peak_bytes = 0;
+  std::vector<std::vector<ReconstructedVertex>> out;
+};
+
+double distance(const ReconstructedVertex& v, const glm::dvec3& t) {
+  return std::hypot(v.x_mm - t.x, v.y_mm - t.y, v.depth_mm - t.z);
+}
+
+// Per event, the mean 3D error of its vertices (two: matched in the better order).
+std::vector<double> errors(const std::vector<std::vector<ReconstructedVertex>>& out, const std::vector<Truth>& truth) {
+  std::vector<double> e;
+  for (size_t i = 0; i < out.size(); ++i) {
+    const auto& t = truth[i].vertices;
+    if (t.size() == 1) {
+      e.push_back(distance(out[i][0], t[0]));
+    } else {
+      double direct = distance(out[i][0], t[0]) + distance(out[i][1], t[1]);
+      double swapped = distance(out[i][0], t[1]) + distance(out[i][1], t[0]);
+      e.push_back(0.5 * std::min(direct, swapped));
+    }
+  }
+  return e;
+}
+
+struct Config {
+  std::string group, name;
+  ReconstructionBackend backend = ReconstructionBackend::vulkan;
+  int scan_level = 2;  // clicks on level 0
+  int step = 1;
+  bool half = false;
+  int vertices = 1;
+  int repeats = 3;
+};
+
+Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, const std::vector<Event>& events,
+            const std::vector<Truth>& truth) {
+  const bool device = c.backend != ReconstructionBackend::cpu;
+  ReconstructionSettings s;
+  s.vertices = c.vertices;
+  s.search_level = c.scan_level;
+  s.scan_step_px = c.step;
+  DictionaryService service(reader, device ? &ctx : nullptr, c.scan_level, {}, c.half);
+  Row r;
+  r.group = c.group;
+  r.name = c.name;
+  r.events = events.size();
+  std::vector<double> per_event, share;
+  for (int k = 0; k < c.repeats; ++k) {
+    Reconstructor rec(service, 0, s, c.backend, &ctx);
+    auto start = std::chrono::steady_clock::now();
+    r.out = rec.run(events);
+    double t = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    per_event.push_back(t / double(events.size()));
+    share.push_back(rec.timings().scan_s / t);
+    r.device_bytes = service.stats().device_bytes + rec.timings().scan_device_bytes;
+  }
+  r.seconds_per_event = bench::median(per_event);
+  r.scan_share = bench::median(share);
+  r.host_peak_bytes = service.stats().host_peak_bytes;
+  auto e = errors(r.out, truth);
+  r.err_mean_mm = std::accumulate(e.begin(), e.end(), 0.0) / double(e.size());
+  r.err_median_mm = bench::median(e);
+  return r;
+}
+
+void print(const Row& r) {
+  std::printf("%-10s %-26s %6zu %10.2f %10.1f %9.3f %9.3f %7.0f%% %10.1f %10.1f\n", r.group.c_str(), r.name.c_str(),
+              r.events, r.seconds_per_event * 1e3, 1.0 / r.seconds_per_event, r.err_mean_mm, r.err_median_mm,
+              100 * r.scan_share, double(r.device_bytes) / (1 << 20), double(r.host_peak_bytes) / (1 << 20));
+  std::fflush(stdout);
+}
+
+// Whether two runs chose the same PSF and shift for every vertex.
+bool same_vertices(const Row& a, const Row& b) {
+  for (size_t i = 0; i < std::min(a.out.size(), b.out.size()); ++i)
+    for (size_t k = 0; k < a.out[i].size(); ++k)
+      if (a.out[i][k].psf != b.out[i][k].psf || a.out[i][k].shift_px != b.out[i][k].shift_px) return false;
+  return true;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  std::string device, dict_dir, out_dir = "bench-reconstruct";
+  int per_position = 8;
+  for (int i = 1; i < argc; ++i) {
+    std::string a = argv[i];
+    auto value = [&]() -> std::string {
+      if (i + 1 >= argc) {
+        std::fprintf(stderr, "bench_reconstruct: %s needs a value\n", a.c_str());
+        std::exit(2);
+      }
+      return argv[++i];
+    };
+    if (a == "--device") device = value();
+    else if (a == "--dictionary") dict_dir = value();
+    else if (a == "--out") out_dir = value();
+    else if (a == "--events-per-position") per_position = std::max(2, std::stoi(value()));
+    else {
+      std::fprintf(stderr, "usage: bench_reconstruct [--device D] [--dictionary DIR] [--out DIR] "
+                           "[--events-per-position N]\n");
+      return a == "--help" || a == "-h" ? 0 : 2;
+    }
+  }
+  vk::Context ctx(vk::ContextOptions{device});
+  Scene scene = builtin_scene("prototype");
+  if (dict_dir.empty()) {
+    dict_dir = (fs::temp_directory_path() / "prism-bench-reconstruct-dict").string();
+    DictionaryBuildOptions o;
+    o.base_binning = 16;
+    o.rays_per_lenslet = 4096;
+    std::fprintf(stderr, "bench_reconstruct: building (or reusing) the 1210-PSF dictionary in %s\n", dict_dir.c_str());
+    build_dictionary(ctx, scene, dict_dir, o);
+  }
+  DictionaryReader reader(dict_dir);
+  const auto& m = reader.manifest();
+
+  TraceSettings t;
+  t.binning = unsigned(m.base_binning);
+  t.rays_per_lenslet = 16384;
+  ForwardTruth truth_model(ctx, m.scene, t, 16);
+  const std::vector<glm::dvec3> positions{{1, 1, 31},     {-12, 7, 12}, {9, -14, 44},
+                                          {17, 18, 22.5}, {-6, -3, 7},  {3, -9, 38}};
+  std::vector<Event> single, pairs;
+  std::vector<Truth> single_truth, pair_truth;
+  uint64_t id = 0;
+  for (size_t p = 0; p < positions.size(); ++p) {
+    auto a = truth_model.psf(positions[p]), b = truth_model.psf(positions[(p + 1) % positions.size()]);
+    for (int k = 0; k < per_position; ++k) {
+      Event e;
+      e.id = id++;
+      auto rng = event_rng(7, e.id);
+      ClickSource one{a.get(), 100.0};
+      sample_clicks(std::span<const ClickSource>(&one, 1), rng, e.clicks);
+      single.push_back(e);
+      single_truth.push_back({{positions[p]}});
+      if (k < per_position / 2) {
+        Event e2;
+        e2.id = id++;
+        auto rng2 = event_rng(7, e2.id);
+        ClickSource two[2] = {{a.get(), 125.0}, {b.get(), 125.0}};
+        sample_clicks(two, rng2, e2.clicks);
+        pairs.push_back(e2);
+        pair_truth.push_back({{positions[p], positions[(p + 1) % positions.size()]}});
+      }
+    }
+  }
+  // The slow backends see one event per position: the same events for all three.
+  std::vector<Event> few;
+  std::vector<Truth> few_truth;
+  for (size_t i = 0; i < single.size(); i += size_t(per_position)) few.push_back(single[i]), few_truth.push_back(single_truth[i]);
+
+  std::printf("# bench_reconstruct\n# machine: %s\n# device: %s\n", bench::machine_line().c_str(), ctx.describe().c_str());
+  std::printf("# dictionary: %zu PSFs, level 0 %d x %d px (%.0f um), %d levels; clicks on level 0\n", m.grid.size(),
+              m.width, m.height, m.pixel_mm(0) * 1e3, m.levels);
+  std::printf("# events: forward model at %zu off-grid positions, 100 photons (pairs: 125 + 125); times: medians of "
+              "3 repeats; error: 3D, against the truth\n\n",
+              positions.size());
+  std::printf("%-10s %-26s %6s %10s %10s %9s %9s %8s %10s %10s\n", "group", "configuration", "events", "ms/event",
+              "events/s", "err mean", "err med", "scan", "device MiB", "host MiB");
+
+  using B = ReconstructionBackend;
+  std::vector<Row> rows;
+  auto run = [&](const Config& c, const std::vector<Event>& ev, const std::vector<Truth>& tr) -> const Row& {
+    rows.push_back(measure(ctx, reader, c, ev, tr));
+    print(rows.back());
+    return rows.back();
+  };
+  // 1. Backends on the same events.
+  const Row cpu = run({"backend", "cpu reference (double)", B::cpu, 2, 1, false, 1, 3}, few, few_truth);
+  const Row dense = run({"backend", "dense baseline (device)", B::dense, 2, 1, false, 1, 3}, few, few_truth);
+  const Row sparse = run({"backend", "sparse vulkan", B::vulkan, 2, 1, false, 1, 3}, few, few_truth);
+  // 2. The sparse path: tier, step, precision, K.
+  for (int level : {1, 2, 3, 4})
+    run({"tier", "scan level " + std::to_string(level) + " (" + std::to_string(int(m.pixel_mm(level) * 1e3)) + " um)",
+         B::vulkan, level, 1, false, 1, 3},
+        single, single_truth);
+  for (int step : {2, 3}) run({"step", "level 2, shift step " + std::to_string(step), B::vulkan, 2, step, false, 1, 3}, single, single_truth);
+  run({"step", "level 1, shift step 2", B::vulkan, 1, 2, false, 1, 3}, single, single_truth);
+  run({"precision", "level 2, half dictionary", B::vulkan, 2, 1, true, 1, 3}, single, single_truth);
+  run({"K", "K = 1 on two-vertex events", B::vulkan, 2, 1, false, 1, 3}, pairs, pair_truth);
+  run({"K", "K = 2 on two-vertex events", B::vulkan, 2, 1, false, 2, 3}, pairs, pair_truth);
+
+  std::printf("\nratios (same %zu events, same vertices chosen: cpu %s, dense %s):\n", few.size(),
+              same_vertices(cpu, sparse) ? "yes" : "NO", same_vertices(dense, sparse) ? "yes" : "NO");
+  std::printf("  sparse vulkan vs cpu reference:  %.1fx faster\n", cpu.seconds_per_event / sparse.seconds_per_event);
+  std::printf("  sparse vulkan vs dense baseline: %.1fx faster\n", dense.seconds_per_event / sparse.seconds_per_event);
+  std::printf("scan = share of the time in the support scans (the rest: refinement from disk tiles, weights, "
+              "descent, depth, on the host). device MiB: resident scan level + event/result buffers; host MiB: "
+              "peak of summed-area tables and tile cache.\n");
+
+  fs::create_directories(out_dir);
+  {
+    std::ofstream csv(out_dir + "/reconstruct.csv");
+    csv << "group,configuration,events,ms_per_event,events_per_s,err_mean_mm,err_median_mm,scan_share,device_mib,host_mib\n";
+    for (const auto& r : rows)
+      csv << r.group << ',' << r.name << ',' << r.events << ',' << r.seconds_per_event * 1e3 << ','
+          << 1 / r.seconds_per_event << ',' << r.err_mean_mm << ',' << r.err_median_mm << ',' << r.scan_share << ','
+          << double(r.device_bytes) / (1 << 20) << ',' << double(r.host_peak_bytes) / (1 << 20) << '\n';
+  }
+  std::map<std::string, Series> groups;
+  std::vector<std::string> order;
+  for (const auto& r : rows) {
+    if (r.group == "K") continue;  // other events: not on the same axis
+    if (!groups.count(r.group)) order.push_back(r.group), groups[r.group] = {r.group, {}, {}, false, true};
+    groups[r.group].x.push_back(r.seconds_per_event * 1e3);
+    groups[r.group].y.push_back(r.err_mean_mm);
+  }
+  std::vector<Series> series;
+  for (const auto& g : order) series.push_back(groups[g]);
+  plot_lines(out_dir + "/reconstruct.png",
+             {"3D error against time per event (" + ctx.describe() + ")", "time per event (ms)", "mean 3D error (mm)",
+              false, true},
+             series);
+  std::fprintf(stderr, "bench_reconstruct: wrote %s/reconstruct.csv and reconstruct.png\n", out_dir.c_str());
+  return 0;
+}
