@@ -8,8 +8,8 @@
 #include "bench_util.h"
 #include "engine/forward.h"
 #include "engine/ref/forward_ref.h"
-#include "host/dictionary_build.h"
-#include "host/dictionary_service.h"
+#include "host/dictionary/build.h"
+#include "host/dictionary/service.h"
 
 using namespace prism;
 namespace fs = std::filesystem;

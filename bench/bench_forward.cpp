@@ -13,7 +13,7 @@
 #include "bench_util.h"
 #include "engine/forward.h"
 #include "engine/ref/forward_ref.h"
-#include "host/scene.h"
+#include "host/scene/scene.h"
 
 using namespace prism;
 

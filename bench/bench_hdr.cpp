@@ -9,7 +9,7 @@
 #include "bench_util.h"
 #include "engine/hdr_merge.h"
 #include "engine/ref/hdr_merge_ref.h"
-#include "host/hdr_stack.h"
+#include "host/dictionary/hdr_stack.h"
 
 using namespace prism;
 

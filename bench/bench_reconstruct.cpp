@@ -23,10 +23,10 @@
 #include <string>
 
 #include "bench_util.h"
-#include "host/dictionary_build.h"
-#include "host/event_sim.h"
-#include "host/plot.h"
-#include "host/reconstruct.h"
+#include "host/dictionary/build.h"
+#include "host/events/simulate.h"
+#include "host/util/plot.h"
+#include "host/reconstruct/reconstruct.h"
 
 using namespace prism;
 namespace fs = std::filesystem;

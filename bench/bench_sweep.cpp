@@ -13,7 +13,7 @@
 #include <string>
 
 #include "bench_util.h"
-#include "host/sweep.h"
+#include "host/sweep/sweep.h"
 
 using namespace prism;
 

@@ -1,5 +1,5 @@
 // What the engine needs to know of an optical design: lenslets, lens model,
-// sensor, distances and the effects to simulate. Scenes (host/scene.h) are
+// sensor, distances and the effects to simulate. Scenes (host/scene/scene.h) are
 // parsed into this; the engine never reads files.
 #pragma once
 #include <string>

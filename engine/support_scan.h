@@ -36,7 +36,7 @@ struct ScanPsf {
 };
 static_assert(sizeof(ScanPsf) == 16);
 
-// The dictionary's scan level as it lies on the device (host/dictionary_service.h
+// The dictionary's scan level as it lies on the device (host/dictionary/service.h
 // puts it there). PSFs of one chunk are consecutive.
 struct ScanLevel {
   int width = 0, height = 0;

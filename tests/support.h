@@ -6,7 +6,7 @@
 #include <string>
 
 #include "engine/vk/context.h"
-#include "host/scene.h"
+#include "host/scene/scene.h"
 
 namespace prism::test {
 

@@ -7,8 +7,8 @@
 
 #include "host/cmd/commands.h"
 #include "host/cmd/options.h"
-#include "host/image_io.h"
-#include "host/plot.h"
+#include "host/util/image_io.h"
+#include "host/util/plot.h"
 
 namespace prism::cmd {
 

@@ -4,8 +4,8 @@
 
 #include "host/cmd/commands.h"
 #include "host/cmd/options.h"
-#include "host/dictionary_build.h"
-#include "host/progress.h"
+#include "host/dictionary/build.h"
+#include "host/util/progress.h"
 
 namespace prism::cmd {
 

@@ -11,8 +11,8 @@
 #include "engine/hdr_merge.h"
 #include "engine/ref/hdr_merge_ref.h"
 #include "host/cmd/commands.h"
-#include "host/hdr_stack.h"
-#include "host/image_io.h"
+#include "host/dictionary/hdr_stack.h"
+#include "host/util/image_io.h"
 
 namespace fs = std::filesystem;
 

@@ -1,4 +1,4 @@
-// prism evaluate: the paper's evaluation protocol (host/evaluate.h) on
+// prism evaluate: the paper's evaluation protocol (host/reconstruct/evaluate.h) on
 // forward-model events with a reconstruction backend; a CSV and a PNG per
 // experiment, a table and the reconstruction rate on stdout.
 #include <cstdio>
@@ -6,8 +6,8 @@
 
 #include "host/cmd/commands.h"
 #include "host/cmd/options.h"
-#include "host/evaluate.h"
-#include "host/progress.h"
+#include "host/reconstruct/evaluate.h"
+#include "host/util/progress.h"
 
 namespace prism::cmd {
 

@@ -7,7 +7,7 @@
 
 #include "engine/optical_system.h"
 #include "engine/vk/context.h"
-#include "host/crlb_study.h"
+#include "host/scene/crlb_study.h"
 
 namespace prism::cmd {
 

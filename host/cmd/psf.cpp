@@ -5,7 +5,7 @@
 #include "engine/ref/forward_ref.h"
 #include "host/cmd/commands.h"
 #include "host/cmd/options.h"
-#include "host/image_io.h"
+#include "host/util/image_io.h"
 
 namespace prism::cmd {
 

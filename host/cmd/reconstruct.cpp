@@ -1,5 +1,5 @@
 // prism reconstruct: vertices of every event of an event file, one CSV row per
-// vertex (host/reconstruct.h). The device backends (vulkan: sparse, dense: the
+// vertex (host/reconstruct/reconstruct.h). The device backends (vulkan: sparse, dense: the
 // paper's dense correlation) scan --batch events per dispatch; the CPU
 // reference runs events on --threads workers, each with its own dictionary
 // service (the tile cache is not shared).
@@ -13,8 +13,8 @@
 #include <thread>
 
 #include "host/cmd/commands.h"
-#include "host/progress.h"
-#include "host/reconstruct.h"
+#include "host/util/progress.h"
+#include "host/reconstruct/reconstruct.h"
 
 namespace prism::cmd {
 
@@ -145,7 +145,7 @@ void add_reconstruct(CLI::App& app) {
   auto a = std::make_shared<ReconstructArgs>();
   CLI::App* c = app.add_subcommand("reconstruct", "find the vertices of each event (ADCG on the sparse likelihood)");
   c->add_option("--dictionary", a->dictionary, "PSF dictionary directory")->required();
-  c->add_option("--events", a->events, "event file (host/EVENTS.md)")->required();
+  c->add_option("--events", a->events, "event file (host/events/EVENTS.md)")->required();
   c->add_option("--vertices", a->settings.vertices, "K: vertices per event")
       ->capture_default_str()->check(CLI::Range(1, 8));
   c->add_option("--out", a->out, "CSV: event,vertex,x_mm,y_mm,depth_mm,alpha,nll,clicks,flags")->required();

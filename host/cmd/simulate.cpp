@@ -1,5 +1,5 @@
 // prism simulate: events (click lists) for given vertices, streamed to an
-// event file (host/EVENTS.md).
+// event file (host/events/EVENTS.md).
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
@@ -7,9 +7,9 @@
 
 #include "host/cmd/commands.h"
 #include "host/cmd/options.h"
-#include "host/event_file.h"
-#include "host/event_sim.h"
-#include "host/progress.h"
+#include "host/events/event_file.h"
+#include "host/events/simulate.h"
+#include "host/util/progress.h"
 
 namespace prism::cmd {
 
@@ -139,7 +139,7 @@ void add_simulate(CLI::App& app) {
   c->add_option("--alpha", a->alpha, "expected photons detected per vertex where --vertex gives none")
       ->capture_default_str()->check(CLI::NonNegativeNumber);
   c->add_option("--events", a->events, "number of events")->capture_default_str();
-  c->add_option("--out", a->out, "event file to write (format: host/EVENTS.md)")->required();
+  c->add_option("--out", a->out, "event file to write (format: host/events/EVENTS.md)")->required();
   c->add_option("--truth", a->truth, "forward: ray-traced model at the exact positions; dictionary: shifted "
                                       "dictionary PSFs (the paper's protocol)")
       ->capture_default_str()->check(CLI::IsMember({"forward", "dictionary"}));

@@ -1,5 +1,5 @@
 // prism sweep: search a design space for the lenslet array with the lowest
-// CRLB over a sample of the volume (host/sweep.h; host/SWEEP.md).
+// CRLB over a sample of the volume (host/sweep/sweep.h; host/sweep/SWEEP.md).
 #include <atomic>
 #include <cmath>
 #include <csignal>
@@ -9,10 +9,10 @@
 #include <memory>
 
 #include "host/cmd/commands.h"
-#include "host/image_io.h"
-#include "host/plot.h"
-#include "host/progress.h"
-#include "host/sweep.h"
+#include "host/util/image_io.h"
+#include "host/util/plot.h"
+#include "host/util/progress.h"
+#include "host/sweep/sweep.h"
 
 namespace prism::cmd {
 
@@ -241,8 +241,8 @@ void run(const SweepArgs& a) {
 
 void add_sweep(CLI::App& app) {
   auto a = std::make_shared<SweepArgs>();
-  CLI::App* c = app.add_subcommand("sweep", "search a design space of lenslet arrays for the lowest CRLB (host/SWEEP.md)");
-  c->add_option("--space", a->space, "design space JSON file (host/spaces/*.json)")->required();
+  CLI::App* c = app.add_subcommand("sweep", "search a design space of lenslet arrays for the lowest CRLB (host/sweep/SWEEP.md)");
+  c->add_option("--space", a->space, "design space JSON file (host/sweep/spaces/*.json)")->required();
   std::string names;
   for (const auto& n : objective_names()) names += (names.empty() ? "" : ", ") + n;
   c->add_option("--objective", a->objective, "what to minimise (photons is maximised): " + names)

@@ -5,7 +5,7 @@
 //
 // Same GLSL/C++ subset as dual.glsl; engine/support_scan.h compiles it as C++
 // so tests call the very functions the kernels run. The double-precision
-// reference (host/reconstruct.cpp, namespace nll) is written separately with
+// reference (host/reconstruct/reconstruct.cpp, namespace nll) is written separately with
 // std::expm1, on purpose.
 //
 // GLSL has no expm1, and exp/log on a GPU may be off by a few ulp (log by

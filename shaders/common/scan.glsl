@@ -9,7 +9,7 @@
 // shader loop after 65535 iterations of all loops together, silently, so an
 // unsplit scan of 529 shifts x 7875 pixels came back wrong there.
 //
-// Device layout of one PSF (host/dictionary_service.cpp writes it): its
+// Device layout of one PSF (host/dictionary/service.cpp writes it): its
 // values, width x height row-major, as float bits or, with HALF, as pairs of
 // half floats times half_scale in one word (low half first); then, from
 // sat_word, its summed-area table, (width + 1) x (height + 1) floats, so the

@@ -1,0 +1,93 @@
+#include "host/dictionary/build.h"
+
+#include <algorithm>
+#include <chrono>
+#include <filesystem>
+#include <fstream>
+
+#include "engine/forward.h"
+#include "host/util/image_io.h"
+
+namespace prism {
+
+namespace {
+
+DictionaryManifest manifest_for(const Scene& scene, const DictionaryBuildOptions& o) {
+  DictionaryManifest m;
+  m.scene = scene;
+  m.grid = o.grid;
+  m.base_binning = o.base_binning;
+  AnalysisGrid g = AnalysisGrid::of(scene.optics, unsigned(o.base_binning));
+  m.width = g.width;
+  m.height = g.height;
+  int levels = 1;
+  for (int s = std::max(m.width, m.height); s > 1; s = (s + 1) / 2) ++levels;
+  m.levels = levels;
+  m.tile_px = o.tile_px;
+  m.rays_per_lenslet = TraceSettings{o.rays_per_lenslet}.rays();
+  m.source = "synthesised";
+  return m;
+}
+
+void write_manifest(const std::string& dir, const DictionaryManifest& m) {
+  std::string path = dir + "/manifest.json";
+  write_atomically(path, [&](const std::string& tmp) {
+    std::ofstream out(tmp);
+    out << m.to_json().dump(2) << '\n';
+    if (!out) throw DictionaryError(path + ": cannot write");
+  });
+}
+
+}  // namespace
+
+DictionaryBuildReport build_dictionary(vk::Context& ctx, const Scene& scene, const std::string& dir,
+                                       const DictionaryBuildOptions& o,
+                                       const std::function<void(size_t, size_t)>& progress) {
+  if (o.grid.size() == 0) throw DictionaryError(dir + ": the grid has no positions");
+  DictionaryManifest wanted = manifest_for(scene, o);
+  std::filesystem::create_directories(dir + "/psf");
+  if (std::filesystem::exists(dir + "/manifest.json")) {
+    // Resume only the very same dictionary.
+    DictionaryReader existing(dir);
+    if (existing.manifest().to_json() != wanted.to_json())
+      throw DictionaryError(dir + ": holds a different dictionary (scene, grid, binning or rays differ); "
+                                  "choose another --out or delete it");
+  } else {
+    write_manifest(dir, wanted);
+  }
+  DictionaryReader reader(dir);
+
+  TraceSettings t;
+  t.rays_per_lenslet = o.rays_per_lenslet;
+  t.binning = unsigned(o.base_binning);
+  t.photons_emitted = scene.photons_emitted;
+  ForwardVulkan fw(ctx, scene.optics, t);
+
+  DictionaryBuildReport report;
+  std::vector<double> per_psf;
+  auto start = std::chrono::steady_clock::now();
+  for (size_t i = 0; i < wanted.grid.size(); ++i) {
+    if (reader.has(i)) {
+      ++report.reused;
+    } else {
+      auto t0 = std::chrono::steady_clock::now();
+      PsfLevel l0{0, wanted.width, wanted.height, fw.psf_values(wanted.grid.position(i))};
+      double total = 0;
+      for (float b : l0.p) total += b;
+      // A position that puts no light on the sensor is stored as zeros.
+      for (float& p : l0.p) p = total > 0 ? float(p / total) : 0.0f;
+      write_psf_file(reader.path_of(i), wanted, i, l0, total);
+      per_psf.push_back(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+      ++report.rendered;
+    }
+    if (progress) progress(i + 1, wanted.grid.size());
+  }
+  report.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  if (!per_psf.empty()) {
+    std::sort(per_psf.begin(), per_psf.end());
+    report.seconds_per_psf = per_psf[per_psf.size() / 2];
+  }
+  return report;
+}
+
+}  // namespace prism

@@ -1,0 +1,32 @@
+// Synthesising a PSF dictionary with the device forward model: every grid
+// position rendered, normalised to sum 1 over the sensor, and stored with all
+// its levels. Resumable: entries already on disk (written atomically, so whole)
+// are kept, so an interrupted build continues where it stopped.
+#pragma once
+#include <functional>
+#include <string>
+
+#include "engine/vk/context.h"
+#include "host/dictionary/store.h"
+
+namespace prism {
+
+struct DictionaryBuildOptions {
+  DictionaryGrid grid = DictionaryGrid::paper();
+  int base_binning = 4;       // level 0 = sensor binned B x B (1: full resolution)
+  unsigned rays_per_lenslet = 4096;
+  int tile_px = 64;
+};
+
+struct DictionaryBuildReport {
+  size_t rendered = 0, reused = 0;
+  double seconds = 0;
+  double seconds_per_psf = 0;  // rendering and writing, median
+};
+
+// progress(done, total) is called after each entry.
+DictionaryBuildReport build_dictionary(vk::Context& ctx, const Scene& scene, const std::string& dir,
+                                       const DictionaryBuildOptions& options,
+                                       const std::function<void(size_t, size_t)>& progress = {});
+
+}  // namespace prism

@@ -1,0 +1,140 @@
+#include "host/dictionary/service.h"
+
+#include <algorithm>
+#include <cstring>
+
+namespace prism {
+
+namespace {
+std::string mib(uint64_t b) { return std::to_string((b + (1 << 20) - 1) >> 20) + " MiB"; }
+}  // namespace
+
+DictionaryService::DictionaryService(const DictionaryReader& reader, vk::Context* ctx, int coarse_level,
+                                     ServiceBudget budget, bool device_half)
+    : reader_(reader), coarse_level_(coarse_level), budget_(budget), device_half_(device_half) {
+  const DictionaryManifest& m = reader.manifest();
+  if (coarse_level < 0 || coarse_level >= m.levels)
+    throw DictionaryError(reader.dir() + ": no level " + std::to_string(coarse_level) + " (levels 0.." +
+                          std::to_string(m.levels - 1) + ")");
+  const uint64_t w = uint64_t(m.level_width(coarse_level)), h = uint64_t(m.level_height(coarse_level));
+  const uint64_t p_words = device_half ? (w * h + 1) / 2 : w * h;
+  const uint64_t sat_words = (w + 1) * (h + 1);
+  const uint64_t psf_bytes = (p_words + sat_words) * 4;  // on the device: values, then the float table
+  const uint64_t sat_bytes = (w + 1) * (h + 1) * sizeof(double);
+  const size_t n = m.grid.size();
+  auto finer_hint = [&] {
+    return coarse_level + 1 < m.levels ? "; level " + std::to_string(coarse_level + 1) + " needs a quarter of it" : "";
+  };
+  if (sat_bytes * n > budget.host_bytes)
+    throw DictionaryError(reader.dir() + ": the summed-area tables of level " + std::to_string(coarse_level) + " need " +
+                          mib(sat_bytes * n) + ", more than the host budget of " + mib(budget.host_bytes) + finer_hint());
+  if (ctx && psf_bytes * n > budget.device_bytes)
+    throw DictionaryError(reader.dir() + ": level " + std::to_string(coarse_level) + " needs " + mib(psf_bytes * n) +
+                          " on the device (values and summed-area tables), more than the device budget of " +
+                          mib(budget.device_bytes) + finer_hint());
+
+  // Pack the coarse level into chunks no larger than one storage buffer may be.
+  uint64_t chunk_cap = ctx ? std::min<uint64_t>(ctx->max_storage_buffer_bytes(), 128ull << 20) : 0;
+  uint64_t per_chunk = ctx ? std::max<uint64_t>(1, chunk_cap / psf_bytes) : 0;
+  std::vector<uint32_t> words(p_words + sat_words);
+  for (size_t i = 0; i < n; ++i) {
+    PsfLevel lv = reader.has(i) ? reader.read_level(i, coarse_level)
+                                : throw DictionaryError(reader.path_of(i) + ": missing; finish `prism dictionary build`");
+    sats_.emplace_back(lv);
+    account(int64_t(sats_.back().bytes()));
+    if (!ctx) continue;
+    uint32_t chunk = uint32_t(i / per_chunk);
+    uint64_t in_chunk = i % per_chunk;
+    if (in_chunk == 0) {
+      uint64_t count = std::min<uint64_t>(per_chunk, n - i);
+      chunks_.push_back(std::make_unique<vk::Buffer>(*ctx, count * psf_bytes));
+      stats_.device_bytes += count * psf_bytes;
+    }
+    std::fill(words.begin(), words.end(), 0u);
+    if (device_half) {
+      for (size_t k = 0; k < lv.p.size(); ++k) {
+        uint32_t half = glm::packHalf2x16(glm::vec2(lv.p[k] * device_half_scale, 0.0f)) & 0xffffu;
+        words[k / 2] |= half << (16 * (k % 2));
+      }
+    } else {
+      std::memcpy(words.data(), lv.p.data(), lv.p.size() * 4);
+    }
+    const auto& table = sats_.back().table();
+    for (size_t k = 0; k < table.size(); ++k) {
+      float v = float(table[k]);
+      std::memcpy(&words[p_words + k], &v, 4);
+    }
+    chunks_[chunk]->upload(words.data(), psf_bytes, in_chunk * psf_bytes);
+    const uint64_t first = in_chunk * psf_bytes / 4;
+    slots_.push_back({chunk, first, first + p_words});
+  }
+}
+
+ScanLevel DictionaryService::scan_level() const {
+  if (chunks_.empty())
+    throw DictionaryError(reader_.dir() + ": the dictionary service was made without a device; the Vulkan "
+                          "reconstruction needs one");
+  const DictionaryManifest& m = reader_.manifest();
+  ScanLevel s;
+  s.width = m.level_width(coarse_level_);
+  s.height = m.level_height(coarse_level_);
+  s.half = device_half_;
+  s.half_scale = device_half_ ? device_half_scale : 1.0f;
+  for (const auto& c : chunks_) s.chunks.push_back(c.get());
+  for (const Slot& slot : slots_) {
+    if (slot.sat_offset > 0xffffffffull) throw DictionaryError("scan level: a chunk offset exceeds 32 bits");
+    s.psfs.push_back({slot.chunk, uint32_t(slot.offset), uint32_t(slot.sat_offset), 0});
+  }
+  return s;
+}
+
+void DictionaryService::account(int64_t delta) {
+  stats_.host_bytes = uint64_t(int64_t(stats_.host_bytes) + delta);
+  stats_.host_peak_bytes = std::max(stats_.host_peak_bytes, stats_.host_bytes);
+}
+
+const std::vector<float>& DictionaryService::tile(size_t i, int level, int tx, int ty) {
+  TileKey key{i, level, tx, ty};
+  auto it = tiles_.find(key);
+  if (it != tiles_.end()) {
+    ++stats_.tile_hits;
+    lru_.splice(lru_.begin(), lru_, it->second.lru);
+    return it->second.p;
+  }
+  ++stats_.tile_misses;
+  int t = reader_.manifest().tile_px;
+  uint64_t bytes = uint64_t(t) * t * sizeof(float);
+  if (stats_.host_bytes + bytes > budget_.host_bytes && lru_.empty())
+    throw DictionaryError(reader_.dir() + ": the host budget of " + mib(budget_.host_bytes) +
+                          " leaves no room for one tile; raise it");
+  // Make room first, so the budget holds at every moment.
+  while (stats_.host_bytes + bytes > budget_.host_bytes && !lru_.empty()) {
+    tiles_.erase(lru_.back());
+    lru_.pop_back();
+    account(-int64_t(bytes));
+    ++stats_.evictions;
+  }
+  PsfWindow w = reader_.read_window(i, level, tx * t, ty * t, t, t);
+  std::vector<float> p(size_t(t) * t, 0.0f);  // tiles at the level's edge are padded with zeros
+  for (int y = 0; y < w.height; ++y)
+    std::copy_n(&w.p[size_t(y) * w.width], w.width, &p[size_t(y) * t]);
+  stats_.bytes_read += bytes;
+  lru_.push_front(key);
+  account(int64_t(bytes));
+  return tiles_.emplace(key, Tile{std::move(p), lru_.begin()}).first->second.p;
+}
+
+std::vector<float> DictionaryService::values(size_t i, int level, std::span<const glm::ivec2> pixels) {
+  const DictionaryManifest& m = reader_.manifest();
+  int t = m.tile_px, w = m.level_width(level), h = m.level_height(level);
+  std::vector<float> out(pixels.size(), 0.0f);
+  for (size_t k = 0; k < pixels.size(); ++k) {
+    glm::ivec2 px = pixels[k];
+    if (px.x < 0 || px.y < 0 || px.x >= w || px.y >= h) continue;  // off the sensor: no light
+    const auto& tl = tile(i, level, px.x / t, px.y / t);
+    out[k] = tl[size_t(px.y % t) * t + px.x % t];
+  }
+  return out;
+}
+
+}  // namespace prism

@@ -1,0 +1,89 @@
+// Serving a PSF dictionary under a memory budget. The coarse level the support
+// search correlates against stays resident on the device, packed into storage
+// buffers of at most maxStorageBufferRange (128 MiB on lavapipe), each PSF's
+// values (float, or half floats at the store's scale) followed by its
+// summed-area table in float; the tables stay on the host too, in double. Finer levels are read tile by tile, only
+// around the pixels asked for, into an LRU cache that never exceeds the host
+// budget. A dictionary far larger than memory is served this way.
+#pragma once
+#include <cstdint>
+#include <list>
+#include <map>
+#include <memory>
+#include <span>
+#include <tuple>
+#include <vector>
+
+#include <glm/glm.hpp>
+
+#include "engine/support_scan.h"
+#include "engine/vk/compute.h"
+#include "host/dictionary/store.h"
+
+namespace prism {
+
+struct ServiceBudget {
+  uint64_t host_bytes = 1ull << 30;    // summed-area tables + tile cache
+  uint64_t device_bytes = 1ull << 30;  // resident coarse level
+};
+
+struct ServiceStats {
+  uint64_t host_bytes = 0, host_peak_bytes = 0, device_bytes = 0;
+  uint64_t tile_hits = 0, tile_misses = 0, evictions = 0;
+  uint64_t bytes_read = 0;  // decoded tile bytes fetched from disk
+};
+
+class DictionaryService {
+ public:
+  // ctx may be null: nothing is put on a device (CPU-only users). device_half
+  // stores the coarse values on the device as half floats (half the bytes).
+  DictionaryService(const DictionaryReader& reader, vk::Context* ctx, int coarse_level, ServiceBudget budget,
+                    bool device_half = false);
+
+  const DictionaryManifest& manifest() const { return reader_.manifest(); }
+  int coarse_level() const { return coarse_level_; }
+
+  // Where PSF i's coarse level lives on the device: buffer, first word of its
+  // values (float offset when not half) and of its summed-area table.
+  struct Slot {
+    uint32_t chunk;
+    uint64_t offset;
+    uint64_t sat_offset;
+  };
+  Slot coarse_slot(size_t i) const { return slots_.at(i); }
+  const vk::Buffer& coarse_chunk(uint32_t c) const { return *chunks_.at(c); }
+  size_t coarse_chunks() const { return chunks_.size(); }
+  const SummedArea& coarse_mass(size_t i) const { return sats_.at(i); }
+  // The coarse level as the support-scan kernels read it (radii left 0 for the
+  // caller); throws when the service was made without a device.
+  ScanLevel scan_level() const;
+  // The scale of half-float values on the device (the store's 2^15).
+  static constexpr float device_half_scale = 32768.0f;
+
+  // PSF i at `level` for each pixel; tiles are fetched and cached as needed.
+  std::vector<float> values(size_t i, int level, std::span<const glm::ivec2> pixels);
+
+  const ServiceStats& stats() const { return stats_; }
+
+ private:
+  using TileKey = std::tuple<size_t, int, int, int>;  // psf, level, tile x, tile y
+  struct Tile {
+    std::vector<float> p;
+    std::list<TileKey>::iterator lru;
+  };
+  const std::vector<float>& tile(size_t i, int level, int tx, int ty);
+  void account(int64_t delta);
+
+  const DictionaryReader& reader_;
+  int coarse_level_;
+  ServiceBudget budget_;
+  bool device_half_ = false;
+  std::vector<std::unique_ptr<vk::Buffer>> chunks_;
+  std::vector<Slot> slots_;
+  std::vector<SummedArea> sats_;
+  std::map<TileKey, Tile> tiles_;
+  std::list<TileKey> lru_;  // front: most recent
+  ServiceStats stats_;
+};
+
+}  // namespace prism

@@ -1,0 +1,307 @@
+#include "host/dictionary/store.h"
+
+#include <Imath/half.h>
+#include <OpenEXR/ImfChannelList.h>
+#include <OpenEXR/ImfFloatAttribute.h>
+#include <OpenEXR/ImfFrameBuffer.h>
+#include <OpenEXR/ImfHeader.h>
+#include <OpenEXR/ImfIntAttribute.h>
+#include <OpenEXR/ImfStringAttribute.h>
+#include <OpenEXR/ImfTiledInputFile.h>
+#include <OpenEXR/ImfTiledOutputFile.h>
+#include <OpenEXR/ImfVecAttribute.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+
+#include "host/util/image_io.h"
+
+namespace prism {
+
+namespace {
+
+// Every level of a PSF sums to 1, so no stored value exceeds 1: scaling by 2^15
+// keeps the largest below half's maximum (65504) and puts half's smallest
+// normal (6.1e-5) at a probability of 1.9e-9, its relative precision 1e-3.
+constexpr int kScaleLog2 = 15;
+
+int mip_levels(int w, int h) {
+  int levels = 1;
+  for (int s = std::max(w, h); s > 1; s = (s + 1) / 2) ++levels;
+  return levels;
+}
+
+int ceil_div(int a, int b) { return (a + b - 1) / b; }
+
+template <class F> auto exr_call(const std::string& path, F&& f) {
+  try {
+    return f();
+  } catch (const DictionaryError&) {
+    throw;
+  } catch (const std::exception& e) {
+    throw DictionaryError(path + ": cannot read the PSF file (" + e.what() +
+                          "); it may be truncated or corrupt: delete it and run `prism dictionary build` again to "
+                          "re-render it");
+  }
+}
+
+}  // namespace
+
+glm::dvec3 DictionaryGrid::position(size_t i) const {
+  size_t nx = x_mm.size(), ny = y_mm.size();
+  return {x_mm[i % nx], y_mm[(i / nx) % ny], depth_mm[i / (nx * ny)]};
+}
+
+DictionaryGrid DictionaryGrid::paper() {
+  DictionaryGrid g;
+  for (int i = 0; i <= 10; ++i) g.x_mm.push_back(-25.0 + 5.0 * i);
+  g.y_mm = g.x_mm;
+  for (int i = 1; i <= 10; ++i) g.depth_mm.push_back(5.0 * i);
+  return g;
+}
+
+std::string DictionaryManifest::file_of(size_t i) const {
+  char b[32];
+  std::snprintf(b, sizeof b, "psf/%05zu.exr", i);
+  return b;
+}
+
+double DictionaryManifest::pixel_mm(int level) const {
+  return scene.optics.pixel_um * 1e-3 * base_binning * double(1 << level);
+}
+int DictionaryManifest::level_width(int level) const { return ceil_div(width, 1 << level); }
+int DictionaryManifest::level_height(int level) const { return ceil_div(height, 1 << level); }
+
+nlohmann::json DictionaryManifest::to_json() const {
+  return {{"format", "prism-psf-dictionary"},
+          {"version", version},
+          {"source", source},
+          {"scene", prism::to_json(scene)},
+          {"sensor",
+           {{"width_px", scene.optics.sensor_width_px},
+            {"height_px", scene.optics.sensor_height_px},
+            {"pixel_um", scene.optics.pixel_um}}},
+          {"grid", {{"x_mm", grid.x_mm}, {"y_mm", grid.y_mm}, {"depth_mm", grid.depth_mm}}},
+          {"entries", grid.size()},
+          {"files", "psf/NNNNN.exr, N = ix + nx (iy + ny iz)"},
+          {"levels",
+           {{"count", levels},
+            {"base_binning", base_binning},
+            {"level0_px", {width, height}},
+            {"rule", "level k pixel = sum of its 2^k x 2^k level-0 pixels (OpenEXR mip levels, ROUND_UP)"}}},
+          {"storage", {{"pixel", "half"}, {"compression", "zip"}, {"tile_px", tile_px}, {"scale_log2", kScaleLog2}}},
+          {"normalisation", "every level of every PSF sums to 1 over the sensor"},
+          {"rays_per_lenslet", rays_per_lenslet}};
+}
+
+DictionaryManifest DictionaryManifest::from_json(const nlohmann::json& j, const std::string& path) {
+  auto fail = [&](const std::string& field, const std::string& why) -> DictionaryError {
+    return DictionaryError(path + ": " + field + ": " + why);
+  };
+  if (!j.is_object() || j.value("format", "") != "prism-psf-dictionary")
+    throw fail("format", "not a PRISM PSF dictionary manifest");
+  int version = j.value("version", -1);
+  if (version != dictionary_format_version)
+    throw fail("version", "is " + std::to_string(version) + ", this prism reads version " +
+                              std::to_string(dictionary_format_version) + "; rebuild the dictionary with this prism");
+  DictionaryManifest m;
+  try {
+    m.source = j.at("source");
+    m.scene = parse_scene(j.at("scene"), path + " (scene)");
+    const auto& g = j.at("grid");
+    m.grid.x_mm = g.at("x_mm").get<std::vector<double>>();
+    m.grid.y_mm = g.at("y_mm").get<std::vector<double>>();
+    m.grid.depth_mm = g.at("depth_mm").get<std::vector<double>>();
+    const auto& lv = j.at("levels");
+    m.levels = lv.at("count");
+    m.base_binning = lv.at("base_binning");
+    m.width = lv.at("level0_px").at(0);
+    m.height = lv.at("level0_px").at(1);
+    m.tile_px = j.at("storage").at("tile_px");
+    m.rays_per_lenslet = j.value("rays_per_lenslet", 0u);
+  } catch (const SceneError&) {
+    throw;
+  } catch (const std::exception& e) {
+    throw fail("(fields)", std::string("missing or malformed: ") + e.what());
+  }
+  if (m.grid.size() == 0) throw fail("grid", "has no positions");
+  if (m.width != ceil_div(m.scene.optics.sensor_width_px, m.base_binning) ||
+      m.height != ceil_div(m.scene.optics.sensor_height_px, m.base_binning))
+    throw fail("levels.level0_px", "does not match the sensor binned by levels.base_binning");
+  return m;
+}
+
+PsfLevel bin_level(const PsfLevel& l0, int k) {
+  int f = 1 << k;
+  PsfLevel out{l0.level + k, ceil_div(l0.width, f), ceil_div(l0.height, f), {}};
+  out.p.assign(size_t(out.width) * out.height, 0.0f);
+  std::vector<double> acc(out.p.size(), 0.0);
+  for (int y = 0; y < l0.height; ++y)
+    for (int x = 0; x < l0.width; ++x) acc[size_t(y / f) * out.width + x / f] += l0.p[size_t(y) * l0.width + x];
+  for (size_t i = 0; i < acc.size(); ++i) out.p[i] = float(acc[i]);
+  return out;
+}
+
+void write_psf_file(const std::string& path, const DictionaryManifest& m, size_t index, const PsfLevel& level0,
+                    double photons_on_sensor) {
+  if (level0.width != m.width || level0.height != m.height)
+    throw DictionaryError(path + ": level 0 is " + std::to_string(level0.width) + " x " + std::to_string(level0.height) +
+                          ", the manifest says " + std::to_string(m.width) + " x " + std::to_string(m.height));
+  std::filesystem::create_directories(std::filesystem::path(path).parent_path());
+  const float scale = float(1 << kScaleLog2);
+  glm::dvec3 pos = m.grid.position(index);
+  write_atomically(path, [&](const std::string& tmp) {
+    Imf::Header header(m.width, m.height);
+    header.setTileDescription(Imf::TileDescription(m.tile_px, m.tile_px, Imf::MIPMAP_LEVELS, Imf::ROUND_UP));
+    header.compression() = Imf::ZIP_COMPRESSION;
+    header.channels().insert("Y", Imf::Channel(Imf::HALF));
+    header.insert("prismFormatVersion", Imf::IntAttribute(dictionary_format_version));
+    header.insert("prismIndex", Imf::IntAttribute(int(index)));
+    header.insert("prismPositionMm", Imf::V3fAttribute(Imath::V3f(float(pos.x), float(pos.y), float(pos.z))));
+    header.insert("prismScaleLog2", Imf::IntAttribute(kScaleLog2));
+    header.insert("prismPhotonsOnSensor", Imf::FloatAttribute(float(photons_on_sensor)));
+    header.insert("prismScene", Imf::StringAttribute(m.scene.name));
+    try {
+      Imf::TiledOutputFile file(tmp.c_str(), header);
+      for (int l = 0; l < file.numLevels(); ++l) {
+        PsfLevel lv = l == 0 ? level0 : bin_level(level0, l);
+        std::vector<half> data(lv.p.size());
+        for (size_t i = 0; i < data.size(); ++i) data[i] = half(lv.p[i] * scale);
+        Imf::FrameBuffer fb;
+        fb.insert("Y", Imf::Slice(Imf::HALF, (char*)data.data(), sizeof(half), sizeof(half) * size_t(lv.width)));
+        file.setFrameBuffer(fb);
+        file.writeTiles(0, file.numXTiles(l) - 1, 0, file.numYTiles(l) - 1, l);
+      }
+    } catch (const std::exception& e) {
+      std::remove(tmp.c_str());
+      throw DictionaryError(path + ": cannot write (" + e.what() + ")");
+    }
+  });
+}
+
+DictionaryReader::DictionaryReader(std::string dir, const OpticalSystem* expect) : dir_(std::move(dir)) {
+  std::string path = dir_ + "/manifest.json";
+  std::ifstream in(path);
+  if (!in) throw DictionaryError(path + ": no dictionary manifest here; build one with `prism dictionary build`");
+  nlohmann::json j;
+  try {
+    j = nlohmann::json::parse(in);
+  } catch (const std::exception& e) {
+    throw DictionaryError(path + ": not valid JSON (" + e.what() + ")");
+  }
+  m_ = DictionaryManifest::from_json(j, path);
+  if (expect) {
+    const OpticalSystem& s = m_.scene.optics;
+    if (s.sensor_width_px != expect->sensor_width_px || s.sensor_height_px != expect->sensor_height_px ||
+        s.pixel_um != expect->pixel_um)
+      throw DictionaryError(path + ": the dictionary is for a " + std::to_string(s.sensor_width_px) + " x " +
+                            std::to_string(s.sensor_height_px) + " px sensor of " + std::to_string(s.pixel_um) +
+                            " um pixels, not the " + std::to_string(expect->sensor_width_px) + " x " +
+                            std::to_string(expect->sensor_height_px) + " px sensor of " +
+                            std::to_string(expect->pixel_um) + " um pixels asked for");
+  }
+}
+
+std::string DictionaryReader::path_of(size_t i) const { return dir_ + "/" + m_.file_of(i); }
+bool DictionaryReader::has(size_t i) const { return std::filesystem::exists(path_of(i)); }
+size_t DictionaryReader::present() const {
+  size_t n = 0;
+  for (size_t i = 0; i < m_.grid.size(); ++i) n += has(i);
+  return n;
+}
+
+namespace {
+
+// Opens a PSF file and checks it belongs to this dictionary.
+struct OpenPsf {
+  Imf::TiledInputFile file;
+  float inv_scale;
+  OpenPsf(const std::string& path, const DictionaryManifest& m, size_t index) : file(path.c_str()) {
+    const Imf::Header& h = file.header();
+    auto dw = h.dataWindow();
+    const auto* version = h.findTypedAttribute<Imf::IntAttribute>("prismFormatVersion");
+    const auto* idx = h.findTypedAttribute<Imf::IntAttribute>("prismIndex");
+    const auto* scale = h.findTypedAttribute<Imf::IntAttribute>("prismScaleLog2");
+    if (!version || !idx || !scale) throw DictionaryError(path + ": not a PRISM dictionary PSF (attributes missing)");
+    if (version->value() != dictionary_format_version)
+      throw DictionaryError(path + ": PSF format version " + std::to_string(version->value()) + ", expected " +
+                            std::to_string(dictionary_format_version));
+    if (idx->value() != int(index)) throw DictionaryError(path + ": holds entry " + std::to_string(idx->value()));
+    if (dw.max.x - dw.min.x + 1 != m.width || dw.max.y - dw.min.y + 1 != m.height)
+      throw DictionaryError(path + ": level 0 size differs from the manifest's");
+    if (!file.isComplete()) throw DictionaryError(path + ": incomplete file (missing tiles)");
+    inv_scale = std::ldexp(1.0f, -scale->value());
+  }
+};
+
+}  // namespace
+
+PsfLevel DictionaryReader::read_level(size_t i, int level) const {
+  PsfWindow w = read_window(i, level, 0, 0, m_.level_width(level), m_.level_height(level));
+  return {level, w.width, w.height, std::move(w.p)};
+}
+
+PsfWindow DictionaryReader::read_window(size_t i, int level, int x0, int y0, int width, int height) const {
+  std::string path = path_of(i);
+  if (level < 0 || level >= m_.levels)
+    throw DictionaryError(path + ": level " + std::to_string(level) + " of " + std::to_string(m_.levels));
+  return exr_call(path, [&] {
+    OpenPsf f(path, m_, i);
+    int lw = f.file.levelWidth(level), lh = f.file.levelHeight(level);
+    int x1 = std::min(x0 + width, lw), y1 = std::min(y0 + height, lh);
+    x0 = std::max(x0, 0);
+    y0 = std::max(y0, 0);
+    PsfWindow out{level, x0, y0, std::max(0, x1 - x0), std::max(0, y1 - y0), {}};
+    out.p.assign(size_t(out.width) * out.height, 0.0f);
+    if (out.p.empty()) return out;
+    // OpenEXR fills whole tiles: read into a tile-aligned buffer, then crop.
+    int t = m_.tile_px;
+    int tx0 = x0 / t, tx1 = (x1 - 1) / t, ty0 = y0 / t, ty1 = (y1 - 1) / t;
+    int bx = tx0 * t, by = ty0 * t, bw = (tx1 + 1) * t - bx, bh = (ty1 + 1) * t - by;
+    std::vector<half> buf(size_t(bw) * bh);
+    Imf::FrameBuffer fb;
+    fb.insert("Y", Imf::Slice(Imf::HALF, (char*)(buf.data() - bx - size_t(by) * bw), sizeof(half),
+                              sizeof(half) * size_t(bw)));
+    f.file.setFrameBuffer(fb);
+    f.file.readTiles(tx0, tx1, ty0, ty1, level, level);
+    for (int y = y0; y < y1; ++y)
+      for (int x = x0; x < x1; ++x)
+        out.p[size_t(y - y0) * out.width + (x - x0)] = float(buf[size_t(y - by) * bw + (x - bx)]) * f.inv_scale;
+    return out;
+  });
+}
+
+double DictionaryReader::photons_on_sensor(size_t i) const {
+  std::string path = path_of(i);
+  return exr_call(path, [&] {
+    OpenPsf f(path, m_, i);
+    const auto* a = f.file.header().findTypedAttribute<Imf::FloatAttribute>("prismPhotonsOnSensor");
+    return a ? double(a->value()) : 0.0;
+  });
+}
+
+SummedArea::SummedArea(const PsfLevel& l) : width_(l.width), height_(l.height) {
+  table_.assign(size_t(width_ + 1) * (height_ + 1), 0.0);
+  for (int y = 0; y < height_; ++y) {
+    double row = 0;
+    for (int x = 0; x < width_; ++x) {
+      row += l.p[size_t(y) * width_ + x];
+      table_[size_t(y + 1) * (width_ + 1) + x + 1] = table_[size_t(y) * (width_ + 1) + x + 1] + row;
+    }
+  }
+}
+
+double SummedArea::mass(int x0, int y0, int x1, int y1) const {
+  x0 = std::clamp(x0, 0, width_);
+  x1 = std::clamp(x1, 0, width_);
+  y0 = std::clamp(y0, 0, height_);
+  y1 = std::clamp(y1, 0, height_);
+  if (x1 <= x0 || y1 <= y0) return 0.0;
+  auto at = [&](int x, int y) { return table_[size_t(y) * (width_ + 1) + x]; };
+  return at(x1, y1) - at(x0, y1) - at(x1, y0) + at(x0, y0);
+}
+
+}  // namespace prism

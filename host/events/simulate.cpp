@@ -1,0 +1,213 @@
+#include "host/events/simulate.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <sstream>
+
+namespace prism {
+
+PsfSampler::PsfSampler(std::span<const float> p, int width, int height, int shift_cols, int shift_rows) {
+  if (p.size() != size_t(width) * size_t(height))
+    throw std::invalid_argument("PsfSampler: " + std::to_string(p.size()) + " values for a " + std::to_string(width) +
+                                " x " + std::to_string(height) + " grid");
+  // Destination rows/columns that stay on the grid after the shift.
+  int row0 = std::max(0, shift_rows), row1 = std::min(height, height + shift_rows);
+  int col0 = std::max(0, shift_cols), col1 = std::min(width, width + shift_cols);
+  for (int r = row0; r < row1; ++r) {
+    const float* src = p.data() + size_t(r - shift_rows) * width - shift_cols;
+    for (int c = col0; c < col1; ++c) {
+      if (!(src[c] > 0.0f)) continue;  // also skips NaN
+      mass_ += src[c];
+      pixel_.push_back(uint32_t(size_t(r) * width + c));
+      p_.push_back(src[c]);
+    }
+  }
+  // Vose's alias method: scale P to mean 1, pair each under-full entry with
+  // an over-full one that tops it up.
+  const size_t n = p_.size();
+  keep_.assign(n, 1.0);
+  alias_.resize(n);
+  std::vector<uint32_t> small, large;
+  std::vector<double> q(n);
+  for (size_t j = 0; j < n; ++j) {
+    alias_[j] = uint32_t(j);
+    q[j] = p_[j] * double(n) / mass_;
+    (q[j] < 1.0 ? small : large).push_back(uint32_t(j));
+  }
+  while (!small.empty() && !large.empty()) {
+    uint32_t s = small.back(), l = large.back();
+    small.pop_back();
+    keep_[s] = q[s];
+    alias_[s] = l;
+    q[l] -= 1.0 - q[s];
+    if (q[l] < 1.0) {
+      large.pop_back();
+      small.push_back(l);
+    }
+  }
+  // Whatever is left is 1 up to rounding: kept with probability 1 (the default).
+}
+
+uint32_t PsfSampler::draw(double u) const {
+  // One uniform gives the entry (integer part) and the coin (fraction).
+  double x = u * double(pixel_.size());
+  size_t j = std::min(size_t(x), pixel_.size() - 1);
+  return pixel_[x - double(j) < keep_[j] ? j : alias_[j]];
+}
+
+void PsfSampler::add_rates(double alpha, std::vector<double>& lambda) const {
+  for (size_t j = 0; j < pixel_.size(); ++j) lambda.at(pixel_[j]) += alpha * p_[j];
+}
+
+glm::dvec2 PsfSampler::centroid_px(int width) const {
+  glm::dvec2 m{0, 0};
+  for (size_t j = 0; j < pixel_.size(); ++j)
+    m += p_[j] * glm::dvec2(pixel_[j] % uint32_t(width), pixel_[j] / uint32_t(width));
+  return m / sensor_fraction();
+}
+
+namespace {
+uint64_t splitmix64(uint64_t& state) {
+  uint64_t z = (state += 0x9E3779B97F4A7C15ull);
+  z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
+  z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
+  return z ^ (z >> 31);
+}
+uint64_t rotl(uint64_t x, int k) { return (x << k) | (x >> (64 - k)); }
+}  // namespace
+
+EventRng::EventRng(uint64_t seed) {
+  // splitmix64 fills the state, as the xoshiro authors recommend: never all zero.
+  for (auto& w : s_) w = splitmix64(seed);
+}
+
+uint64_t EventRng::operator()() {
+  uint64_t result = rotl(s_[1] * 5, 7) * 9;
+  uint64_t t = s_[1] << 17;
+  s_[2] ^= s_[0];
+  s_[3] ^= s_[1];
+  s_[1] ^= s_[2];
+  s_[0] ^= s_[3];
+  s_[2] ^= t;
+  s_[3] = rotl(s_[3], 45);
+  return result;
+}
+
+void sample_clicks(std::span<const ClickSource> sources, EventRng& rng, std::vector<uint32_t>& clicks) {
+  clicks.clear();
+  std::uniform_real_distribution<double> uniform(0.0, 1.0);
+  for (const auto& s : sources) {
+    double mean = s.alpha * s.psf->sensor_fraction();
+    if (!(mean > 0)) continue;
+    // Superposed Poisson processes: each vertex's photons are independent.
+    uint64_t photons = std::poisson_distribution<uint64_t>(mean)(rng);
+    for (uint64_t n = 0; n < photons; ++n) clicks.push_back(s.psf->draw(uniform(rng)));
+  }
+  // A pixel hit by one or more photons clicks once: P(click) = 1 - exp(-lambda).
+  std::sort(clicks.begin(), clicks.end());
+  clicks.erase(std::unique(clicks.begin(), clicks.end()), clicks.end());
+}
+
+EventRng event_rng(uint64_t seed, uint64_t event_id) {
+  // Hash (seed, id) into one well-mixed 64-bit seed; neighbouring ids differ.
+  uint64_t state = seed;
+  uint64_t mixed = splitmix64(state) ^ event_id;
+  return EventRng(splitmix64(mixed));
+}
+
+std::shared_ptr<const PsfSampler> EventTruth::psf(const glm::dvec3& position_mm) {
+  for (auto it = cache_.begin(); it != cache_.end(); ++it)
+    if (it->first == position_mm) {
+      cache_.splice(cache_.begin(), cache_, it);
+      return cache_.front().second;
+    }
+  auto t0 = std::chrono::steady_clock::now();
+  auto s = make(position_mm);
+  render_seconds_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  ++renders_;
+  cache_.emplace_front(position_mm, s);
+  if (cache_.size() > cache_entries_) cache_.pop_back();
+  return s;
+}
+
+ForwardTruth::ForwardTruth(vk::Context& ctx, const Scene& scene, const TraceSettings& settings, size_t cache_entries)
+    : EventTruth(cache_entries), settings_(settings), fw_(ctx, scene.optics, settings) {}
+
+std::string ForwardTruth::provenance() const {
+  return "forward model, " + std::to_string(settings_.rays()) + " rays per 3 mm lenslet, binning " +
+         std::to_string(settings_.binning);
+}
+
+std::shared_ptr<const PsfSampler> ForwardTruth::make(const glm::dvec3& position_mm) {
+  std::vector<float> b = fw_.psf_values(position_mm);
+  double total = 0;
+  for (float v : b) total += v;
+  // alpha = expected photons detected on the sensor: P = b / sum(b), S = 1.
+  // A position that puts no light on the sensor gets S = 0 (no clicks).
+  float scale = total > 0 ? float(1.0 / total) : 0.0f;
+  for (float& v : b) v *= scale;
+  return std::make_shared<PsfSampler>(b, fw_.grid().width, fw_.grid().height);
+}
+
+namespace {
+size_t nearest(const std::vector<double>& nodes, double v) {
+  size_t best = 0;
+  for (size_t i = 1; i < nodes.size(); ++i)
+    if (std::abs(nodes[i] - v) < std::abs(nodes[best] - v)) best = i;
+  return best;
+}
+}  // namespace
+
+DictionaryPlacement place_in_dictionary(const DictionaryManifest& m, int level, const glm::dvec3& position_mm) {
+  const auto& g = m.grid;
+  size_t ix = nearest(g.x_mm, position_mm.x), iy = nearest(g.y_mm, position_mm.y), iz = nearest(g.depth_mm, position_mm.z);
+  DictionaryPlacement p;
+  p.index = ix + g.x_mm.size() * (iy + g.y_mm.size() * iz);
+  const auto& o = m.scene.optics;
+  // The lenslets image the source inverted: a lateral source shift moves
+  // every lenslet image the other way, scaled by the magnification at depth z.
+  double magnification = o.lens_to_sensor_mm / (position_mm.z + o.working_distance_mm);
+  glm::dvec3 node = g.position(p.index);
+  p.shift_mm = -glm::dvec2(position_mm.x - node.x, position_mm.y - node.y) * magnification;
+  // Sensor x grows with the column, sensor y with the row (optics.glsl).
+  double px = m.pixel_mm(level);
+  p.shift_px = glm::ivec2(int(std::lround(p.shift_mm.x / px)), int(std::lround(p.shift_mm.y / px)));
+  return p;
+}
+
+DictionaryTruth::DictionaryTruth(const DictionaryReader& reader, int level, size_t cache_entries)
+    : EventTruth(cache_entries), reader_(reader), level_(level) {
+  if (level < 0 || level >= reader.manifest().levels)
+    throw DictionaryError(reader.dir() + ": level " + std::to_string(level) + " does not exist (the dictionary has " +
+                          std::to_string(reader.manifest().levels) + " levels)");
+}
+
+std::string DictionaryTruth::provenance() const {
+  std::ostringstream s;
+  s << "dictionary " << reader_.dir() << ", level " << level_ << " (binning " << binning()
+    << "), nearest depth plane and node, shifted by -d * " << reader_.manifest().scene.optics.lens_to_sensor_mm
+    << " / (z + " << reader_.manifest().scene.optics.working_distance_mm << ")";
+  return s.str();
+}
+
+std::shared_ptr<const PsfSampler> DictionaryTruth::make(const glm::dvec3& position_mm) {
+  auto place = place_in_dictionary(reader_.manifest(), level_, position_mm);
+  std::shared_ptr<const PsfLevel> level;
+  for (auto it = levels_.begin(); it != levels_.end(); ++it)
+    if (it->first == place.index) {
+      levels_.splice(levels_.begin(), levels_, it);
+      level = it->second;
+      break;
+    }
+  if (!level) {
+    if (!reader_.has(place.index))
+      throw DictionaryError(reader_.path_of(place.index) + ": missing; the dictionary is incomplete (resume its build)");
+    level = std::make_shared<PsfLevel>(reader_.read_level(place.index, level_));
+    levels_.emplace_front(place.index, level);
+    if (levels_.size() > 8) levels_.pop_back();  // jittered positions revisit a few nodes
+  }
+  return std::make_shared<PsfSampler>(level->p, level->width, level->height, place.shift_px.x, place.shift_px.y);
+}
+
+}  // namespace prism

@@ -1,0 +1,144 @@
+// Simulated events with the binary sensor model (paper eq. 5, DESIGN.md
+// "Sensor and events"): lambda_i = sum_k alpha_k P_i(theta_k) and
+// y_i ~ Bernoulli(1 - exp(-lambda_i)), drawn without touching every pixel:
+// photons ~ Poisson(alpha_k S_k) per vertex land on pixels drawn from P / S,
+// and a pixel clicks once however many photons hit it. For Poisson arrivals
+// this is exactly the per-pixel Bernoulli model (EVENTS.md, "Sampling").
+// Two truth models give P: the ray-traced forward model at the exact position,
+// or a dictionary PSF shifted by the magnification rule (the paper's protocol).
+#pragma once
+#include <cstdint>
+#include <list>
+#include <memory>
+#include <random>
+#include <span>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include <glm/glm.hpp>
+
+#include "engine/forward.h"
+#include "host/dictionary/store.h"
+#include "host/scene/scene.h"
+
+namespace prism {
+
+// A PSF ready for drawing photon arrivals: the pixels with P > 0 and a Walker
+// alias table over them, so a draw is O(1) (two memory reads; a binary search
+// over a full-resolution CDF was ~20 cache misses per photon).
+class PsfSampler {
+ public:
+  // p: P_i on a width x height row-major grid; the PSF is moved by
+  // (shift_cols, shift_rows) whole pixels and what leaves the grid is lost.
+  PsfSampler(std::span<const float> p, int width, int height, int shift_cols = 0, int shift_rows = 0);
+
+  // S = sum_i P_i: the fraction of alpha that lands on the sensor.
+  double sensor_fraction() const { return mass_; }
+  // The pixel hit by one photon, with probability P_i / S; u uniform in [0, 1).
+  uint32_t draw(double u) const;
+  size_t support_pixels() const { return pixel_.size(); }
+  // lambda_i += alpha P_i over the support (dense; for tests and references).
+  void add_rates(double alpha, std::vector<double>& lambda) const;
+  // Mean (col, row) of P / S, in pixels of the grid.
+  glm::dvec2 centroid_px(int width) const;
+
+ private:
+  std::vector<uint32_t> pixel_;
+  std::vector<double> p_;         // P at pixel_[j]
+  std::vector<double> keep_;      // alias table: keep entry j with this probability,
+  std::vector<uint32_t> alias_;   // else take entry alias_[j]
+  double mass_ = 0;
+};
+
+struct ClickSource {
+  const PsfSampler* psf;
+  double alpha;  // expected photons (see EVENTS.md, "alpha and P")
+};
+
+// xoshiro256** (Blackman and Vigna): a fast generator with a 32-byte state,
+// so that seeding one per event costs nothing (mt19937_64 seeding took a
+// third of the sampling time).
+class EventRng {
+ public:
+  using result_type = uint64_t;
+  static constexpr uint64_t min() { return 0; }
+  static constexpr uint64_t max() { return ~uint64_t(0); }
+  explicit EventRng(uint64_t seed);
+  uint64_t operator()();
+
+ private:
+  uint64_t s_[4];
+};
+
+// One event's clicks, sorted and unique: Poisson(alpha_k S_k) photons per
+// source, each on a pixel drawn from P_k / S_k, duplicates merged.
+void sample_clicks(std::span<const ClickSource> sources, EventRng& rng, std::vector<uint32_t>& clicks);
+
+// Independent random stream of one event: the same (seed, event id) gives the
+// same event whatever else the run does.
+EventRng event_rng(uint64_t seed, uint64_t event_id);
+
+// Gives the PSF of a source at a position on the click grid, with a small
+// cache so a repeated position is rendered or read once.
+class EventTruth {
+ public:
+  explicit EventTruth(size_t cache_entries) : cache_entries_(cache_entries) {}
+  virtual ~EventTruth() = default;
+  std::shared_ptr<const PsfSampler> psf(const glm::dvec3& position_mm);
+  virtual int binning() const = 0;      // of the click grid, in sensor pixels
+  virtual std::string provenance() const = 0;
+  size_t renders() const { return renders_; }  // cache misses
+  double render_seconds() const { return render_seconds_; }  // spent rendering or reading PSFs
+
+ protected:
+  virtual std::shared_ptr<const PsfSampler> make(const glm::dvec3& position_mm) = 0;
+
+ private:
+  size_t cache_entries_;
+  size_t renders_ = 0;
+  double render_seconds_ = 0;
+  std::list<std::pair<glm::dvec3, std::shared_ptr<const PsfSampler>>> cache_;  // front: most recent
+};
+
+// The ray-traced forward model at the exact position: P = b / sum(b), so
+// S = 1 and alpha is the expected photons detected on the sensor.
+class ForwardTruth : public EventTruth {
+ public:
+  ForwardTruth(vk::Context& ctx, const Scene& scene, const TraceSettings& settings, size_t cache_entries = 64);
+  int binning() const override { return int(settings_.binning); }
+  std::string provenance() const override;
+
+ private:
+  std::shared_ptr<const PsfSampler> make(const glm::dvec3& position_mm) override;
+  TraceSettings settings_;
+  ForwardVulkan fw_;
+};
+
+// Where the paper's protocol takes a source's PSF from: the dictionary entry
+// at the nearest depth plane and nearest lateral node, shifted on the sensor
+// by -(source - node) * lens_to_sensor / (depth + working_distance) (DESIGN.md:
+// -dx * 18.5 / (z + 5) for the prototype), z the source's own depth, rounded
+// to whole pixels of the level used.
+struct DictionaryPlacement {
+  size_t index = 0;      // dictionary entry
+  glm::dvec2 shift_mm{};  // on the sensor
+  glm::ivec2 shift_px{};  // (columns, rows) of the level
+};
+DictionaryPlacement place_in_dictionary(const DictionaryManifest& m, int level, const glm::dvec3& position_mm);
+
+class DictionaryTruth : public EventTruth {
+ public:
+  // level: clicks are on level `level` (binning base_binning * 2^level).
+  DictionaryTruth(const DictionaryReader& reader, int level, size_t cache_entries = 64);
+  int binning() const override { return reader_.manifest().base_binning << level_; }
+  std::string provenance() const override;
+
+ private:
+  std::shared_ptr<const PsfSampler> make(const glm::dvec3& position_mm) override;
+  const DictionaryReader& reader_;
+  int level_;
+  std::list<std::pair<size_t, std::shared_ptr<const PsfLevel>>> levels_;  // a few unshifted PSFs, most recent first
+};
+
+}  // namespace prism

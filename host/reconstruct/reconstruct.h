@@ -1,0 +1,141 @@
+// Double-precision CPU reference of the paper's ADCG-inspired reconstruction
+// (Sec. IV.B, eqs. 12-19; DESIGN.md "Reconstruction"), on the sparse
+// likelihood: every score is a sum over the event's clicks plus summed-area
+// look-ups for the on-sensor mass S, never a sum over all pixels.
+//
+// Per event: (1) gradient g = 1 - y / (1 - exp(-lambda)) of the current model;
+// (2) support search: every dictionary PSF at its best whole-pixel lateral
+// shift within tau, coarse-to-fine over the dictionary levels; (3) projected
+// Newton weights; (4) pruning to the lowest NLL; (5) parabolic depth
+// refinement through neighbouring planes, lateral offset rescaled by the
+// magnification at the refined depth; (6) K passes, each followed by a joint
+// local descent of all vertices.
+//
+// Step (2) over every PSF is where the time goes, and where the three
+// backends differ: `cpu` is the double-precision reference; `vulkan` runs it
+// as shaders/support_scan.comp over a batch of events per dispatch (sums over
+// clicks); `dense` as shaders/support_scan_dense.comp (sums over every pixel
+// of the scan level: the paper's way, the baseline). Everything after the scan
+// (the refinement of the surviving candidates down to the click level from
+// disk tiles, weights, descent, depth parabola) is the same double-precision
+// host code for all three, so they differ only where the scan does.
+#pragma once
+#include <cstdint>
+#include <memory>
+#include <span>
+#include <string>
+#include <vector>
+
+#include <glm/glm.hpp>
+
+#include "engine/support_scan.h"
+#include "host/dictionary/service.h"
+#include "host/events/event_file.h"
+
+namespace prism {
+
+struct ReconstructionSettings {
+  int vertices = 1;              // K: vertices sought per event, 1..8
+  int search_level = -1;         // dictionary level of the scan over all PSFs; -1: the service's coarse level
+  double tau_mm = 2.5;           // lateral search half-width around each grid node, source mm (half a 5 mm pitch)
+  double dark_rate = 1e-6;       // background expected counts per click-level pixel: keeps the NLL finite at
+                                 // clicks no PSF reaches and is the gradient floor at lambda = 0 (see .cpp)
+  int refine_candidates = 8;     // PSFs carried from the coarse scan (ranked by coarse NLL) to the click level
+  int newton_iterations = 60;    // cap per weight solve (projected Newton with backtracking)
+  int descent_rounds = 12;       // cap on rounds of the joint local descent after each new vertex
+  double alpha_max = 1e6;        // upper bound on a weight, expected photons; reaching it sets alpha_at_bound
+  int min_clicks = 3;            // fewer clicks than this in the event sets few_clicks (3D needs more)
+  int scan_step_px = 1;          // the scan tries shifts on multiples of this (search-level pixels); the
+                                 // candidates are then re-searched +-(step - 1) around their best
+};
+
+enum class ReconstructionBackend { cpu, vulkan, dense };
+const char* to_string(ReconstructionBackend b);
+ReconstructionBackend backend_from_string(const std::string& s);  // throws naming the choices
+
+// Why a vertex's numbers should not be trusted; several may be set.
+enum VertexFlag : uint32_t {
+  vertex_ok = 0,
+  no_clicks = 1u << 0,       // the event has no clicks: nothing to fit, the row only keeps the count of K
+  few_clicks = 1u << 1,      // fewer than min_clicks clicks
+  alpha_zero = 1u << 2,      // weight 0: the vertex explains nothing (fewer sources than K)
+  alpha_at_bound = 1u << 3,  // weight reached alpha_max: the likelihood has no finite optimum
+  edge = 1u << 4,            // optimum on the dictionary's outer boundary: the vertex may be outside the field
+  merged = 1u << 5,          // same PSF and shift as another vertex: the two are not separable
+};
+std::string flags_to_string(uint32_t flags);  // "a|b", or "" when vertex_ok
+
+struct ReconstructedVertex {
+  double x_mm = 0, y_mm = 0, depth_mm = 0;  // depth from the scintillator face
+  double alpha = 0;         // expected photons (paper convention: alpha P with P summing to 1 on-sensor)
+  double nll = 0;           // NLL of the whole event's final model (eq. 12, minus sum_i dark_rate)
+  uint32_t clicks = 0;      // clicks where this vertex's rate is the largest term (and above dark_rate)
+  uint32_t flags = vertex_ok;
+  size_t psf = 0;           // dictionary entry of the model used (diagnostic)
+  glm::ivec2 shift_px{};    // its whole-pixel shift on the click grid (columns, rows)
+};
+
+// The dictionary level the clicks lie on: the event binning must be
+// base_binning * 2^level and the grids must match; throws naming both files.
+int click_level(const DictionaryManifest& m, const EventFileHeader& h, const std::string& events_path,
+                const std::string& dictionary_dir);
+
+// One PSF's result of the support scan: its best shift on the search level,
+// and the NLL and weight fitted there.
+struct SupportScore {
+  size_t psf = 0;
+  glm::ivec2 shift{};
+  double nll = 0, alpha = 0;
+};
+
+// Where the time of a batch went.
+struct ReconstructionTimings {
+  double scan_s = 0;         // the support scans over every PSF (device: dispatch to results on the host)
+  double scan_kernel_ms = 0; // of which the kernels themselves (GPU timestamps), device backends
+  double host_s = 0;         // everything else: gradients, refinement, weights, descent, depth
+  uint64_t scans = 0;        // events x passes scanned
+  uint64_t scan_device_bytes = 0;  // peak event/result buffers of one scan call
+};
+
+// Reconstructs batches of events with one backend. The events of a batch go
+// through the K passes in lockstep, so each pass scans the whole batch in one
+// call (one dispatch per dictionary chunk on the device). Device backends need
+// a service made with a device (and its coarse level is the scan level).
+class Reconstructor {
+ public:
+  Reconstructor(DictionaryService& dictionary, int click_level, ReconstructionSettings settings,
+                ReconstructionBackend backend = ReconstructionBackend::cpu, vk::Context* ctx = nullptr);
+  ~Reconstructor();
+  // Per event, K rows (fewer never; rows with alpha 0 are flagged). Bounded
+  // work: every loop has a cap in settings.
+  std::vector<std::vector<ReconstructedVertex>> run(std::span<const Event> events);
+  // The first pass's support scan alone, per event one score per PSF (tests
+  // compare the backends with it; events without clicks give none).
+  std::vector<std::vector<SupportScore>> first_scan(std::span<const Event> events);
+  const ReconstructionTimings& timings() const { return timings_; }
+  const ReconstructionSettings& settings() const { return s_; }
+
+ private:
+  DictionaryService& d_;
+  int level_;
+  ReconstructionSettings s_;
+  ReconstructionBackend backend_;
+  std::unique_ptr<SupportScanVulkan> device_;
+  ScanLevel scan_level_;
+  ReconstructionTimings timings_;
+  void check_clicks(std::span<const Event> events) const;
+};
+
+// One event on the CPU reference. `level` is the click level from click_level().
+std::vector<ReconstructedVertex> reconstruct(const Event& event, int level, DictionaryService& dictionary,
+                                             const ReconstructionSettings& settings);
+
+// Parts exposed for tests and the device kernels' comparisons.
+namespace nll {
+// log(1 - exp(-lambda)), finite for every lambda > 0 (log(-expm1(-lambda))).
+double log_click(double lambda);
+// d2/dlambda2 of -log(1 - exp(-lambda)) = exp(-lambda) / (1 - exp(-lambda))^2, as 1 / (4 sinh^2(lambda / 2)).
+double click_curvature(double lambda);
+}  // namespace nll
+
+}  // namespace prism

@@ -1,0 +1,276 @@
+// The PSF dictionary: synthesis, tiered OpenEXR storage, read-back by our
+// reader and by OpenEXR's own tools, resumable builds, clear errors, and
+// streaming under a memory budget.
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <random>
+
+#include "engine/forward.h"
+#include "host/dictionary/build.h"
+#include "host/dictionary/service.h"
+#include "support.h"
+
+namespace fs = std::filesystem;
+
+namespace {
+
+// A 2 x 1 x 2 grid at 16 x 16 binning: 419 x 298 px, 10 levels, built once.
+struct SmallDictionary {
+  std::string dir;
+  prism::Scene scene = prism::builtin_scene("prototype");
+  prism::DictionaryBuildOptions options;
+  prism::DictionaryBuildReport first;
+  SmallDictionary() {
+    dir = (fs::temp_directory_path() / ("prism-dict-test-" + std::to_string(::getpid()))).string();
+    fs::remove_all(dir);
+    options.grid = {{-5.0, 5.0}, {0.0}, {10.0, 30.0}};
+    options.base_binning = 16;
+    options.rays_per_lenslet = 1024;
+    first = prism::build_dictionary(prism::test::gpu(), scene, dir, options);
+  }
+  ~SmallDictionary() { fs::remove_all(dir); }
+};
+
+SmallDictionary& small() {
+  static SmallDictionary d;
+  return d;
+}
+
+double max_abs(const std::vector<float>& v) {
+  double m = 0;
+  for (float x : v) m = std::max(m, double(std::abs(x)));
+  return m;
+}
+
+}  // namespace
+
+TEST_CASE("the paper's grid: 11 x 11 x 10 = 1210 positions at 5 mm spacing") {
+  auto g = prism::DictionaryGrid::paper();
+  CHECK(g.size() == 1210);
+  CHECK(g.position(0) == glm::dvec3(-25, -25, 5));
+  CHECK(g.position(1209) == glm::dvec3(25, 25, 50));
+  CHECK(g.position(11) == glm::dvec3(-25, -20, 5));
+}
+
+TEST_CASE("a synthesised dictionary reads back: level 0 is the normalised PSF within half precision") {
+  auto& d = small();
+  CHECK(d.first.rendered == 4);
+  prism::DictionaryReader r(d.dir);
+  REQUIRE(r.present() == 4);
+  CHECK(r.manifest().width == 419);
+  CHECK(r.manifest().height == 298);
+  prism::TraceSettings t;
+  t.rays_per_lenslet = d.options.rays_per_lenslet;
+  t.binning = 16;
+  prism::ForwardVulkan fw(prism::test::gpu(), d.scene.optics, t);
+  for (size_t i = 0; i < 4; ++i) {
+    auto l0 = r.read_level(i, 0);
+    double sum = 0;
+    for (float p : l0.p) sum += p;
+    CHECK(sum == doctest::Approx(1.0).epsilon(1e-3));
+    auto img = fw.psf(r.manifest().grid.position(i));
+    double total = img.photons();
+    CHECK(r.photons_on_sensor(i) == doctest::Approx(total).epsilon(1e-5));
+    double peak = max_abs(l0.p), worst = 0;
+    for (size_t p = 0; p < l0.p.size(); ++p) worst = std::max(worst, std::abs(l0.p[p] - img.data[4 * p] / total));
+    CHECK(worst <= peak / 1024);  // half: 10 mantissa bits
+  }
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("tier consistency: level k equals level 0 binned by 2^k within half precision") {
+  prism::DictionaryReader r(small().dir);
+  for (size_t i = 0; i < 4; ++i) {
+    auto l0 = r.read_level(i, 0);
+    for (int k = 1; k < r.manifest().levels; ++k) {
+      auto stored = r.read_level(i, k);
+      auto binned = prism::bin_level(l0, k);
+      REQUIRE(stored.width == binned.width);
+      REQUIRE(stored.height == binned.height);
+      double worst = 0;
+      for (size_t p = 0; p < stored.p.size(); ++p) {
+        // Both sides carry half rounding (2^-11 relative) of their own sums.
+        double tol = std::ldexp(std::max(std::abs(stored.p[p]), std::abs(binned.p[p])), -9) + 1e-9;
+        worst = std::max(worst, std::abs(stored.p[p] - binned.p[p]) / tol);
+      }
+      CAPTURE(k);
+      CHECK(worst <= 1.0);
+    }
+  }
+}
+
+TEST_CASE("OpenEXR's own tools read the dictionary files") {
+  prism::DictionaryReader r(small().dir);
+  std::string f = r.path_of(0);
+  bool tools = std::system("command -v exrheader >/dev/null 2>&1") == 0 &&
+               std::system("command -v oiiotool >/dev/null 2>&1") == 0;
+  if (!tools) {
+    MESSAGE("exrheader/oiiotool not installed (Debian: openexr, openimageio-tools): outside-reader check skipped");
+    return;
+  }
+  CHECK(std::system(("exrheader " + f + " | grep -q 'mip-map'").c_str()) == 0);
+  CHECK(std::system(("exrheader " + f + " | grep -q prismScaleLog2").c_str()) == 0);
+  CHECK(std::system(("oiiotool --info -v " + f + " | grep -q '419 x  298'").c_str()) == 0);
+}
+
+TEST_CASE("an interrupted build resumes; a different dictionary in the same place is refused") {
+  auto& d = small();
+  prism::DictionaryReader r(d.dir);
+  fs::remove(r.path_of(2));
+  // A half-written file from a crash has a temporary name and is ignored.
+  std::ofstream(r.path_of(3) + ".partial-12345") << "garbage";
+  auto again = prism::build_dictionary(prism::test::gpu(), d.scene, d.dir, d.options);
+  CHECK(again.rendered == 1);
+  CHECK(again.reused == 3);
+  CHECK(r.present() == 4);
+  auto other = d.options;
+  other.rays_per_lenslet = 4096;
+  CHECK_THROWS_WITH_AS(prism::build_dictionary(prism::test::gpu(), d.scene, d.dir, other),
+                       doctest::Contains("holds a different dictionary"), prism::DictionaryError);
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("corrupt files, wrong versions and another sensor give errors naming the file") {
+  auto& d = small();
+  std::string copy = d.dir + "-broken";
+  fs::remove_all(copy);
+  fs::copy(d.dir, copy, fs::copy_options::recursive);
+  prism::DictionaryReader r(copy);
+  fs::resize_file(r.path_of(1), fs::file_size(r.path_of(1)) / 2);
+  CHECK_THROWS_WITH_AS(r.read_level(1, 0), doctest::Contains(r.path_of(1).c_str()), prism::DictionaryError);
+  {
+    std::ofstream(r.path_of(0), std::ios::trunc) << "not an exr";
+  }
+  CHECK_THROWS_WITH_AS(r.read_level(0, 2), doctest::Contains("corrupt"), prism::DictionaryError);
+
+  auto other = prism::builtin_scene("prototype").optics;
+  other.pixel_um = 3.45;
+  CHECK_THROWS_WITH_AS(prism::DictionaryReader(copy, &other), doctest::Contains("3.45"), prism::DictionaryError);
+
+  std::string manifest = copy + "/manifest.json";
+  std::ifstream in(manifest);
+  auto j = nlohmann::json::parse(in);
+  in.close();
+  j["version"] = 99;
+  std::ofstream(manifest) << j.dump();
+  CHECK_THROWS_WITH_AS(prism::DictionaryReader{copy}, doctest::Contains("version"), prism::DictionaryError);
+  CHECK_THROWS_WITH_AS(prism::DictionaryReader{copy + "/nowhere"}, doctest::Contains("no dictionary manifest"),
+                       prism::DictionaryError);
+  fs::remove_all(copy);
+}
+
+TEST_CASE("summed-area tables give the on-sensor mass of a shifted PSF in four look-ups") {
+  prism::DictionaryReader r(small().dir);
+  auto l = r.read_level(1, 2);
+  prism::SummedArea sat(l);
+  CHECK(sat.mass_shifted(0, 0) == doctest::Approx(1.0).epsilon(1e-3));
+  for (auto [dx, dy] : {std::pair{7, -3}, std::pair{-40, 11}, std::pair{500, 0}}) {
+    double brute = 0;
+    for (int y = 0; y < l.height; ++y)
+      for (int x = 0; x < l.width; ++x)
+        if (x + dx >= 0 && x + dx < l.width && y + dy >= 0 && y + dy < l.height) brute += l.p[size_t(y) * l.width + x];
+    CHECK(sat.mass_shifted(dx, dy) == doctest::Approx(brute).epsilon(1e-9));
+  }
+}
+
+TEST_CASE("streaming serves a dictionary several times larger than its budget") {
+  auto& d = small();
+  prism::DictionaryReader r(d.dir);
+  const auto& m = r.manifest();
+  uint64_t level0_bytes = uint64_t(m.width) * m.height * sizeof(float) * m.grid.size();
+  prism::ServiceBudget budget{320u << 10, 1u << 20};  // 320 KiB host, 1 MiB device
+  REQUIRE(level0_bytes >= 5 * budget.host_bytes);
+  prism::DictionaryService svc(r, &prism::test::gpu(), 3, budget);
+  // The coarse level on the device equals what the file holds.
+  for (size_t i = 0; i < m.grid.size(); ++i) {
+    auto slot = svc.coarse_slot(i);
+    auto want = r.read_level(i, 3);
+    std::vector<float> got(want.p.size());
+    svc.coarse_chunk(slot.chunk).download(got.data(), got.size() * sizeof(float), slot.offset * sizeof(float));
+    CHECK(got == want.p);
+  }
+  // Random pixel requests all over every PSF's level 0.
+  std::mt19937 rng(7);
+  std::vector<prism::PsfLevel> truth;
+  for (size_t i = 0; i < m.grid.size(); ++i) truth.push_back(r.read_level(i, 0));
+  for (int round = 0; round < 200; ++round) {
+    size_t i = rng() % m.grid.size();
+    std::vector<glm::ivec2> px;
+    for (int k = 0; k < 20; ++k) px.push_back({int(rng() % (m.width + 10)) - 5, int(rng() % m.height)});
+    auto v = svc.values(i, 0, px);
+    for (size_t k = 0; k < px.size(); ++k) {
+      bool on = px[k].x >= 0 && px[k].x < m.width;
+      CHECK(v[k] == (on ? truth[i].p[size_t(px[k].y) * m.width + px[k].x] : 0.0f));
+    }
+    CHECK(svc.stats().host_bytes <= budget.host_bytes);
+  }
+  CHECK(svc.stats().host_peak_bytes <= budget.host_bytes);
+  CHECK(svc.stats().evictions > 0);
+  CHECK(svc.stats().device_bytes <= budget.device_bytes);
+  prism::DictionaryReader r2(d.dir);
+  CHECK_THROWS_WITH_AS(prism::DictionaryService(r2, &prism::test::gpu(), 0, budget), doctest::Contains("budget"),
+                       prism::DictionaryError);
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("the full 1210-PSF prototype dictionary builds, reads back and is tier-consistent") {
+  std::string dir = (fs::temp_directory_path() / ("prism-dict-1210-" + std::to_string(::getpid()))).string();
+  fs::remove_all(dir);
+  prism::DictionaryBuildOptions o;  // the paper's grid
+  o.base_binning = 32;              // 210 x 149 px level 0 keeps the suite quick
+  o.rays_per_lenslet = 256;
+  auto report = prism::build_dictionary(prism::test::gpu(), prism::builtin_scene("prototype"), dir, o);
+  CHECK(report.rendered == 1210);
+  prism::DictionaryReader r(dir);
+  REQUIRE(r.present() == 1210);
+  size_t lit = 0;
+  for (size_t i = 0; i < 1210; ++i) {
+    auto l0 = r.read_level(i, 0);
+    double sum = 0;
+    for (float p : l0.p) sum += p;
+    if (r.photons_on_sensor(i) == 0) {
+      CHECK(sum == 0.0);  // a position that lights nothing is stored as zeros
+      continue;
+    }
+    ++lit;
+    CHECK(sum == doctest::Approx(1.0).epsilon(1e-3));
+    auto l3 = r.read_level(i, 3);
+    auto binned = prism::bin_level(l0, 3);
+    for (size_t p = 0; p < l3.p.size(); ++p)
+      CHECK(std::abs(l3.p[p] - binned.p[p]) <= std::ldexp(std::max(std::abs(l3.p[p]), std::abs(binned.p[p])), -9) + 1e-9);
+  }
+  CHECK(lit > 1000);
+  fs::remove_all(dir);
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("full resolution end to end: a 6696 x 4764 px PSF stored, read by window and by level") {
+  std::string dir = (fs::temp_directory_path() / ("prism-dict-full-" + std::to_string(::getpid()))).string();
+  fs::remove_all(dir);
+  prism::DictionaryBuildOptions o;
+  o.grid = {{2.5}, {-2.5}, {30.0}};
+  o.base_binning = 1;
+  o.rays_per_lenslet = 1024;
+  prism::build_dictionary(prism::test::gpu(), prism::builtin_scene("prototype"), dir, o);
+  prism::DictionaryReader r(dir);
+  CHECK(r.manifest().width == 6696);
+  CHECK(r.manifest().height == 4764);
+  CHECK(r.manifest().levels == 14);
+  // Level 4 (110 um) against level 0 binned, and a level-0 window where the light is.
+  auto l4 = r.read_level(0, 4);
+  double sum = 0;
+  size_t peak = 0;
+  for (size_t p = 0; p < l4.p.size(); ++p) {
+    sum += l4.p[p];
+    if (l4.p[p] > l4.p[peak]) peak = p;
+  }
+  CHECK(sum == doctest::Approx(1.0).epsilon(1e-3));
+  int px = int(peak % l4.width) * 16, py = int(peak / l4.width) * 16;
+  auto w = r.read_window(0, 0, px, py, 16, 16);
+  double window = 0;
+  for (float p : w.p) window += p;
+  CHECK(window == doctest::Approx(l4.p[peak]).epsilon(1e-2));
+  fs::remove_all(dir);
+  prism::test::check_validation_clean();
+}

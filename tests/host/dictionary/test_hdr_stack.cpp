@@ -1,0 +1,195 @@
+// Calibration stacks on disk (capture-hdr's format): round trip, errors that
+// name the file and field, and `prism dictionary merge-hdr` end to end.
+#include <cstdlib>
+#include <functional>
+#include <filesystem>
+#include <fstream>
+#include <numeric>
+#include <sstream>
+
+#include "host/dictionary/hdr_stack.h"
+#include "host/util/image_io.h"
+#include "support.h"
+
+namespace fs = std::filesystem;
+using namespace prism;
+
+namespace {
+
+fs::path fresh_dir(const std::string& name) {
+  fs::path d = fs::temp_directory_path() / ("prism-hdr-test-" + std::to_string(::getpid())) / name;
+  fs::remove_all(d);
+  fs::create_directories(d);
+  return d;
+}
+
+HdrStack small_stack(int w = 32, int h = 24, uint64_t seed = 1) {
+  HdrStack s;
+  s.source_mm = {5.0, -10.0, 25.0};
+  s.frames = simulate_hdr_frames(synthetic_psf(w, h, 2e6), w, h, log_spaced_times(20e-6, 0.2, 7), {0.2, 0.2, 0.2},
+                                 SyntheticSensor{}, seed);
+  return s;
+}
+
+// What read_hdr_stack says about a stack after `spoil` changed it; "" if it reads.
+template <class F> std::string error_after(F&& spoil) {
+  fs::path d = fresh_dir("bad");
+  write_hdr_stack(d.string(), small_stack());
+  spoil(d);
+  try {
+    read_hdr_stack(d.string());
+  } catch (const std::exception& e) {
+    return e.what();
+  }
+  return "";
+}
+
+void edit_json(const fs::path& dir, const std::function<void(nlohmann::json&)>& edit) {
+  nlohmann::json j;
+  std::ifstream(dir / "stack.json") >> j;
+  edit(j);
+  std::ofstream(dir / "stack.json") << j.dump();
+}
+
+// Runs the prism binary; returns its exit status, with stdout+stderr in `output`.
+int prism_cli(const std::string& args, std::string& output) {
+  fs::path log = fs::temp_directory_path() / ("prism-hdr-cli-" + std::to_string(::getpid()) + ".log");
+  std::string cmd = "PRISM_DEVICE=cpu " + std::string(PRISM_BINARY) + " " + args + " > " + log.string() + " 2>&1";
+  int status = std::system(cmd.c_str());
+  std::ifstream in(log);
+  std::stringstream ss;
+  ss << in.rdbuf();
+  output = ss.str();
+  fs::remove(log);
+  return WEXITSTATUS(status);
+}
+
+}  // namespace
+
+TEST_CASE("HDR stack: written and read back unchanged") {
+  fs::path d = fresh_dir("roundtrip");
+  HdrStack s = small_stack();
+  write_hdr_stack(d.string(), s);
+  HdrStack r = read_hdr_stack(d.string());
+  CHECK(r.frames.width == 32);
+  CHECK(r.frames.height == 24);
+  CHECK(r.frames.bit_depth == 12);
+  CHECK(r.pixel_format == "Mono12");
+  CHECK(r.source_mm == s.source_mm);
+  REQUIRE(r.frames.exposure_s.size() == 7);
+  for (size_t i = 0; i < 7; ++i) CHECK(r.frames.exposure_s[i] == doctest::Approx(s.frames.exposure_s[i]).epsilon(1e-12));
+  CHECK(r.frames.exposures == s.frames.exposures);
+  CHECK(r.frames.darks == s.frames.darks);
+  CHECK(r.exposure_files[3] == "exposure_3.raw");
+  CHECK(r.dark_files[0] == "dark_0.raw");
+}
+
+TEST_CASE("HDR stack: bad stacks give errors naming the file and field") {
+  using J = nlohmann::json;
+  auto has = [](const std::string& what, std::initializer_list<const char*> parts) {
+    INFO(what);
+    for (const char* p : parts) CHECK(what.find(p) != std::string::npos);
+  };
+  has(error_after([](const fs::path& d) { fs::remove(d / "stack.json"); }), {"stack.json: missing"});
+  has(error_after([](const fs::path& d) { std::ofstream(d / "stack.json") << "{\"format_version\": 1,"; }),
+      {"stack.json: not valid JSON"});
+  has(error_after([](const fs::path& d) { edit_json(d, [](J& j) { j["format_version"] = 2; }); }),
+      {"stack.json: format_version 2 is not supported"});
+  has(error_after([](const fs::path& d) { edit_json(d, [](J& j) { j.erase("width"); }); }),
+      {"missing field 'width'"});
+  has(error_after([](const fs::path& d) { edit_json(d, [](J& j) { j["exposures"][1].erase("exposure_us"); }); }),
+      {"missing field 'exposures[1].exposure_us'"});
+  has(error_after([](const fs::path& d) { edit_json(d, [](J& j) { j["source"]["depth_mm"] = "deep"; }); }),
+      {"field 'source.depth_mm' must be a number"});
+  // Missing exposures: too few listed, or a listed frame absent.
+  has(error_after([](const fs::path& d) {
+        edit_json(d, [](J& j) { j["exposures"] = J::array({j["exposures"][0], j["exposures"][1]}); });
+      }),
+      {"lists 2 exposures; the merge needs at least 3"});
+  has(error_after([](const fs::path& d) { fs::remove(d / "exposure_4.raw"); }),
+      {"exposure_4.raw: missing raw frame"});
+  has(error_after([](const fs::path& d) { edit_json(d, [](J& j) { j["darks"] = J::array(); }); }),
+      {"'darks' is empty"});
+  // Mismatched sizes: a truncated frame, a frame of another size, stack.json's size wrong.
+  has(error_after([](const fs::path& d) { fs::resize_file(d / "exposure_2.raw", 1000); }),
+      {"exposure_2.raw: truncated: 1000 bytes, expected 1536"});
+  has(error_after([](const fs::path& d) { fs::resize_file(d / "dark_1.raw", 2 * 40 * 24); }),
+      {"dark_1.raw: 1920 bytes, expected 1536: the frame is not 32 x 24"});
+  has(error_after([](const fs::path& d) { edit_json(d, [](J& j) { j["height"] = 25; }); }),
+      {"exposure_0.raw: truncated"});
+  // A sample beyond the bit depth: wrong bit_depth or packed data.
+  has(error_after([](const fs::path& d) { edit_json(d, [](J& j) { j["bit_depth"] = 8; }); }),
+      {"exceeds the 8-bit range"});
+  CHECK(error_after([](const fs::path&) {}).empty());
+}
+
+TEST_CASE("HDR stack: a parent directory holds one stack per subdirectory") {
+  fs::path parent = fresh_dir("parent");
+  write_hdr_stack((parent / "pos_b").string(), small_stack());
+  write_hdr_stack((parent / "pos_a").string(), small_stack());
+  fs::create_directories(parent / "not_a_stack");
+  auto found = find_hdr_stacks(parent.string());
+  REQUIRE(found.size() == 2);
+  CHECK(fs::path(found[0]).filename() == "pos_a");
+  CHECK(find_hdr_stacks((parent / "pos_b").string()).size() == 1);
+  CHECK_THROWS_WITH(find_hdr_stacks((parent / "not_a_stack").string()), doctest::Contains("no stack.json"));
+}
+
+TEST_CASE("prism dictionary merge-hdr writes normalised PSFs with sidecars (CLI)") {
+  fs::path root = fresh_dir("cli");
+  write_hdr_stack((root / "stacks" / "pos_a").string(), small_stack(64, 48, 1));
+  HdrStack b = small_stack(64, 48, 2);
+  b.source_mm = {0.0, 5.0, 30.0};
+  write_hdr_stack((root / "stacks" / "pos_b").string(), b);
+  std::string out;
+  for (const char* backend : {"vulkan", "cpu"}) {
+    CAPTURE(backend);
+    fs::path o = root / backend;
+    int rc = prism_cli("dictionary merge-hdr --stacks " + (root / "stacks").string() + " --out " + o.string() +
+                           " --backend " + backend,
+                       out);
+    INFO(out);
+    REQUIRE(rc == 0);
+    CHECK(out.find("[2/2] pos_b") != std::string::npos);
+    for (const char* name : {"pos_a", "pos_b"}) {
+      int w = 0, h = 0;
+      auto y = read_exr_channel((o / (std::string(name) + ".exr")).string(), "Y", w, h);
+      auto valid = read_exr_channel((o / (std::string(name) + ".exr")).string(), "valid", w, h);
+      CHECK(w == 64);
+      CHECK(h == 48);
+      CHECK(std::accumulate(y.begin(), y.end(), 0.0) == doctest::Approx(1.0).epsilon(1e-5));
+      double kept = std::accumulate(valid.begin(), valid.end(), 0.0);
+      nlohmann::json j;
+      std::ifstream(o / (std::string(name) + ".json")) >> j;
+      CHECK(j["pixels"]["kept"].get<double>() == kept);
+      CHECK(j["pixels"]["kept"].get<double>() > 50);
+      CHECK(j["pixels"]["rejected"]["faint"].get<double>() > 0);
+      CHECK(j["exposures"].size() == 7);
+      CHECK(j["dark_model"] == "constant");
+      CHECK(j["normalisation"]["sum_dn_per_s"].get<double>() > 0);
+      CHECK(j["limits_dn"]["floor"].get<double>() == doctest::Approx(16.0));
+    }
+    nlohmann::json jb;
+    std::ifstream(o / "pos_b.json") >> jb;
+    CHECK(jb["source"]["depth_mm"] == 30.0);
+  }
+  // The same stack merged by both backends agrees.
+  int w, h;
+  auto gv = read_exr_channel((root / "vulkan" / "pos_a.exr").string(), "Y", w, h);
+  auto gc = read_exr_channel((root / "cpu" / "pos_a.exr").string(), "Y", w, h);
+  double diff = 0;
+  for (size_t i = 0; i < gv.size(); ++i) diff += std::abs(gv[i] - gc[i]);
+  CHECK(diff < 1e-4);
+
+  // A bad stack fails with its file named and a non-zero status.
+  fs::resize_file(root / "stacks" / "pos_b" / "exposure_3.raw", 100);
+  int rc = prism_cli("dictionary merge-hdr --stack " + (root / "stacks" / "pos_b").string() + " --out " +
+                         (root / "bad").string(),
+                     out);
+  CHECK(rc != 0);
+  CHECK(out.find("exposure_3.raw: truncated") != std::string::npos);
+  rc = prism_cli("dictionary merge-hdr --out " + (root / "bad").string(), out);
+  CHECK(rc != 0);
+  CHECK(out.find("--stack DIR") != std::string::npos);
+  fs::remove_all(root);
+}

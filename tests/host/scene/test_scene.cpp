@@ -1,0 +1,99 @@
+// Scenes: the built-ins follow DESIGN.md, and a bad scene names its field.
+#include <cmath>
+#include <fstream>
+#include <map>
+
+#include "host/scene/scene.h"
+#include "support.h"
+
+namespace {
+std::string error_of(const std::string& json_text) {
+  try {
+    prism::parse_scene(nlohmann::json::parse(json_text), "test.json");
+  } catch (const prism::SceneError& e) {
+    return e.what();
+  }
+  return "";
+}
+}  // namespace
+
+TEST_CASE("prototype: 42 lenslets, six of each focal length, centroid on the axis, neighbours differ") {
+  auto s = prism::builtin_scene("prototype");
+  const auto& ls = s.optics.lenslets;
+  REQUIRE(ls.size() == 42);
+  std::map<double, int> count;
+  double cx = 0, cy = 0;
+  for (const auto& l : ls) {
+    ++count[l.focal_mm];
+    cx += l.x_mm;
+    cy += l.y_mm;
+  }
+  CHECK(count.size() == 7);
+  for (const auto& [f, n] : count) CHECK(n == 6);
+  CHECK(std::abs(cx) < 1e-9);
+  CHECK(std::abs(cy) < 1e-9);
+  for (size_t i = 0; i < ls.size(); ++i)
+    for (size_t j = 0; j < i; ++j) {
+      double d = std::hypot(ls[i].x_mm - ls[j].x_mm, ls[i].y_mm - ls[j].y_mm);
+      CHECK(d >= 4.0 - 1e-9);                                  // 4 mm pitch, no overlap
+      if (d < 4.0 + 1e-9) CHECK(ls[i].focal_mm != ls[j].focal_mm);  // hex neighbours differ
+    }
+  CHECK(s.optics.lens_model == prism::LensModel::real);
+}
+
+TEST_CASE("single-lens references: one thin lens with the array's total aperture") {
+  auto s = prism::builtin_scene("single-f9");
+  REQUIRE(s.optics.lenslets.size() == 1);
+  CHECK(s.optics.lenslets[0].diameter_mm == doctest::Approx(3.0 * std::sqrt(42.0)));
+  CHECK(s.optics.lens_model == prism::LensModel::thin);
+  // A plano-convex lens that wide cannot reach f = 9 mm: the real model is refused.
+  s.optics.lens_model = prism::LensModel::real;
+  CHECK_THROWS_WITH_AS(prism::validate(s.optics), doctest::Contains("cannot have f = 9"), std::invalid_argument);
+}
+
+TEST_CASE("every built-in scene round-trips through JSON") {
+  for (const auto& name : prism::builtin_scene_names()) {
+    auto s = prism::builtin_scene(name);
+    auto back = prism::parse_scene(prism::to_json(s), name);
+    CHECK(back.optics.lenslets.size() == s.optics.lenslets.size());
+    CHECK(back.optics.lens_model == s.optics.lens_model);
+    CHECK(back.optics.lenslets.back().focal_mm == s.optics.lenslets.back().focal_mm);
+  }
+}
+
+TEST_CASE("a bad scene names the file, the field and why") {
+  CHECK(error_of(R"({"lenslets": [{"x_mm": 0, "y_mm": 0, "focal_mm": -3}]})").find("lenslets[0].focal_mm: must be > 0") !=
+        std::string::npos);
+  CHECK(error_of(R"({"lenslets": [{"x_mm": 0, "y_mm": 0, "focal_mm": "three"}]})").find("lenslets[0].focal_mm: must be a number") !=
+        std::string::npos);
+  CHECK(error_of(R"({"base": "prototype", "sensor": {"pixel_um": 0}})").find("sensor.pixel_um") != std::string::npos);
+  CHECK(error_of(R"({"base": "prototype", "lens_modle": "thin"})").find("lens_modle: unknown field") != std::string::npos);
+  CHECK(error_of(R"({"base": "prototype", "effects": ["glow"]})").find("unknown effect 'glow'") != std::string::npos);
+  CHECK(error_of(R"({"lenslets": [{"x_mm": 0, "y_mm": 0, "focal_mm": 9}, {"x_mm": 1, "y_mm": 0, "focal_mm": 9}]})")
+            .find("lenslets[1]: overlaps lenslets[0]") != std::string::npos);
+  CHECK(error_of(R"({"lenslets": [{"x_mm": 400, "y_mm": 0, "focal_mm": 9}]})").find("off the sensor") != std::string::npos);
+  CHECK(error_of(R"({"base": "prototype", "volume": {"depth_mm": [50, 0]}})").find("volume.depth_mm") != std::string::npos);
+  CHECK(error_of(R"({"base": "prototype"})").empty());
+}
+
+TEST_CASE("a scene file that is not JSON gives its line") {
+  std::string path = "bad-scene-test.json";
+  {
+    std::ofstream out(path);
+    out << "{\n  \"base\": \"prototype\",\n  \"lens_model\": thin\n}\n";
+  }
+  CHECK_THROWS_WITH_AS(prism::load_scene(path), doctest::Contains("bad-scene-test.json:3"), prism::SceneError);
+  std::remove(path.c_str());
+  CHECK_THROWS_WITH_AS(prism::load_scene("protoype"), doctest::Contains("not a built-in"), prism::SceneError);
+}
+
+TEST_CASE("scene effects parse with their parameters") {
+  auto s = prism::parse_scene(nlohmann::json::parse(R"({"base": "prototype", "effects": [
+      "scintillator_refraction", {"name": "holder_vignetting", "bore_mm": 3.0},
+      {"name": "detection_efficiency", "value": 0.4}]})"), "fx.json");
+  CHECK(s.optics.effects.scintillator_refraction);
+  CHECK(s.optics.effects.scintillator_index == doctest::Approx(1.58));
+  CHECK(s.optics.effects.holder_vignetting);
+  CHECK(s.optics.effects.holder_bore_mm == 3.0);
+  CHECK(s.optics.effects.detection_efficiency == 0.4);
+}

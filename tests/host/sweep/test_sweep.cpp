@@ -1,0 +1,230 @@
+// Design sweeps: the search finds the base design or better, is reproducible
+// from its seed, resumes after an interruption, rejects impossible designs
+// with a reason, and ranks designs as the CPU reference does.
+#include <unistd.h>
+
+#include <algorithm>
+#include <filesystem>
+#include <fstream>
+
+#include "host/sweep/sweep.h"
+#include "support.h"
+
+namespace fs = std::filesystem;
+using nlohmann::json;
+
+namespace {
+
+struct TempDir {
+  fs::path path = fs::temp_directory_path() / ("prism-sweep-test-" + std::to_string(::getpid()));
+  TempDir() { fs::create_directories(path); }
+  ~TempDir() { fs::remove_all(path); }
+  std::string file(const std::string& name) const { return (path / name).string(); }
+};
+
+// Cheap settings: the tests check the search, not the physics' convergence.
+prism::SweepSettings tiny(size_t budget, uint64_t seed = 7) {
+  prism::SweepSettings s;
+  s.trace.rays_per_lenslet = 256;
+  s.trace.binning = 64;
+  s.budget = budget;
+  s.seed = seed;
+  return s;
+}
+
+// Three 3 mm lenslets in a row (central row of the prototype's hex grid),
+// focal lengths chosen freely from three: 27 designs.
+prism::DesignSpace row_space(const TempDir& dir) {
+  json base = {{"name", "row3"},
+               {"lenslets",
+                {{{"x_mm", -4}, {"y_mm", 0}, {"focal_mm", 9}},
+                 {{"x_mm", 0}, {"y_mm", 0}, {"focal_mm", 9}},
+                 {{"x_mm", 4}, {"y_mm", 0}, {"focal_mm", 9}}}}};
+  std::ofstream(dir.file("row3.json")) << base.dump();
+  json space = {{"base", "row3.json"},
+                {"focal_mm", {4.5, 9, 15}},
+                {"assignment", "free"},
+                {"samples", {{"x_mm", {0}}, {"y_mm", {0}}, {"depth_mm", {5, 25}}}}};
+  return prism::DesignSpace::parse(space, "row3-space.json", dir.path.string());
+}
+
+std::vector<std::string> ranked_keys(const prism::Sweep& s) {
+  std::vector<std::string> k;
+  for (const auto* e : s.ranked()) k.push_back(e->key);
+  return k;
+}
+
+std::string space_error(const json& j) {
+  try {
+    prism::DesignSpace::parse(j, "bad-space.json");
+  } catch (const prism::SweepError& e) {
+    return e.what();
+  }
+  return "";
+}
+
+}  // namespace
+
+TEST_CASE("sweep: a focal-assignment sweep around the prototype finds it or better") {
+  TempDir dir;
+  json j = {{"base", "prototype"},
+            {"focal_mm", {3, 4.5, 6, 7.5, 9, 12, 15}},
+            {"samples", {{"x_mm", {0}}, {"y_mm", {0}}, {"depth_mm", {10, 40}}}}};
+  auto space = prism::DesignSpace::parse(j, "proto-space.json");
+  auto proto = space.encode(prism::builtin_scene("prototype"));
+  REQUIRE(proto);  // six of each focal length: a balanced assignment
+  prism::Sweep sweep(space, tiny(5), dir.file("state.jsonl"));
+  sweep.run(&prism::test::gpu());
+  REQUIRE(sweep.evaluated().size() == 5);
+  auto prototype = prism::score(prism::builtin_scene("prototype"), space.samples, sweep.settings().trace,
+                                prism::Backend::vulkan, &prism::test::gpu());
+  const auto* best = sweep.ranked().front();
+  CAPTURE(best->key);
+  CHECK(best->objectives.mean_crlb_3d_mm <= prototype.mean_crlb_3d_mm * (1 + 1e-6));
+  CHECK(std::count_if(sweep.evaluated().begin(), sweep.evaluated().end(),
+                      [&](const prism::Evaluated& e) { return e.key == proto->key() && e.origin == "base"; }) == 1);
+  // Every searched design keeps six of each focal length.
+  for (const auto& e : sweep.evaluated())
+    for (int f = 0; f < 7; ++f) CHECK(std::count(e.design.focal.begin(), e.design.focal.end(), f) == 6);
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("sweep: a small space is searched exhaustively and the best is the minimum") {
+  TempDir dir;
+  auto space = row_space(dir);
+  REQUIRE(space.size() == 27);
+  prism::Sweep sweep(space, tiny(100), dir.file("state.jsonl"));
+  sweep.run(&prism::test::gpu());
+  CHECK(sweep.exhausted());
+  REQUIRE(sweep.evaluated().size() == 27);
+  auto ranked = sweep.ranked();
+  for (const auto* e : ranked) CHECK(e->valid);
+  for (size_t i = 1; i < ranked.size(); ++i)
+    CHECK(ranked[i - 1]->objectives.mean_crlb_3d_mm <= ranked[i]->objectives.mean_crlb_3d_mm);
+  // The base (all f = 9 mm) is among them, ranked by the same rule.
+  CHECK(std::any_of(ranked.begin(), ranked.end(), [](const auto* e) { return e->origin == "base" && e->key == "L0 f111 d000 s0 w0 m0 e0"; }));
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("sweep: the same seed gives the same ranking; another seed another sequence") {
+  TempDir dir;
+  auto space = row_space(dir);
+  auto run = [&](const std::string& name, uint64_t seed) {
+    prism::Sweep s(space, tiny(9, seed), dir.file(name));
+    s.run(&prism::test::gpu());
+    return s;
+  };
+  auto a = run("a.jsonl", 11), b = run("b.jsonl", 11), c = run("c.jsonl", 12);
+  CHECK(ranked_keys(a) == ranked_keys(b));
+  std::vector<std::string> seq_a, seq_c;
+  for (const auto& e : a.evaluated()) seq_a.push_back(e.key);
+  for (const auto& e : c.evaluated()) seq_c.push_back(e.key);
+  CHECK(seq_a != seq_c);
+  CHECK(seq_a.front() == seq_c.front());  // both start from the base design
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("sweep: an interrupted sweep keeps its designs and resumes to the same result") {
+  TempDir dir;
+  auto space = row_space(dir);
+  // Candidates are scored a batch at a time: a stop keeps whole batches.
+  auto settings = tiny(9, 5);
+  settings.batch = 3;
+  prism::Sweep full(space, settings, dir.file("full.jsonl"));
+  full.run(&prism::test::gpu());
+
+  std::string state = dir.file("resumed.jsonl");
+  size_t kept = 0;
+  {
+    prism::Sweep first(space, settings, state);
+    size_t seen = 0;
+    first.run(&prism::test::gpu(), [&] { return seen >= 4; }, [&](const prism::Evaluated&, size_t done) { seen = done; });
+    kept = first.evaluated().size();
+    CHECK(kept >= 4);
+    CHECK(kept < 9);
+  }
+  // A kill while appending leaves at most a torn last line: dropped on restart.
+  std::ofstream(state, std::ios::app) << "{\"key\": \"L0 f0";
+  prism::Sweep second(space, settings, state);
+  CHECK(second.evaluated().size() == kept);
+  second.run(&prism::test::gpu());
+  CHECK(second.replayed() == kept);
+  CHECK(second.evaluated().size() == 9);
+  CHECK(ranked_keys(second) == ranked_keys(full));
+
+  // Other trace settings cannot share the state.
+  auto other = settings;
+  other.trace.binning = 32;
+  CHECK_THROWS_WITH_AS(prism::Sweep(space, other, state), doctest::Contains("different binning"), prism::SweepError);
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("sweep: overlapping and off-sensor designs are rejected with a reason") {
+  TempDir dir;
+  json j = {{"base", "prototype"},
+            {"layout", {{"rows", {3}}, {"columns", {3}}, {"pitch_mm", {2.5, 20}}}},
+            {"focal_mm", {9}},
+            {"samples", {{"x_mm", {0}}, {"y_mm", {0}}, {"depth_mm", {20}}}}};
+  auto space = prism::DesignSpace::parse(j, "layouts.json");
+  REQUIRE(space.size() == 2);
+  prism::Sweep sweep(space, tiny(10), dir.file("state.jsonl"));
+  sweep.run(&prism::test::gpu());
+  REQUIRE(sweep.evaluated().size() == 2);
+  for (const auto& e : sweep.evaluated()) {
+    CAPTURE(e.key);
+    CHECK(!e.valid);
+    if (e.design.layout == 0) CHECK(e.reason.find("overlaps lenslets[") != std::string::npos);  // 3 mm lenses 2.5 mm apart
+    if (e.design.layout == 1) CHECK(e.reason.find("off the sensor") != std::string::npos);     // rows 17.3 mm off axis
+  }
+  // A space of only rejected designs still ranks them, last, with their reasons.
+  CHECK(sweep.ranked().size() == 2);
+}
+
+TEST_CASE("sweep: space files name the bad field") {
+  CHECK(space_error({{"focal_mm", {3, -1}}}).find("focal_mm: values must be > 0") != std::string::npos);
+  CHECK(space_error({{"focal_mm", {3}}, {"assignment", "random"}}).find("assignment: must be") != std::string::npos);
+  CHECK(space_error({{"lens_modle", "thin"}}).find("lens_modle: unknown field") != std::string::npos);
+  CHECK(space_error({{"layout", {{"rows", {2}}, {"columns", {2}}, {"pitch_mm", {4}}}}}).find("focal_mm: is required") !=
+        std::string::npos);
+  CHECK(space_error({{"effects", {{"glow"}}}}).find("effects[0]") != std::string::npos);
+  CHECK(space_error({{"base", "no-such-scene"}}).find("base:") != std::string::npos);
+  CHECK(space_error({{"samples", {{"depth", 0}}}}).find("samples.depth") != std::string::npos);
+  CHECK_THROWS_WITH_AS(prism::parse_bound("photons>100"), doctest::Contains("NAME>=VALUE"), prism::SweepError);
+  CHECK_THROWS_WITH_AS(prism::parse_bound("flux>=1"), doctest::Contains("unknown objective 'flux'"), prism::SweepError);
+  auto b = prism::parse_bound("photons>=100");
+  prism::Objectives o;
+  o.mean_photons = 99;
+  CHECK(!b.holds(o));
+  o.mean_photons = 100;
+  CHECK(b.holds(o));
+}
+
+TEST_CASE("sweep: the CPU reference ranks a few designs as the device does") {
+  TempDir dir;
+  auto space = row_space(dir);
+  auto t = tiny(1).trace;
+  t.rays_per_lenslet = 1024;
+  t.binning = 32;
+  // Focal indices into {4.5, 9, 15}: all 9, all 15, and two mixes. (A row of
+  // f = 4.5 mm lenses leaves the Fisher matrix singular here: inf on both.)
+  std::vector<prism::Design> designs;
+  for (std::vector<int> f : {std::vector<int>{1, 1, 1}, {2, 2, 2}, {1, 2, 1}, {2, 1, 2}})
+    designs.push_back({0, f, {0, 0, 0}, 0, 0, 0, 0});
+  std::vector<double> dev, cpu;
+  for (const auto& d : designs) {
+    dev.push_back(prism::evaluate_design(space, d, t, prism::Backend::vulkan, &prism::test::gpu()).objectives.mean_crlb_3d_mm);
+    cpu.push_back(prism::evaluate_design(space, d, t, prism::Backend::cpu, nullptr).objectives.mean_crlb_3d_mm);
+  }
+  auto order = [](const std::vector<double>& v) {
+    std::vector<size_t> i(v.size());
+    for (size_t k = 0; k < i.size(); ++k) i[k] = k;
+    std::sort(i.begin(), i.end(), [&](size_t a, size_t b) { return v[a] < v[b]; });
+    return i;
+  };
+  std::string values;
+  for (size_t k = 0; k < dev.size(); ++k) values += " device " + std::to_string(dev[k]) + " cpu " + std::to_string(cpu[k]) + ";";
+  INFO(values);
+  CHECK(order(dev) == order(cpu));
+  for (size_t k = 0; k < dev.size(); ++k) CHECK(dev[k] == doctest::Approx(cpu[k]).epsilon(0.01));
+  prism::test::check_validation_clean();
+}
