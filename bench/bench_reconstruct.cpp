@@ -26,6 +26,7 @@
 #include "host/dictionary/build.h"
 #include "host/events/simulate.h"
 #include "host/util/plot.h"
+#include "host/reconstruct/match.h"
 #include "host/reconstruct/reconstruct.h"
 
 using namespace prism;
@@ -48,22 +49,18 @@ struct Row {
   std::vector<std::vector<ReconstructedVertex>> out;
 };
 
-double distance(const ReconstructedVertex& v, const glm::dvec3& t) {
-  return std::hypot(v.x_mm - t.x, v.y_mm - t.y, v.depth_mm - t.z);
-}
-
-// Per event, the mean 3D error of its vertices (two: matched in the better order).
+// Per event, the mean 3D error of its matched vertices (host/reconstruct/match.h;
+// with K = 1 on two-vertex events, the one estimate against the nearer truth).
 std::vector<double> errors(const std::vector<std::vector<ReconstructedVertex>>& out, const std::vector<Truth>& truth) {
   std::vector<double> e;
   for (size_t i = 0; i < out.size(); ++i) {
     const auto& t = truth[i].vertices;
-    if (t.size() == 1) {
-      e.push_back(distance(out[i][0], t[0]));
-    } else {
-      double direct = distance(out[i][0], t[0]) + distance(out[i][1], t[1]);
-      double swapped = distance(out[i][0], t[1]) + distance(out[i][1], t[0]);
-      e.push_back(0.5 * std::min(direct, swapped));
-    }
+    auto which = match_vertices(out[i], t);
+    double sum = 0;
+    int n = 0;
+    for (size_t k = 0; k < t.size(); ++k)
+      if (which[k] != unmatched) sum += error_3d_mm(out[i][which[k]], t[k]), ++n;
+    e.push_back(sum / n);
   }
   return e;
 }

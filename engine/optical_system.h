@@ -51,6 +51,10 @@ struct OpticalSystem {
   double curvature_radius_mm(size_t i) const { return lenslets[i].focal_mm * (glass_index - 1.0); }
   double sag_mm(size_t i) const;
   double center_thickness_mm(size_t i) const { return sag_mm(i) + edge_thickness_mm; }
+  // Lateral magnification of a source at depth d (from the scintillator face)
+  // through a lenslet's centre: a lateral source shift s moves every lenslet
+  // image by -s * magnification(d) on the sensor (the images are inverted).
+  double magnification(double depth_mm) const { return lens_to_sensor_mm / (depth_mm + working_distance_mm); }
   double sensor_width_mm() const { return sensor_width_px * pixel_um * 1e-3; }
   double sensor_height_mm() const { return sensor_height_px * pixel_um * 1e-3; }
 };

@@ -5,7 +5,7 @@
 // same answer: shaders/support_scan.comp sums over each event's clicks (the
 // sparse likelihood), shaders/support_scan_dense.comp over every pixel of the
 // scan level (the paper's dense way, kept as the baseline to measure against).
-// The double-precision reference is the CPU scan in host/reconstruct.cpp.
+// The double-precision reference is engine/ref/support_scan_ref.h.
 #pragma once
 #include <cstdint>
 #include <memory>
@@ -61,6 +61,14 @@ struct ScanResult {
   float alpha = 0;     // fitted weight, expected photons
   uint32_t newton_iterations = 0;
   uint32_t shifts = 0;  // shifts scored
+};
+
+// One PSF's result of a support scan in double (the reference's own, or a
+// device result converted): its best shift and the NLL and weight fitted there.
+struct SupportScore {
+  size_t psf = 0;
+  glm::ivec2 shift{};
+  double nll = 0, alpha = 0;
 };
 
 struct ScanSettings {

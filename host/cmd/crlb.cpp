@@ -9,6 +9,7 @@
 #include "host/cmd/options.h"
 #include "host/util/image_io.h"
 #include "host/util/plot.h"
+#include "host/util/format.h"
 
 namespace prism::cmd {
 
@@ -25,12 +26,6 @@ struct CrlbArgs {
   ForwardOptions fw;
 };
 
-std::string fmt(double v) {
-  if (std::isinf(v)) return "inf";
-  char b[32];
-  std::snprintf(b, sizeof b, "%.6g", v);
-  return b;
-}
 
 void run(const CrlbArgs& a) {
   auto depths = parse_list(a.depths, "--depth-mm");
@@ -57,10 +52,10 @@ void run(const CrlbArgs& a) {
   bool at_defaults = t0.rays() >= defaults::rays_per_lenslet && t0.binning == defaults::analysis_binning;
   if (a.converge > 0)
     std::printf("# convergence: rays x4 until the 3D CRLB changes by <= %s%% (column 'change'), at most %u rays\n",
-                fmt(100 * a.converge).c_str(), a.max_rays);
+                format_number(100 * a.converge).c_str(), a.max_rays);
   else
     std::printf("# convergence: %s\n",
-                at_defaults ? ("defaults: prototype CRLB within " + fmt(100 * defaults::crlb_convergence_tol) +
+                at_defaults ? ("defaults: prototype CRLB within " + format_number(100 * defaults::crlb_convergence_tol) +
                                "% of 16x the rays (README, \"Convergence\"); other designs: use --converge").c_str()
                             : "not the converged defaults; use --converge TOL to measure it");
   std::printf("# CRLB at %.0f um analysis pixels: an upper bound on the CRLB at the native %.1f um pixels\n",
@@ -82,9 +77,9 @@ void run(const CrlbArgs& a) {
     std::fprintf(stderr, " %.2f s\n", s);
     for (const auto& r : rows) {
       std::printf("%-14s %-4s %7.2f %7.2f %7.2f %9.2f %10s %10s %10s %10s %8u %7s  %s\n", r.scene.c_str(),
-                  to_string(r.lens_model), r.theta.x, r.theta.y, r.theta.z, r.photons, fmt(r.crlb.x_mm).c_str(),
-                  fmt(r.crlb.y_mm).c_str(), fmt(r.crlb.depth_mm).c_str(), fmt(r.crlb.r3_mm).c_str(),
-                  r.rays_per_lenslet, std::isnan(r.change) ? "-" : fmt(r.change).c_str(), r.crlb.flag.c_str());
+                  to_string(r.lens_model), r.theta.x, r.theta.y, r.theta.z, r.photons, format_number(r.crlb.x_mm).c_str(),
+                  format_number(r.crlb.y_mm).c_str(), format_number(r.crlb.depth_mm).c_str(), format_number(r.crlb.r3_mm).c_str(),
+                  r.rays_per_lenslet, std::isnan(r.change) ? "-" : format_number(r.change).c_str(), r.crlb.flag.c_str());
       all.push_back(r);
     }
   }
@@ -95,11 +90,11 @@ void run(const CrlbArgs& a) {
       out << "scene,x_mm,y_mm,depth_mm,photons,crlb_x_mm,crlb_y_mm,crlb_z_mm,crlb_3d_mm,"
              "lens_model,sensor_model,rays_per_lenslet,binning,analysis_pixel_um,change_vs_quarter_rays,flag\n";
       for (const auto& r : all)
-        out << r.scene << ',' << fmt(r.theta.x) << ',' << fmt(r.theta.y) << ',' << fmt(r.theta.z) << ','
-            << fmt(r.photons) << ',' << fmt(r.crlb.x_mm) << ',' << fmt(r.crlb.y_mm) << ',' << fmt(r.crlb.depth_mm)
-            << ',' << fmt(r.crlb.r3_mm) << ',' << to_string(r.lens_model) << ',' << a.sensor << ','
-            << r.rays_per_lenslet << ',' << t0.binning << ',' << fmt(g0.pixel_mm * 1e3) << ','
-            << (std::isnan(r.change) ? "" : fmt(r.change)) << ',' << r.crlb.flag << '\n';
+        out << r.scene << ',' << format_number(r.theta.x) << ',' << format_number(r.theta.y) << ',' << format_number(r.theta.z) << ','
+            << format_number(r.photons) << ',' << format_number(r.crlb.x_mm) << ',' << format_number(r.crlb.y_mm) << ',' << format_number(r.crlb.depth_mm)
+            << ',' << format_number(r.crlb.r3_mm) << ',' << to_string(r.lens_model) << ',' << a.sensor << ','
+            << r.rays_per_lenslet << ',' << t0.binning << ',' << format_number(g0.pixel_mm * 1e3) << ','
+            << (std::isnan(r.change) ? "" : format_number(r.change)) << ',' << r.crlb.flag << '\n';
       if (!out) throw std::runtime_error("cannot write " + a.csv);
     });
     std::fprintf(stderr, "prism crlb: wrote %s\n", a.csv.c_str());
@@ -119,7 +114,7 @@ void run(const CrlbArgs& a) {
     std::vector<Series> series;
     for (const auto& k : order) series.push_back(by_scene[k]);
     plot_lines(a.plot,
-               {"3D CRLB against depth (" + fmt(t0.photons_emitted) + " photons emitted, " + a.sensor + " sensor)",
+               {"3D CRLB against depth (" + format_number(t0.photons_emitted) + " photons emitted, " + a.sensor + " sensor)",
                 "depth from scintillator face (mm)", "3D CRLB (mm)", true},
                series);
     std::fprintf(stderr, "prism crlb: wrote %s\n", a.plot.c_str());

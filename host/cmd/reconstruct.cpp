@@ -1,8 +1,7 @@
 // prism reconstruct: vertices of every event of an event file, one CSV row per
-// vertex (host/reconstruct/reconstruct.h). The device backends (vulkan: sparse, dense: the
-// paper's dense correlation) scan --batch events per dispatch; the CPU
-// reference runs events on --threads workers, each with its own dictionary
-// service (the tile cache is not shared).
+// vertex (host/reconstruct/reconstruct.h). The device backends (vulkan: sparse,
+// dense: the paper's dense correlation) scan --batch events per dispatch; the
+// CPU reference runs on --threads workers (host/reconstruct/pool.h).
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -10,11 +9,11 @@
 #include <fstream>
 #include <memory>
 #include <span>
-#include <thread>
 
 #include "host/cmd/commands.h"
 #include "host/util/progress.h"
-#include "host/reconstruct/reconstruct.h"
+#include "host/reconstruct/match.h"
+#include "host/reconstruct/pool.h"
 
 namespace prism::cmd {
 
@@ -37,30 +36,23 @@ void run(const ReconstructArgs& a) {
   const auto& m = reader.manifest();
   EventReader events(a.events);
   const int level = click_level(m, events.header(), a.events, a.dictionary);
-  ReconstructionSettings s = a.settings;
-  // Default search level: two levels above the clicks (16 x fewer pixels per
-  // shift), or the coarsest stored.
-  int search = a.level >= 0 ? a.level : std::min(level + 2, m.levels - 1);
-  if (search < level || search >= m.levels)
-    throw std::runtime_error("--level " + std::to_string(search) + ": choose a level from " + std::to_string(level) +
+  if (a.level >= 0 && (a.level < level || a.level >= m.levels))
+    throw std::runtime_error("--level " + std::to_string(a.level) + ": choose a level from " + std::to_string(level) +
                              " (the clicks' own) to " + std::to_string(m.levels - 1) + " (the coarsest in " +
                              a.dictionary + ")");
-  s.search_level = search;
+  ReconstructionSettings s = a.settings;
+  s.search_level = a.level;  // -1: default_search_level
 
-  const ReconstructionBackend backend = backend_from_string(a.backend);
-  const bool on_device = backend != ReconstructionBackend::cpu;
+  PoolOptions po;
+  po.backend = backend_from_string(a.backend);
+  const bool on_device = po.backend != ReconstructionBackend::cpu;
   std::unique_ptr<vk::Context> ctx;
   if (on_device) ctx = std::make_unique<vk::Context>(vk::ContextOptions{a.device});
-  const unsigned threads = on_device ? 1u : std::max(1u, a.threads);
-  ServiceBudget budget;
-  budget.host_bytes = uint64_t(a.budget_mib / threads * double(1 << 20));
-  std::vector<std::unique_ptr<DictionaryService>> services;
-  std::vector<std::unique_ptr<Reconstructor>> workers;
-  for (unsigned t = 0; t < threads; ++t) {
-    services.push_back(
-        std::make_unique<DictionaryService>(reader, ctx.get(), search, budget, a.precision == "half"));
-    workers.push_back(std::make_unique<Reconstructor>(*services.back(), level, s, backend, ctx.get()));
-  }
+  po.ctx = ctx.get();
+  po.threads = a.threads;
+  po.host_budget_bytes = uint64_t(a.budget_mib * double(1 << 20));
+  po.device_half = a.precision == "half";
+  ReconstructionPool pool(reader, level, s, po);
 
   std::ofstream csv(a.out);
   if (!csv) throw std::runtime_error(a.out + ": cannot open for writing; check the directory exists and is writable");
@@ -68,34 +60,15 @@ void run(const ReconstructArgs& a) {
   csv.precision(10);
 
   Progress progress("reconstruct", events.header().event_count);
-  const size_t batch = on_device ? std::max<size_t>(1, a.batch) : 32 * threads;
+  const size_t batch = on_device ? std::max<size_t>(1, a.batch) : 32 * pool.workers();
   std::vector<Event> in(batch);
-  std::vector<std::vector<ReconstructedVertex>> out(batch);
   uint64_t done = 0, flagged = 0, clicks = 0, scored = 0;
   double error_sum_mm = 0;
   auto start = std::chrono::steady_clock::now();
   for (bool more = true; more;) {
     size_t n = 0;
     while (n < batch && (more = events.next(in[n]))) ++n;
-    std::vector<std::thread> pool;
-    std::vector<std::exception_ptr> failures(threads);
-    for (unsigned t = 0; t < threads; ++t)
-      pool.emplace_back([&, t] {
-        try {
-          if (on_device) {
-            auto rows = workers[0]->run(std::span<const Event>(in.data(), n));
-            std::move(rows.begin(), rows.end(), out.begin());
-            return;
-          }
-          for (size_t i = t; i < n; i += threads)
-            out[i] = std::move(workers[t]->run(std::span<const Event>(&in[i], 1)).at(0));
-        } catch (...) {
-          failures[t] = std::current_exception();
-        }
-      });
-    for (auto& th : pool) th.join();
-    for (auto& f : failures)
-      if (f) std::rethrow_exception(f);
+    auto out = pool.run(std::span<const Event>(in.data(), n));
     for (size_t i = 0; i < n; ++i) {
       const Event& e = in[i];
       clicks += e.clicks.size();
@@ -108,8 +81,7 @@ void run(const ReconstructArgs& a) {
       // Single-vertex truth: the 3D error, for the summary line.
       if (e.vertices.size() == 1 && out[i].size() == 1 && out[i][0].flags == vertex_ok) {
         const auto& t = e.vertices[0];
-        const auto& v = out[i][0];
-        error_sum_mm += std::hypot(v.x_mm - t.x_mm, v.y_mm - t.y_mm, v.depth_mm - t.depth_mm);
+        error_sum_mm += error_3d_mm(out[i][0], {t.x_mm, t.y_mm, t.depth_mm});
         ++scored;
       }
     }
@@ -120,19 +92,19 @@ void run(const ReconstructArgs& a) {
   csv.close();
   if (!csv) throw std::runtime_error(a.out + ": write failed (disk full?)");
   double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  const unsigned threads = pool.workers();
   if (on_device)
     std::printf("# device: %s; %s scan, %s dictionary on the device, batches of %zu events\n",
-                ctx->describe().c_str(), to_string(backend), a.precision.c_str(), batch);
+                ctx->describe().c_str(), to_string(po.backend), a.precision.c_str(), batch);
   else
     std::printf("# device: CPU reference (double precision, %u thread%s)\n", threads, threads == 1 ? "" : "s");
   std::printf("%s: %llu events, K = %d, %.1f clicks per event; clicks on level %d, search on level %d, tau %.2f mm\n",
               a.out.c_str(), (unsigned long long)done, s.vertices, done ? double(clicks) / double(done) : 0.0, level,
-              search, s.tau_mm);
+              pool.search_level(), s.tau_mm);
   std::printf("%.2f s, %.1f events/s; %llu vertices flagged\n", seconds, seconds > 0 ? double(done) / seconds : 0.0,
               (unsigned long long)flagged);
-  double scan_s = 0, host_s = 0;
-  for (const auto& w : workers) scan_s += w->timings().scan_s, host_s += w->timings().host_s;
-  std::printf("time: support scans %.2f s, the rest on the host %.2f s%s\n", scan_s, host_s,
+  const auto t = pool.timings();
+  std::printf("time: support scans %.2f s, the rest on the host %.2f s%s\n", t.scan_s, t.host_s,
               threads > 1 ? " (summed over threads)" : "");
   if (scored)
     std::printf("single-vertex truth: mean 3D error %.3f mm over %llu unflagged events\n",

@@ -13,6 +13,7 @@
 #include "host/util/plot.h"
 #include "host/util/progress.h"
 #include "host/sweep/sweep.h"
+#include "host/util/format.h"
 
 namespace prism::cmd {
 
@@ -34,16 +35,7 @@ extern "C" void on_sigint(int) {
   std::signal(SIGINT, SIG_DFL);  // a second Ctrl-C stops at once; the state file is safe either way
 }
 
-std::string fmt(double v) {
-  if (std::isinf(v)) return "inf";
-  char b[32];
-  std::snprintf(b, sizeof b, "%.6g", v);
-  return b;
-}
 
-std::string csv_field(const std::string& s) {
-  return s.find_first_of(",\"") == std::string::npos ? s : "\"" + s + "\"";
-}
 
 struct Baseline {
   std::string name;
@@ -65,9 +57,9 @@ void write_csv(const std::string& path, const Sweep& sweep, const std::vector<co
       for (const auto& p : sweep.space().parameters(e->design)) out << ',' << csv_field(p);
       const Objectives& o = e->objectives;
       if (e->valid)
-        out << ',' << fmt(o.mean_crlb_3d_mm) << ',' << fmt(o.worst_crlb_3d_mm) << ',' << fmt(o.mean_crlb_x_mm) << ','
-            << fmt(o.mean_crlb_y_mm) << ',' << fmt(o.mean_crlb_z_mm) << ',' << fmt(o.mean_photons) << ','
-            << fmt(o.depth_ratio) << ',' << fmt(e->seconds) << ',';
+        out << ',' << format_number(o.mean_crlb_3d_mm) << ',' << format_number(o.worst_crlb_3d_mm) << ',' << format_number(o.mean_crlb_x_mm) << ','
+            << format_number(o.mean_crlb_y_mm) << ',' << format_number(o.mean_crlb_z_mm) << ',' << format_number(o.mean_photons) << ','
+            << format_number(o.depth_ratio) << ',' << format_number(e->seconds) << ',';
       else
         out << ",,,,,,,,," << csv_field(e->reason);
       out << ',' << e->key << '\n';
@@ -145,15 +137,15 @@ void run(const SweepArgs& a) {
     device = ctx->describe();
   }
   AnalysisGrid g = AnalysisGrid::of(space.base.optics, a.binning);
-  std::string stated = std::to_string(s.trace.rays()) + " rays/lenslet, " + fmt(g.pixel_mm * 1e3) + " um pixels";
-  std::printf("# space: %s (%s designs), objective: minimise %s%s\n", a.space.c_str(), fmt(space.size()).c_str(),
+  std::string stated = std::to_string(s.trace.rays()) + " rays/lenslet, " + format_number(g.pixel_mm * 1e3) + " um pixels";
+  std::printf("# space: %s (%s designs), objective: minimise %s%s\n", a.space.c_str(), format_number(space.size()).c_str(),
               objective_is_maximised(a.objective) ? ("-" + a.objective).c_str() : a.objective.c_str(),
               s.bounds.empty() ? "" : ", bounds:");
   for (const auto& b : s.bounds) std::printf("#   %s\n", b.text().c_str());
   std::printf("# device: %s\n# rays per 3 mm lenslet: %u, analysis pixel: %u x %u binned = %.1f um, split Fisher "
               "estimator, poisson sensor, %s photons emitted\n",
               device.c_str(), s.trace.rays(), a.binning, a.binning, g.pixel_mm * 1e3,
-              fmt(s.trace.photons_emitted).c_str());
+              format_number(s.trace.photons_emitted).c_str());
   std::printf("# volume samples: %s\n", space.samples.describe().c_str());
   std::printf("# state: %s/evaluated.jsonl (%zu designs already scored), seed %llu, budget %zu\n", a.out.c_str(),
               sweep.evaluated().size(), static_cast<unsigned long long>(a.seed), a.budget);
@@ -199,8 +191,8 @@ void run(const SweepArgs& a) {
   std::printf("%-4s %-10s %12s %12s %10s %8s  %s\n", "rank", "origin", "mean_3d_mm", "worst_3d_mm", "photons",
               "d_ratio", "focal_mm");
   auto row = [&](const std::string& rank, const std::string& origin, const Objectives& o, const std::string& focal) {
-    std::printf("%-4s %-10s %12s %12s %10s %8s  %s\n", rank.c_str(), origin.c_str(), fmt(o.mean_crlb_3d_mm).c_str(),
-                fmt(o.worst_crlb_3d_mm).c_str(), fmt(o.mean_photons).c_str(), fmt(o.depth_ratio).c_str(), focal.c_str());
+    std::printf("%-4s %-10s %12s %12s %10s %8s  %s\n", rank.c_str(), origin.c_str(), format_number(o.mean_crlb_3d_mm).c_str(),
+                format_number(o.worst_crlb_3d_mm).c_str(), format_number(o.mean_photons).c_str(), format_number(o.depth_ratio).c_str(), focal.c_str());
   };
   for (size_t k = 0; k < ranked.size() && k < 5; ++k)
     row(std::to_string(k + 1), ranked[k]->origin, ranked[k]->objectives,
@@ -210,7 +202,7 @@ void run(const SweepArgs& a) {
     double best = objective_value(ranked.front()->objectives, a.objective);
     double proto = objective_value(baselines.front().objectives, a.objective);
     std::printf("# best-1 (%s/best-1.json): %s = %s vs prototype %s (%+.2f%%); %zu designs scored this run, %zu replayed%s\n",
-                a.out.c_str(), a.objective.c_str(), fmt(best).c_str(), fmt(proto).c_str(), 100 * (best / proto - 1), fresh - sweep.replayed(),
+                a.out.c_str(), a.objective.c_str(), format_number(best).c_str(), format_number(proto).c_str(), 100 * (best / proto - 1), fresh - sweep.replayed(),
                 sweep.replayed(), sweep.exhausted() ? ", space exhausted" : "");
   }
 
@@ -230,8 +222,8 @@ void run(const SweepArgs& a) {
     std::sort(order.begin(), order.end());
     for (size_t k = 0; k < cpu.size(); ++k) {
       size_t r = size_t(std::find_if(order.begin(), order.end(), [&](auto& p) { return p.second == k; }) - order.begin());
-      std::printf("%-4zu %14s %14s %8zu\n", k + 1, fmt(dev[k]).c_str(),
-                  fmt(objective_is_maximised(a.objective) ? -cpu[k].first : cpu[k].first).c_str(), r + 1);
+      std::printf("%-4zu %14s %14s %8zu\n", k + 1, format_number(dev[k]).c_str(),
+                  format_number(objective_is_maximised(a.objective) ? -cpu[k].first : cpu[k].first).c_str(), r + 1);
     }
   }
   std::fprintf(stderr, "prism sweep: wrote %s/ranked.csv, best-*.json, pareto.png, crlb-depth.png\n", a.out.c_str());

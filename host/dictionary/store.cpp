@@ -28,11 +28,6 @@ namespace {
 // normal (6.1e-5) at a probability of 1.9e-9, its relative precision 1e-3.
 constexpr int kScaleLog2 = 15;
 
-int mip_levels(int w, int h) {
-  int levels = 1;
-  for (int s = std::max(w, h); s > 1; s = (s + 1) / 2) ++levels;
-  return levels;
-}
 
 int ceil_div(int a, int b) { return (a + b - 1) / b; }
 
@@ -51,8 +46,18 @@ template <class F> auto exr_call(const std::string& path, F&& f) {
 }  // namespace
 
 glm::dvec3 DictionaryGrid::position(size_t i) const {
-  size_t nx = x_mm.size(), ny = y_mm.size();
-  return {x_mm[i % nx], y_mm[(i / nx) % ny], depth_mm[i / (nx * ny)]};
+  glm::ivec3 n = node(i);
+  return {x_mm[size_t(n.x)], y_mm[size_t(n.y)], depth_mm[size_t(n.z)]};
+}
+
+glm::ivec3 DictionaryGrid::nearest_node(const glm::dvec3& position_mm) const {
+  auto nearest = [](const std::vector<double>& nodes, double v) {
+    size_t best = 0;
+    for (size_t i = 1; i < nodes.size(); ++i)
+      if (std::abs(nodes[i] - v) < std::abs(nodes[best] - v)) best = i;
+    return int(best);
+  };
+  return {nearest(x_mm, position_mm.x), nearest(y_mm, position_mm.y), nearest(depth_mm, position_mm.z)};
 }
 
 DictionaryGrid DictionaryGrid::paper() {

@@ -25,11 +25,22 @@ struct DictionaryError : std::runtime_error {
   using std::runtime_error::runtime_error;
 };
 
+// The grid of source positions the PSFs were taken at. Entry i is node
+// (ix, iy, iz) with i = ix + nx (iy + ny iz): x varies fastest, then y, then
+// depth (the file names follow it). The one home of that convention.
 struct DictionaryGrid {
   std::vector<double> x_mm, y_mm, depth_mm;
   size_t size() const { return x_mm.size() * y_mm.size() * depth_mm.size(); }
-  // Position of entry i; x varies fastest, then y, then depth.
+  size_t index(glm::ivec3 node) const {
+    return size_t(node.x) + x_mm.size() * (size_t(node.y) + y_mm.size() * size_t(node.z));
+  }
+  glm::ivec3 node(size_t i) const {
+    const size_t nx = x_mm.size(), ny = y_mm.size();
+    return {int(i % nx), int(i / nx % ny), int(i / (nx * ny))};
+  }
   glm::dvec3 position(size_t i) const;
+  // The node nearest to a position, axis by axis (ties to the lower index).
+  glm::ivec3 nearest_node(const glm::dvec3& position_mm) const;
   static DictionaryGrid paper();  // 11 x 11 x 10: x, y in -25..25, depth 5..50, 5 mm steps
 };
 

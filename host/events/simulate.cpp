@@ -150,32 +150,6 @@ std::shared_ptr<const PsfSampler> ForwardTruth::make(const glm::dvec3& position_
   return std::make_shared<PsfSampler>(b, fw_.grid().width, fw_.grid().height);
 }
 
-namespace {
-size_t nearest(const std::vector<double>& nodes, double v) {
-  size_t best = 0;
-  for (size_t i = 1; i < nodes.size(); ++i)
-    if (std::abs(nodes[i] - v) < std::abs(nodes[best] - v)) best = i;
-  return best;
-}
-}  // namespace
-
-DictionaryPlacement place_in_dictionary(const DictionaryManifest& m, int level, const glm::dvec3& position_mm) {
-  const auto& g = m.grid;
-  size_t ix = nearest(g.x_mm, position_mm.x), iy = nearest(g.y_mm, position_mm.y), iz = nearest(g.depth_mm, position_mm.z);
-  DictionaryPlacement p;
-  p.index = ix + g.x_mm.size() * (iy + g.y_mm.size() * iz);
-  const auto& o = m.scene.optics;
-  // The lenslets image the source inverted: a lateral source shift moves
-  // every lenslet image the other way, scaled by the magnification at depth z.
-  double magnification = o.lens_to_sensor_mm / (position_mm.z + o.working_distance_mm);
-  glm::dvec3 node = g.position(p.index);
-  p.shift_mm = -glm::dvec2(position_mm.x - node.x, position_mm.y - node.y) * magnification;
-  // Sensor x grows with the column, sensor y with the row (optics.glsl).
-  double px = m.pixel_mm(level);
-  p.shift_px = glm::ivec2(int(std::lround(p.shift_mm.x / px)), int(std::lround(p.shift_mm.y / px)));
-  return p;
-}
-
 DictionaryTruth::DictionaryTruth(const DictionaryReader& reader, int level, size_t cache_entries)
     : EventTruth(cache_entries), reader_(reader), level_(level) {
   if (level < 0 || level >= reader.manifest().levels)

@@ -19,6 +19,7 @@
 #include <glm/glm.hpp>
 
 #include "engine/forward.h"
+#include "host/dictionary/placement.h"
 #include "host/dictionary/store.h"
 #include "host/scene/scene.h"
 
@@ -115,17 +116,6 @@ class ForwardTruth : public EventTruth {
   ForwardVulkan fw_;
 };
 
-// Where the paper's protocol takes a source's PSF from: the dictionary entry
-// at the nearest depth plane and nearest lateral node, shifted on the sensor
-// by -(source - node) * lens_to_sensor / (depth + working_distance) (DESIGN.md:
-// -dx * 18.5 / (z + 5) for the prototype), z the source's own depth, rounded
-// to whole pixels of the level used.
-struct DictionaryPlacement {
-  size_t index = 0;      // dictionary entry
-  glm::dvec2 shift_mm{};  // on the sensor
-  glm::ivec2 shift_px{};  // (columns, rows) of the level
-};
-DictionaryPlacement place_in_dictionary(const DictionaryManifest& m, int level, const glm::dvec3& position_mm);
 
 class DictionaryTruth : public EventTruth {
  public:

@@ -14,8 +14,10 @@
 #include "host/scene/crlb_study.h"
 #include "host/dictionary/service.h"
 #include "host/events/simulate.h"
+#include "host/reconstruct/match.h"
 #include "host/util/image_io.h"
 #include "host/util/plot.h"
+#include "host/util/format.h"
 
 namespace prism {
 
@@ -103,25 +105,6 @@ std::vector<Point> plan(const DictionaryGrid& g, const EvaluationOptions& o) {
   return points;
 }
 
-double distance(const ReconstructedVertex& v, const glm::dvec3& t) {
-  return std::hypot(v.x_mm - t.x, v.y_mm - t.y, v.depth_mm - t.z);
-}
-
-// Estimates matched to truths: for two vertices the order with the smaller
-// summed 3D error. Returns, per truth, the index of its estimate.
-std::vector<size_t> match(const std::vector<ReconstructedVertex>& est, const std::vector<Target>& truth) {
-  if (truth.size() == 1 || est.size() < 2) return std::vector<size_t>(truth.size(), 0);
-  double direct = distance(est[0], truth[0].position) + distance(est[1], truth[1].position);
-  double swapped = distance(est[1], truth[0].position) + distance(est[0], truth[1].position);
-  return direct <= swapped ? std::vector<size_t>{0, 1} : std::vector<size_t>{1, 0};
-}
-
-std::string fmt(double v) {
-  char b[32];
-  std::snprintf(b, sizeof b, "%.6g", v);
-  return b;
-}
-
 }  // namespace
 
 TrimmedStats trimmed_stats(const std::vector<double>& err3d_mm, const std::vector<double>& alpha_err) {
@@ -172,7 +155,7 @@ std::vector<EvaluationRow> evaluate(vk::Context& ctx, const Scene& scene, const 
 
   ForwardTruth truth(ctx, scene, t, 64);
   ReconstructionSettings s = o.settings;
-  if (s.search_level < 0) s.search_level = std::min(o.level + 2, m.levels - 1);
+  if (s.search_level < 0) s.search_level = default_search_level(m, o.level);
   const bool on_device = o.backend != ReconstructionBackend::cpu;
   DictionaryService service(dictionary, on_device ? &ctx : nullptr, s.search_level, {}, o.device_half);
   std::map<int, std::unique_ptr<Reconstructor>> reconstructors;  // per K
@@ -208,11 +191,13 @@ std::vector<EvaluationRow> evaluate(vk::Context& ctx, const Scene& scene, const 
     spent.reconstruct_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
     spent.scan_s += r->timings().scan_s - before.scan_s;
     spent.events += events.size();
+    std::vector<glm::dvec3> truth_mm;
+    for (const auto& v : p.vertices) truth_mm.push_back(v.position);
     for (const auto& est : estimates) {
-      auto which = match(est, p.vertices);
+      auto which = match_vertices(est, truth_mm);
       for (size_t k = 0; k < n; ++k) {
         const auto& v = est.at(which[k]);
-        err[k].push_back(distance(v, p.vertices[k].position));
+        err[k].push_back(error_3d_mm(v, p.vertices[k].position));
         alpha_err[k].push_back(std::abs(v.alpha - p.vertices[k].photons));
         flagged[k] += v.flags != vertex_ok;
       }
@@ -250,10 +235,10 @@ std::vector<std::string> write_evaluation(const std::string& dir, const std::vec
       out << "experiment,x_mm,y_mm,depth_mm,photons,trials_used,err3d_mean_mm,err3d_std_mm,alpha_err_mean,"
              "alpha_err_std,crlb_3d_mm\n";
       for (const auto* r : mine)
-        out << r->experiment << (r->series.empty() ? "" : ":" + r->series) << ',' << fmt(r->position_mm.x) << ','
-            << fmt(r->position_mm.y) << ',' << fmt(r->position_mm.z) << ',' << fmt(r->photons) << ','
-            << r->stats.trials_used << ',' << fmt(r->stats.err3d_mean) << ',' << fmt(r->stats.err3d_std) << ','
-            << fmt(r->stats.alpha_err_mean) << ',' << fmt(r->stats.alpha_err_std) << ',' << fmt(r->crlb_3d_mm)
+        out << r->experiment << (r->series.empty() ? "" : ":" + r->series) << ',' << format_number(r->position_mm.x) << ','
+            << format_number(r->position_mm.y) << ',' << format_number(r->position_mm.z) << ',' << format_number(r->photons) << ','
+            << r->stats.trials_used << ',' << format_number(r->stats.err3d_mean) << ',' << format_number(r->stats.err3d_std) << ','
+            << format_number(r->stats.alpha_err_mean) << ',' << format_number(r->stats.alpha_err_std) << ',' << format_number(r->crlb_3d_mm)
             << '\n';
       if (!out) throw std::runtime_error("cannot write " + csv);
     });

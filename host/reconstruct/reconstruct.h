@@ -1,24 +1,24 @@
-// Double-precision CPU reference of the paper's ADCG-inspired reconstruction
-// (Sec. IV.B, eqs. 12-19; DESIGN.md "Reconstruction"), on the sparse
-// likelihood: every score is a sum over the event's clicks plus summed-area
-// look-ups for the on-sensor mass S, never a sum over all pixels.
+// The paper's ADCG-inspired reconstruction (Sec. IV.B, eqs. 12-19;
+// DESIGN.md "Reconstruction") on the sparse likelihood: every score is a sum
+// over the event's clicks plus summed-area look-ups for the on-sensor mass S,
+// never a sum over all pixels.
 //
 // Per event: (1) gradient g = 1 - y / (1 - exp(-lambda)) of the current model;
 // (2) support search: every dictionary PSF at its best whole-pixel lateral
-// shift within tau, coarse-to-fine over the dictionary levels; (3) projected
-// Newton weights; (4) pruning to the lowest NLL; (5) parabolic depth
-// refinement through neighbouring planes, lateral offset rescaled by the
-// magnification at the refined depth; (6) K passes, each followed by a joint
-// local descent of all vertices.
+// shift within tau, on a coarse level; (3) projected Newton weights;
+// (4) pruning: the best candidates carried down to the click level, the
+// lowest NLL kept; (5) parabolic depth refinement through neighbouring
+// planes, lateral offset rescaled by the magnification at the refined depth;
+// (6) K passes, each followed by a joint local descent of all vertices.
 //
 // Step (2) over every PSF is where the time goes, and where the three
-// backends differ: `cpu` is the double-precision reference; `vulkan` runs it
-// as shaders/support_scan.comp over a batch of events per dispatch (sums over
-// clicks); `dense` as shaders/support_scan_dense.comp (sums over every pixel
-// of the scan level: the paper's way, the baseline). Everything after the scan
-// (the refinement of the surviving candidates down to the click level from
-// disk tiles, weights, descent, depth parabola) is the same double-precision
-// host code for all three, so they differ only where the scan does.
+// backends differ: `cpu` is the double-precision reference
+// (engine/ref/support_scan_ref.h); `vulkan` runs shaders/support_scan.comp over
+// a batch of events per dispatch (sums over clicks); `dense`
+// shaders/support_scan_dense.comp (sums over every pixel of the scan level:
+// the paper's way, the baseline). Everything after the scan is the same
+// double-precision host code for all three (event_fit.h says where each step
+// lives), so they differ only where the scan does.
 #pragma once
 #include <cstdint>
 #include <memory>
@@ -80,13 +80,10 @@ struct ReconstructedVertex {
 int click_level(const DictionaryManifest& m, const EventFileHeader& h, const std::string& events_path,
                 const std::string& dictionary_dir);
 
-// One PSF's result of the support scan: its best shift on the search level,
-// and the NLL and weight fitted there.
-struct SupportScore {
-  size_t psf = 0;
-  glm::ivec2 shift{};
-  double nll = 0, alpha = 0;
-};
+// The default level of the support scan: two levels above the clicks (16 x
+// fewer pixels per shift), capped at the coarsest stored. Every command and
+// benchmark that picks a search level for the user takes it from here.
+int default_search_level(const DictionaryManifest& m, int click_level);
 
 // Where the time of a batch went.
 struct ReconstructionTimings {
@@ -129,13 +126,5 @@ class Reconstructor {
 // One event on the CPU reference. `level` is the click level from click_level().
 std::vector<ReconstructedVertex> reconstruct(const Event& event, int level, DictionaryService& dictionary,
                                              const ReconstructionSettings& settings);
-
-// Parts exposed for tests and the device kernels' comparisons.
-namespace nll {
-// log(1 - exp(-lambda)), finite for every lambda > 0 (log(-expm1(-lambda))).
-double log_click(double lambda);
-// d2/dlambda2 of -log(1 - exp(-lambda)) = exp(-lambda) / (1 - exp(-lambda))^2, as 1 / (4 sinh^2(lambda / 2)).
-double click_curvature(double lambda);
-}  // namespace nll
 
 }  // namespace prism

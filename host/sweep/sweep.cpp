@@ -12,6 +12,7 @@
 
 #include "engine/forward.h"
 #include "host/util/image_io.h"
+#include "host/util/format.h"
 
 namespace prism {
 
@@ -26,12 +27,6 @@ template <class T> void shuffle(std::vector<T>& v, std::mt19937_64& rng) {
   for (size_t i = v.size(); i > 1; --i) std::swap(v[i - 1], v[pick(rng, i)]);
 }
 
-std::string fmt(double v) {
-  if (std::isinf(v)) return v > 0 ? "inf" : "-inf";
-  char b[32];
-  std::snprintf(b, sizeof b, "%.6g", v);
-  return b;
-}
 
 // Which values get one extra use when n positions share k values unevenly.
 std::vector<int> balanced_counts(size_t n, size_t k, const std::vector<size_t>& extra) {
@@ -75,8 +70,8 @@ std::string effects_label(const Effects& e) {
   };
   add(e.scintillator_refraction, "scintillator_refraction");
   add(e.holder_vignetting, "holder_vignetting");
-  add(e.detection_efficiency != 1.0, "detection_efficiency=" + fmt(e.detection_efficiency));
-  add(e.dark_counts_per_pixel != 0.0, "dark_counts=" + fmt(e.dark_counts_per_pixel));
+  add(e.detection_efficiency != 1.0, "detection_efficiency=" + format_number(e.detection_efficiency));
+  add(e.dark_counts_per_pixel != 0.0, "dark_counts=" + format_number(e.dark_counts_per_pixel));
   return s.empty() ? "none" : s;
 }
 
@@ -138,7 +133,7 @@ std::vector<glm::dvec3> SampleGrid::positions() const {
 std::string SampleGrid::describe() const {
   auto list = [](const std::vector<double>& v) {
     std::string s;
-    for (double x : v) s += (s.empty() ? "" : ",") + fmt(x);
+    for (double x : v) s += (s.empty() ? "" : ",") + format_number(x);
     return s;
   };
   return std::to_string(x_mm.size() * y_mm.size() * depth_mm.size()) + " sources: x_mm {" + list(x_mm) + "} x y_mm {" +
@@ -191,7 +186,7 @@ bool Bound::holds(const Objectives& o) const {
   return at_least ? v >= value : v <= value;
 }
 
-std::string Bound::text() const { return objective + (at_least ? ">=" : "<=") + fmt(value); }
+std::string Bound::text() const { return objective + (at_least ? ">=" : "<=") + format_number(value); }
 
 Bound parse_bound(const std::string& text) {
   size_t at = text.find(">=");
@@ -471,7 +466,7 @@ double DesignSpace::size() const {
 }
 
 std::vector<Design> DesignSpace::enumerate() const {
-  if (size() > 1e6) throw SweepError("space " + name + ": too many designs (" + fmt(size()) + ") to list them all");
+  if (size() > 1e6) throw SweepError("space " + name + ": too many designs (" + format_number(size()) + ") to list them all");
   std::vector<Design> out;
   for (size_t l = 0; l < layouts.size(); ++l) {
     size_t n = positions(l).size(), k = focal_mm.size();
@@ -616,17 +611,17 @@ std::vector<std::string> DesignSpace::parameters(const Design& d) const {
   const HexLayout& h = layouts.at(d.layout);
   auto genes = [](const std::vector<int>& g, const std::vector<double>& set) {
     bool uniform = std::adjacent_find(g.begin(), g.end(), std::not_equal_to<>()) == g.end();
-    if (uniform && !g.empty()) return fmt(set[size_t(g[0])]);
+    if (uniform && !g.empty()) return format_number(set[size_t(g[0])]);
     std::string s;
-    for (int x : g) s += (s.empty() ? "" : ";") + fmt(set[size_t(x)]);
+    for (int x : g) s += (s.empty() ? "" : ";") + format_number(set[size_t(x)]);
     return s;
   };
-  return {h.rows == 0 ? "base" : std::to_string(h.rows) + "x" + std::to_string(h.columns) + "@" + fmt(h.pitch_mm) + "mm",
+  return {h.rows == 0 ? "base" : std::to_string(h.rows) + "x" + std::to_string(h.columns) + "@" + format_number(h.pitch_mm) + "mm",
           std::to_string(d.focal.size()),
           genes(d.focal, focal_mm),
           genes(d.diameter, diameter_mm),
-          fmt(lens_to_sensor_mm.at(d.lens_to_sensor)),
-          fmt(working_distance_mm.at(d.working_distance)),
+          format_number(lens_to_sensor_mm.at(d.lens_to_sensor)),
+          format_number(working_distance_mm.at(d.working_distance)),
           to_string(lens_models.at(d.lens_model)),
           effects_labels.at(d.effects)};
 }

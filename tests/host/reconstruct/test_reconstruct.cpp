@@ -13,8 +13,10 @@
 #include <numeric>
 #include <sstream>
 
+#include "engine/ref/likelihood_ref.h"
 #include "host/dictionary/build.h"
 #include "host/events/simulate.h"
+#include "host/reconstruct/match.h"
 #include "host/reconstruct/reconstruct.h"
 #include "support.h"
 
@@ -101,9 +103,6 @@ bool finite(const prism::ReconstructedVertex& v) {
   return std::isfinite(v.x_mm) && std::isfinite(v.y_mm) && std::isfinite(v.depth_mm) && std::isfinite(v.alpha) &&
          std::isfinite(v.nll);
 }
-double error_mm(const prism::ReconstructedVertex& v, glm::dvec3 t) {
-  return std::hypot(v.x_mm - t.x, v.y_mm - t.y, v.depth_mm - t.z);
-}
 
 // The paper's protocol: `trials` events, best and worst 3D errors dropped,
 // mean and standard deviation of the rest; also the mean alpha.
@@ -120,7 +119,7 @@ Trimmed trials(glm::dvec3 truth, double alpha, int n, uint64_t seed) {
     REQUIRE(v.size() == 1);
     REQUIRE(finite(v[0]));
     t.flagged += v[0].flags != prism::vertex_ok;
-    err.push_back(error_mm(v[0], truth));
+    err.push_back(prism::error_3d_mm(v[0], truth));
     alpha_sum += v[0].alpha;
   }
   std::sort(err.begin(), err.end());
@@ -137,19 +136,19 @@ Trimmed trials(glm::dvec3 truth, double alpha, int n, uint64_t seed) {
 TEST_CASE("reconstruction NLL pieces: log(1 - exp(-lambda)) and its curvature stay finite from 1e-300 to 1e6") {
   for (double lambda : {1e-300, 1e-12, 1e-6, 0.1, 1.0, 30.0, 800.0, 1e6}) {
     CAPTURE(lambda);
-    double l = prism::nll::log_click(lambda), h = prism::nll::click_curvature(lambda);
+    double l = prism::ref::log_click(lambda), h = prism::ref::click_curvature(lambda);
     CHECK(std::isfinite(l));
     CHECK(l <= 0);
     CHECK(std::isfinite(h));
     CHECK(h >= 0);
   }
   // Against the textbook forms where those are accurate.
-  CHECK(prism::nll::log_click(1.0) == doctest::Approx(std::log(1 - std::exp(-1.0))).epsilon(1e-14));
-  CHECK(prism::nll::click_curvature(1.0) ==
+  CHECK(prism::ref::log_click(1.0) == doctest::Approx(std::log(1 - std::exp(-1.0))).epsilon(1e-14));
+  CHECK(prism::ref::click_curvature(1.0) ==
         doctest::Approx(std::exp(-1.0) / std::pow(1 - std::exp(-1.0), 2)).epsilon(1e-12));
   // The naive form loses everything below lambda ~ 1e-16; this one is log(lambda).
-  CHECK(prism::nll::log_click(1e-20) == doctest::Approx(std::log(1e-20)).epsilon(1e-12));
-  CHECK(prism::nll::click_curvature(1e-4) == doctest::Approx(1e8).epsilon(1e-6));
+  CHECK(prism::ref::log_click(1e-20) == doctest::Approx(std::log(1e-20)).epsilon(1e-12));
+  CHECK(prism::ref::click_curvature(1e-4) == doctest::Approx(1e8).epsilon(1e-6));
 }
 
 TEST_CASE("reconstruction: one forward-model vertex off the grid, 25 trials at 100 and 1000 photons") {
@@ -188,10 +187,8 @@ TEST_CASE("reconstruction: two vertices at distinct places, K = 2") {
     auto v = run(e, settings(2));
     REQUIRE(v.size() == 2);
     for (const auto& x : v) REQUIRE(finite(x));
-    // Match the estimates to the truths in the better of the two orders.
-    double direct = std::max(error_mm(v[0], a), error_mm(v[1], b));
-    double swapped = std::max(error_mm(v[0], b), error_mm(v[1], a));
-    double worst = std::min(direct, swapped);
+    auto which = prism::match_vertices(v, {a, b});
+    double worst = std::max(prism::error_3d_mm(v[which[0]], a), prism::error_3d_mm(v[which[1]], b));
     CAPTURE(i);
     CAPTURE(worst);
     CHECK(v[0].alpha + v[1].alpha == doctest::Approx(400).epsilon(0.35));
@@ -236,7 +233,7 @@ TEST_CASE("reconstruction hazards: no clicks, one click, clicks no PSF reaches")
   auto with = run(stray, settings(1));
   REQUIRE(finite(with[0]));
   CHECK(with[0].nll > clean[0].nll + 10);  // -log(dark rate) ~ 13.8 for the stray click
-  CHECK(error_mm(with[0], truth) < error_mm(clean[0], truth) + 0.5);
+  CHECK(prism::error_3d_mm(with[0], truth) < prism::error_3d_mm(clean[0], truth) + 0.5);
   CHECK(with[0].clicks == clean[0].clicks);  // the stray click belongs to no vertex
 }
 
@@ -254,7 +251,7 @@ TEST_CASE("reconstruction hazards: photon counts from 10 to 1e4, lambda from ~0 
       REQUIRE(finite(v[0]));
       CHECK(seconds < 5);  // bounded work: every loop has a cap
       CHECK((v[0].flags & prism::alpha_at_bound) == 0);
-      worst = std::max(worst, error_mm(v[0], truth));
+      worst = std::max(worst, prism::error_3d_mm(v[0], truth));
     }
     MESSAGE("alpha " << alpha << ": worst 3D error of 3 events " << worst << " mm");
     if (alpha >= 1e3) CHECK(worst < 1.0);  // saturated peaks (lambda >> 1) must not derail the fit
@@ -276,8 +273,8 @@ TEST_CASE("reconstruction hazards: two vertices at the same place and 1 mm apart
     // small one elsewhere) or nothing (alpha_zero).
     const auto& strong = v[0].alpha >= v[1].alpha ? v[0] : v[1];
     const auto& weak = v[0].alpha >= v[1].alpha ? v[1] : v[0];
-    CHECK(error_mm(strong, p) < 2.5);  // half the plane spacing, as for K = 2 above
-    CHECK((weak.alpha < 0.5 * strong.alpha || error_mm(weak, p) < 5.0));
+    CHECK(prism::error_3d_mm(strong, p) < 2.5);  // half the plane spacing, as for K = 2 above
+    CHECK((weak.alpha < 0.5 * strong.alpha || prism::error_3d_mm(weak, p) < 5.0));
   }
   const glm::dvec3 a(1, 1, 28), b(2, 1, 28);
   for (int i = 0; i < 4; ++i) {
@@ -289,7 +286,7 @@ TEST_CASE("reconstruction hazards: two vertices at the same place and 1 mm apart
     REQUIRE(w > 0);
     const auto& strong = v[0].alpha >= v[1].alpha ? v[0] : v[1];
     CAPTURE(i);
-    CHECK(error_mm(strong, (a + b) * 0.5) < 2.5);
+    CHECK(prism::error_3d_mm(strong, (a + b) * 0.5) < 2.5);
     CHECK(w == doctest::Approx(300).epsilon(0.35));
   }
 }

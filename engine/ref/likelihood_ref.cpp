@@ -1,0 +1,119 @@
+#include "engine/ref/likelihood_ref.h"
+
+#include <algorithm>
+#include <cmath>
+
+namespace prism::ref {
+
+double log_click(double lambda) { return std::log(-std::expm1(-lambda)); }
+
+double click_curvature(double lambda) {
+  // Below 1e-150 the square underflows; 1 / lambda^2 there is >= 1e300, still
+  // finite. sinh overflows to inf for huge lambda: curvature 0, as it should.
+  double s = std::sinh(0.5 * std::max(lambda, 1e-150));
+  return 1.0 / (4.0 * s * s);
+}
+
+double click_weight(double lambda) { return 1.0 / -std::expm1(-lambda); }
+
+double fit_weights(std::span<const std::vector<double>* const> p, std::span<const double> s,
+                   std::span<const double> background, std::vector<double>& alpha, int max_iterations,
+                   double alpha_max) {
+  const size_t K = alpha.size(), C = background.size();
+  std::vector<double> lam(C), trial(K), grad(K), dir(K);
+  auto eval = [&](const std::vector<double>& a) {
+    double f = 0;
+    for (size_t k = 0; k < K; ++k) f += a[k] * s[k];
+    for (size_t c = 0; c < C; ++c) {
+      double l = background[c];
+      for (size_t k = 0; k < K; ++k) l += a[k] * (*p[k])[c];
+      lam[c] = l;
+      f -= l + log_click(l);
+    }
+    return f;
+  };
+  for (double& a : alpha) a = std::clamp(a, 0.0, alpha_max);
+  double f = eval(alpha);
+  std::vector<double> H(K * K);
+  for (int it = 0; it < max_iterations; ++it) {
+    std::fill(H.begin(), H.end(), 0.0);
+    for (size_t k = 0; k < K; ++k) grad[k] = s[k];
+    for (size_t c = 0; c < C; ++c) {
+      double w = click_weight(lam[c]), h = click_curvature(lam[c]);
+      for (size_t k = 0; k < K; ++k) {
+        double pk = (*p[k])[c];
+        if (pk == 0) continue;
+        grad[k] -= pk * w;
+        for (size_t j = 0; j < K; ++j) H[k * K + j] += pk * (*p[j])[c] * h;
+      }
+    }
+    // Free variables: not held at a bound by the sign of their gradient.
+    std::vector<size_t> free;
+    for (size_t k = 0; k < K; ++k)
+      if (!(alpha[k] <= 0 && grad[k] >= 0) && !(alpha[k] >= alpha_max && grad[k] <= 0)) free.push_back(k);
+    if (free.empty()) break;
+    // Solve H_FF d = -g_F by Gaussian elimination (K <= 8) with a relative ridge.
+    const size_t F = free.size();
+    std::vector<double> A(F * F), b(F);
+    double diag_max = 0;
+    for (size_t i = 0; i < F; ++i) diag_max = std::max(diag_max, H[free[i] * K + free[i]]);
+    for (size_t i = 0; i < F; ++i) {
+      for (size_t j = 0; j < F; ++j) A[i * F + j] = H[free[i] * K + free[j]];
+      A[i * F + i] += 1e-9 * diag_max + 1e-300;
+      b[i] = -grad[free[i]];
+    }
+    for (size_t i = 0; i < F; ++i) {
+      size_t piv = i;
+      for (size_t r = i + 1; r < F; ++r)
+        if (std::abs(A[r * F + i]) > std::abs(A[piv * F + i])) piv = r;
+      for (size_t j = 0; j < F; ++j) std::swap(A[i * F + j], A[piv * F + j]);
+      std::swap(b[i], b[piv]);
+      for (size_t r = i + 1; r < F; ++r) {
+        double m = A[r * F + i] / A[i * F + i];
+        for (size_t j = i; j < F; ++j) A[r * F + j] -= m * A[i * F + j];
+        b[r] -= m * b[i];
+      }
+    }
+    std::fill(dir.begin(), dir.end(), 0.0);
+    for (size_t i = F; i-- > 0;) {
+      double v = b[i];
+      for (size_t j = i + 1; j < F; ++j) v -= A[i * F + j] * dir[free[j]];
+      dir[free[i]] = v / A[i * F + i];
+    }
+    // Backtracking along the projected path (Armijo).
+    bool accepted = false;
+    double ft = f, step_max = 0;
+    std::vector<double> lam_accepted;
+    for (double t = 1; t > 1e-12; t *= 0.5) {
+      double decrease = 0;
+      step_max = 0;
+      for (size_t k = 0; k < K; ++k) {
+        trial[k] = std::clamp(alpha[k] + t * dir[k], 0.0, alpha_max);
+        decrease += grad[k] * (trial[k] - alpha[k]);
+        step_max = std::max(step_max, std::abs(trial[k] - alpha[k]) / (1 + alpha[k]));
+      }
+      if (step_max == 0) break;
+      ft = eval(trial);
+      if (ft <= f + 1e-4 * decrease) {
+        accepted = true;
+        break;
+      }
+    }
+    if (!accepted) {
+      eval(alpha);  // lam back to the current point
+      break;
+    }
+    bool converged = f - ft <= 1e-12 * (1 + std::abs(f)) && step_max < 1e-9;
+    alpha = trial;
+    f = ft;
+    if (converged) break;
+  }
+  return f;
+}
+
+double initial_alpha(std::span<const double> p, double s, double alpha_max) {
+  double reached = double(std::count_if(p.begin(), p.end(), [](double v) { return v > 0; }));
+  return std::clamp(std::max(reached, 1.0) / std::max(s, 1e-3), 1e-3, alpha_max);
+}
+
+}  // namespace prism::ref

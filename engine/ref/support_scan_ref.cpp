@@ -1,0 +1,61 @@
+#include "engine/ref/support_scan_ref.h"
+
+#include <cmath>
+#include <limits>
+
+#include "engine/ref/likelihood_ref.h"
+
+namespace prism::ref {
+
+glm::ivec2 best_shift(ScanSource& level, size_t psf, std::span<const glm::ivec2> clicks, std::span<const double> w,
+                      glm::ivec2 center, int reach, int step) {
+  const int radius = level.radius_px(psf);
+  std::vector<glm::ivec2> shifts;
+  const int first = -(reach / step) * step;
+  for (int dy = first; dy <= reach; dy += step)
+    for (int dx = first; dx <= reach; dx += step) {
+      glm::ivec2 sh = center + glm::ivec2(dx, dy);
+      if (std::abs(sh.x) <= radius && std::abs(sh.y) <= radius) shifts.push_back(sh);
+    }
+  if (shifts.empty()) return glm::clamp(center, glm::ivec2(-radius), glm::ivec2(radius));
+  // All shifts' pixels in one request: the dictionary fetches each tile once.
+  std::vector<glm::ivec2> pixels;
+  pixels.reserve(shifts.size() * clicks.size());
+  for (glm::ivec2 sh : shifts)
+    for (glm::ivec2 c : clicks) pixels.push_back(c - sh);
+  const std::vector<float> v = level.values(psf, pixels);
+  const size_t n = clicks.size();
+  double best = std::numeric_limits<double>::infinity();
+  glm::ivec2 arg = shifts[0];
+  for (size_t j = 0; j < shifts.size(); ++j) {
+    double score = level.mass_shifted(psf, shifts[j]);
+    for (size_t i = 0; i < n; ++i) score -= w[i] * double(v[j * n + i]);
+    if (score < best) best = score, arg = shifts[j];
+  }
+  return arg;
+}
+
+std::vector<SupportScore> support_scan(ScanSource& level, const ScanEvent& event, const ScanSettings& settings) {
+  std::vector<double> w(event.rate.size());
+  for (size_t i = 0; i < w.size(); ++i) w[i] = click_weight(event.rate[i]);
+  const int step = std::max(1, settings.step_px);
+  std::vector<SupportScore> scored;
+  scored.reserve(level.psf_count());
+  for (size_t m = 0; m < level.psf_count(); ++m) {
+    const int r = level.radius_px(m);
+    glm::ivec2 sh = best_shift(level, m, event.clicks, w, glm::ivec2(0), r, step);
+    std::vector<glm::ivec2> pixels;
+    for (glm::ivec2 c : event.clicks) pixels.push_back(c - sh);
+    auto v = level.values(m, pixels);
+    std::vector<double> p(v.begin(), v.end());
+    const double s = level.mass_shifted(m, sh);
+    std::vector<double> alpha{initial_alpha(p, s, settings.alpha_max)};
+    const std::vector<double>* columns[] = {&p};
+    double f = fit_weights(columns, std::span<const double>(&s, 1), event.rate, alpha, settings.newton_iterations,
+                           settings.alpha_max);
+    scored.push_back({m, sh, f, alpha[0]});
+  }
+  return scored;
+}
+
+}  // namespace prism::ref

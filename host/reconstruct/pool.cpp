@@ -1,0 +1,66 @@
+#include "host/reconstruct/pool.h"
+
+#include <algorithm>
+#include <exception>
+#include <stdexcept>
+#include <string>
+#include <thread>
+
+namespace prism {
+
+ReconstructionPool::ReconstructionPool(const DictionaryReader& reader, int click_level, ReconstructionSettings s,
+                                       const PoolOptions& o)
+    : settings_(s) {
+  const auto& m = reader.manifest();
+  if (settings_.search_level < 0) settings_.search_level = default_search_level(m, click_level);
+  if (settings_.search_level < click_level || settings_.search_level >= m.levels)
+    throw std::invalid_argument("search level " + std::to_string(settings_.search_level) + ": choose a level from " +
+                                std::to_string(click_level) + " (the clicks' own) to " + std::to_string(m.levels - 1) +
+                                " (the coarsest in " + reader.dir() + ")");
+  const bool on_device = o.backend != ReconstructionBackend::cpu;
+  const unsigned n = on_device ? 1u : std::max(1u, o.threads);
+  ServiceBudget budget;
+  budget.host_bytes = o.host_budget_bytes / n;
+  for (unsigned t = 0; t < n; ++t) {
+    services_.push_back(std::make_unique<DictionaryService>(reader, on_device ? o.ctx : nullptr,
+                                                            settings_.search_level, budget, o.device_half));
+    workers_.push_back(std::make_unique<Reconstructor>(*services_.back(), click_level, settings_, o.backend, o.ctx));
+  }
+}
+
+ReconstructionPool::~ReconstructionPool() = default;
+
+std::vector<std::vector<ReconstructedVertex>> ReconstructionPool::run(std::span<const Event> events) {
+  if (workers_.size() == 1) return workers_[0]->run(events);
+  std::vector<std::vector<ReconstructedVertex>> out(events.size());
+  const size_t n = workers_.size();
+  std::vector<std::exception_ptr> failures(n);
+  std::vector<std::thread> pool;
+  for (size_t t = 0; t < n; ++t)
+    pool.emplace_back([&, t] {
+      try {
+        for (size_t i = t; i < events.size(); i += n) out[i] = std::move(workers_[t]->run(events.subspan(i, 1)).at(0));
+      } catch (...) {
+        failures[t] = std::current_exception();
+      }
+    });
+  for (auto& th : pool) th.join();
+  for (auto& f : failures)
+    if (f) std::rethrow_exception(f);
+  return out;
+}
+
+ReconstructionTimings ReconstructionPool::timings() const {
+  ReconstructionTimings sum;
+  for (const auto& w : workers_) {
+    const auto& t = w->timings();
+    sum.scan_s += t.scan_s;
+    sum.scan_kernel_ms += t.scan_kernel_ms;
+    sum.host_s += t.host_s;
+    sum.scans += t.scans;
+    sum.scan_device_bytes = std::max(sum.scan_device_bytes, t.scan_device_bytes);
+  }
+  return sum;
+}
+
+}  // namespace prism

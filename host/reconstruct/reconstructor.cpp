@@ -1,0 +1,188 @@
+// The Reconstructor: a batch of events through the K passes in lockstep, the
+// support scan on the chosen backend, the rest in detail::EventFit.
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+
+#include "host/reconstruct/event_fit.h"
+#include "host/reconstruct/reconstruct.h"
+
+namespace prism {
+
+using detail::EventFit;
+
+std::string flags_to_string(uint32_t flags) {
+  static const std::pair<uint32_t, const char*> names[] = {
+      {no_clicks, "no_clicks"}, {few_clicks, "few_clicks"}, {alpha_zero, "alpha_zero"},
+      {alpha_at_bound, "alpha_at_bound"}, {edge, "edge"}, {merged, "merged"}};
+  std::string out;
+  for (auto [bit, name] : names)
+    if (flags & bit) {
+      if (!out.empty()) out += '|';
+      out += name;
+    }
+  return out;
+}
+
+int click_level(const DictionaryManifest& m, const EventFileHeader& h, const std::string& events_path,
+                const std::string& dictionary_dir) {
+  for (int l = 0; l < m.levels; ++l) {
+    if ((m.base_binning << l) != int(h.binning)) continue;
+    if (m.level_width(l) != int(h.grid_width()) || m.level_height(l) != int(h.grid_height()))
+      throw DictionaryError(events_path + ": click grid " + std::to_string(h.grid_width()) + " x " +
+                            std::to_string(h.grid_height()) + " differs from " + dictionary_dir + " level " +
+                            std::to_string(l) + " (" + std::to_string(m.level_width(l)) + " x " +
+                            std::to_string(m.level_height(l)) + "): the two are for different sensors");
+    return l;
+  }
+  throw DictionaryError(events_path + ": clicks on " + std::to_string(h.binning) + " x " + std::to_string(h.binning) +
+                        " binned pixels, but " + dictionary_dir + " stores binnings " +
+                        std::to_string(m.base_binning) + " x 2^k (k < " + std::to_string(m.levels) +
+                        "); simulate with one of those or build a dictionary with that base binning");
+}
+
+int default_search_level(const DictionaryManifest& m, int click_level) {
+  return std::min(click_level + 2, m.levels - 1);
+}
+
+namespace {
+// The device's results of event j as scores.
+std::vector<SupportScore> to_scores(const std::vector<ScanResult>& results, size_t j, size_t n_psf) {
+  std::vector<SupportScore> scored(n_psf);
+  for (size_t psf = 0; psf < n_psf; ++psf) {
+    const ScanResult& r = results[j * n_psf + psf];
+    scored[psf] = {psf, r.shift, double(r.nll), double(r.alpha)};
+  }
+  return scored;
+}
+}  // namespace
+
+const char* to_string(ReconstructionBackend b) {
+  switch (b) {
+    case ReconstructionBackend::cpu: return "cpu";
+    case ReconstructionBackend::vulkan: return "vulkan";
+    case ReconstructionBackend::dense: return "dense";
+  }
+  return "?";
+}
+
+ReconstructionBackend backend_from_string(const std::string& s) {
+  for (auto b : {ReconstructionBackend::cpu, ReconstructionBackend::vulkan, ReconstructionBackend::dense})
+    if (s == to_string(b)) return b;
+  throw std::invalid_argument("reconstruction backend '" + s + "': choose cpu, vulkan or dense");
+}
+
+Reconstructor::Reconstructor(DictionaryService& dictionary, int click_level, ReconstructionSettings settings,
+                             ReconstructionBackend backend, vk::Context* ctx)
+    : d_(dictionary), level_(click_level), s_(settings), backend_(backend) {
+  const auto& m = dictionary.manifest();
+  if (s_.vertices < 1 || s_.vertices > 8)
+    throw std::invalid_argument("reconstruction: vertices = " + std::to_string(s_.vertices) + "; choose K in 1..8");
+  if (!(s_.dark_rate > 0) || !(s_.tau_mm >= 0) || !(s_.alpha_max > 0))
+    throw std::invalid_argument("reconstruction: dark_rate and alpha_max must be > 0 and tau_mm >= 0");
+  if (s_.scan_step_px < 1) throw std::invalid_argument("reconstruction: the scan step must be >= 1 pixel");
+  if (level_ < 0 || level_ >= m.levels)
+    throw std::invalid_argument("reconstruction: click level " + std::to_string(level_) + " is not in the dictionary");
+  if (backend_ == ReconstructionBackend::cpu) return;
+  const int Ls = detail::search_level_of(dictionary, s_, level_);
+  if (!ctx) throw std::invalid_argument(std::string("reconstruction: the ") + to_string(backend_) + " backend needs a Vulkan device");
+  if (Ls != dictionary.coarse_level())
+    throw std::invalid_argument("reconstruction: the device scans the level the dictionary service keeps on the device (" +
+                                std::to_string(dictionary.coarse_level()) + "), not level " + std::to_string(Ls) +
+                                "; make the service with the search level as its coarse level");
+  scan_level_ = dictionary.scan_level();
+  for (size_t i = 0; i < scan_level_.psfs.size(); ++i)
+    scan_level_.psfs[i].radius_px = detail::scan_radius_px(m, s_.tau_mm, i, Ls);
+  device_ = std::make_unique<SupportScanVulkan>(
+      *ctx, backend_ == ReconstructionBackend::dense ? ScanKernel::dense : ScanKernel::sparse, scan_level_.half);
+}
+
+Reconstructor::~Reconstructor() = default;
+
+void Reconstructor::check_clicks(std::span<const Event> events) const {
+  const auto& m = d_.manifest();
+  const uint64_t pixels = uint64_t(m.level_width(level_)) * uint64_t(m.level_height(level_));
+  for (const Event& e : events)
+    for (uint32_t c : e.clicks)
+      if (c >= pixels)
+        throw std::invalid_argument("event " + std::to_string(e.id) + ": click " + std::to_string(c) +
+                                    " lies beyond the " + std::to_string(pixels) + "-pixel click grid");
+}
+
+std::vector<std::vector<SupportScore>> Reconstructor::first_scan(std::span<const Event> events) {
+  check_clicks(events);
+  std::vector<EventFit> fits;
+  fits.reserve(events.size());
+  for (const Event& e : events) fits.emplace_back(e, level_, d_, s_);
+  std::vector<std::vector<SupportScore>> out(events.size());
+  std::vector<size_t> active;
+  for (size_t i = 0; i < fits.size(); ++i)
+    if (fits[i].wants_vertex()) active.push_back(i);
+  if (backend_ == ReconstructionBackend::cpu) {
+    for (size_t i : active) out[i] = fits[i].scan_cpu();
+    return out;
+  }
+  std::vector<ScanEvent> inputs;
+  for (size_t i : active) inputs.push_back(fits[i].scan_input(backend_ == ReconstructionBackend::dense));
+  ScanSettings scan{s_.scan_step_px, s_.newton_iterations, s_.alpha_max};
+  auto results = device_->run(scan_level_, inputs, scan);
+  for (size_t j = 0; j < active.size(); ++j) out[active[j]] = to_scores(results, j, d_.manifest().grid.size());
+  return out;
+}
+
+std::vector<std::vector<ReconstructedVertex>> Reconstructor::run(std::span<const Event> events) {
+  using clock = std::chrono::steady_clock;
+  auto seconds = [](clock::time_point a, clock::time_point b) { return std::chrono::duration<double>(b - a).count(); };
+  const auto& m = d_.manifest();
+  check_clicks(events);
+  auto t0 = clock::now();
+  std::vector<EventFit> fits;
+  fits.reserve(events.size());
+  for (const Event& e : events) fits.emplace_back(e, level_, d_, s_);
+  ScanSettings scan{s_.scan_step_px, s_.newton_iterations, s_.alpha_max};
+  const size_t n_psf = m.grid.size();
+  double host_s = seconds(t0, clock::now());
+  // K passes in lockstep: each pass scans every event that wants a vertex.
+  for (int pass = 0; pass < s_.vertices; ++pass) {
+    std::vector<size_t> active;
+    for (size_t i = 0; i < fits.size(); ++i)
+      if (fits[i].wants_vertex()) active.push_back(i);
+    if (active.empty()) break;
+    timings_.scans += active.size();
+    if (backend_ == ReconstructionBackend::cpu) {
+      for (size_t i : active) {
+        auto a = clock::now();
+        auto scored = fits[i].scan_cpu();
+        auto b = clock::now();
+        fits[i].add_vertex(std::move(scored));
+        timings_.scan_s += seconds(a, b);
+        host_s += seconds(b, clock::now());
+      }
+      continue;
+    }
+    auto a = clock::now();
+    std::vector<ScanEvent> inputs;
+    for (size_t i : active) inputs.push_back(fits[i].scan_input(backend_ == ReconstructionBackend::dense));
+    auto b = clock::now();
+    auto results = device_->run(scan_level_, inputs, scan);
+    auto c = clock::now();
+    timings_.scan_kernel_ms += device_->last_kernel_ms();
+    timings_.scan_device_bytes = std::max(timings_.scan_device_bytes, device_->last_device_bytes());
+    for (size_t j = 0; j < active.size(); ++j) fits[active[j]].add_vertex(to_scores(results, j, n_psf));
+    timings_.scan_s += seconds(b, c);
+    host_s += seconds(a, b) + seconds(c, clock::now());
+  }
+  auto d = clock::now();
+  std::vector<std::vector<ReconstructedVertex>> out;
+  for (auto& f : fits) out.push_back(f.result());
+  timings_.host_s += host_s + seconds(d, clock::now());
+  return out;
+}
+
+std::vector<ReconstructedVertex> reconstruct(const Event& event, int level, DictionaryService& dictionary,
+                                             const ReconstructionSettings& settings) {
+  Reconstructor r(dictionary, level, settings);
+  return r.run(std::span<const Event>(&event, 1)).at(0);
+}
+
+}  // namespace prism

@@ -1,0 +1,15 @@
+// How numbers and text fields are written to CSV files and tables: one
+// convention for every output of `prism`.
+#pragma once
+#include <string>
+
+namespace prism {
+
+// Six significant digits ("%.6g"); infinities as "inf" and "-inf", NaN as
+// "nan" (a CRLB with no light is infinite, never NaN; see README).
+std::string format_number(double v);
+
+// A CSV field, quoted when it holds a comma or a quote (quotes doubled).
+std::string csv_field(const std::string& s);
+
+}  // namespace prism
