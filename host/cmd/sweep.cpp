@@ -12,6 +12,7 @@
 #include "host/util/image_io.h"
 #include "host/util/plot.h"
 #include "host/util/progress.h"
+#include "host/sweep/baselines.h"
 #include "host/sweep/sweep.h"
 #include "host/util/format.h"
 
@@ -36,11 +37,6 @@ extern "C" void on_sigint(int) {
 }
 
 
-
-struct Baseline {
-  std::string name;
-  Objectives objectives;
-};
 
 void write_csv(const std::string& path, const Sweep& sweep, const std::vector<const Evaluated*>& ranked) {
   write_atomically(path, [&](const std::string& tmp) {
@@ -180,12 +176,7 @@ void run(const SweepArgs& a) {
   }
 
   // Baselines at the same settings and samples: the prototype and the unifocal arrays.
-  std::vector<Baseline> baselines;
-  for (const char* name : {"prototype", "unifocal-f3", "unifocal-f9", "unifocal-f15"}) {
-    Scene b = builtin_scene(name);
-    b.volume = space.base.volume;
-    baselines.push_back({name, score(b, space.samples, s.trace, s.backend, ctx.get())});
-  }
+  auto baselines = score_baselines(space, s, ctx.get());
   write_plots(a, sweep, ranked, baselines, stated);
 
   std::printf("%-4s %-10s %12s %12s %10s %8s  %s\n", "rank", "origin", "mean_3d_mm", "worst_3d_mm", "photons",
@@ -210,21 +201,9 @@ void run(const SweepArgs& a) {
   if (a.confirm > 0) {
     std::printf("# CPU reference check of the top %u designs (same rays, binning and samples):\n", a.confirm);
     std::printf("%-4s %14s %14s %8s\n", "rank", "device_value", "cpu_value", "cpu_rank");
-    std::vector<std::pair<double, size_t>> cpu;
-    std::vector<double> dev;
-    for (size_t k = 0; k < ranked.size() && k < a.confirm && ranked[k]->valid; ++k) {
-      Scene sc = space.scene_of(ranked[k]->design, "confirm");
-      double v = objective_value(score(sc, space.samples, s.trace, Backend::cpu, nullptr), a.objective);
-      cpu.push_back({objective_is_maximised(a.objective) ? -v : v, k});
-      dev.push_back(objective_value(ranked[k]->objectives, a.objective));
-    }
-    auto order = cpu;
-    std::sort(order.begin(), order.end());
-    for (size_t k = 0; k < cpu.size(); ++k) {
-      size_t r = size_t(std::find_if(order.begin(), order.end(), [&](auto& p) { return p.second == k; }) - order.begin());
-      std::printf("%-4zu %14s %14s %8zu\n", k + 1, format_number(dev[k]).c_str(),
-                  format_number(objective_is_maximised(a.objective) ? -cpu[k].first : cpu[k].first).c_str(), r + 1);
-    }
+    for (const auto& c : confirm_with_reference(sweep, ranked, a.confirm))
+      std::printf("%-4zu %14s %14s %8zu\n", c.rank, format_number(c.device_value).c_str(),
+                  format_number(c.reference_value).c_str(), c.reference_rank);
   }
   std::fprintf(stderr, "prism sweep: wrote %s/ranked.csv, best-*.json, pareto.png, crlb-depth.png\n", a.out.c_str());
 }

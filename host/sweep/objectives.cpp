@@ -1,0 +1,166 @@
+// The sample grid, the objectives a design is scored by, bounds on them, and
+// the scoring itself (Fisher information at the grid's positions).
+#include "host/sweep/objectives.h"
+
+#include <algorithm>
+#include <cmath>
+
+#include "engine/forward.h"
+#include "host/util/format.h"
+
+namespace prism {
+
+// ---- Sample grid
+
+std::vector<glm::dvec3> SampleGrid::positions() const {
+  std::vector<glm::dvec3> p;
+  for (double d : depth_mm)
+    for (double y : y_mm)
+      for (double x : x_mm) p.push_back({x, y, d});
+  return p;
+}
+
+std::string SampleGrid::describe() const {
+  auto list = [](const std::vector<double>& v) {
+    std::string s;
+    for (double x : v) s += (s.empty() ? "" : ",") + format_number(x);
+    return s;
+  };
+  return std::to_string(x_mm.size() * y_mm.size() * depth_mm.size()) + " sources: x_mm {" + list(x_mm) + "} x y_mm {" +
+         list(y_mm) + "} x depth_mm {" + list(depth_mm) + "}";
+}
+
+SampleGrid SampleGrid::of(const Volume& v, int lateral, int depth) {
+  // Lateral: evenly over the middle 40% of the width (x, y in [-10, 10] mm for
+  // the prototype's volume). Nearer the edge, near sources image through few
+  // lenses onto the sensor and the prototype's Fisher matrix is singular at
+  // 4096 rays (x = y = 15 mm, depth 2.5 and 7.5 mm): every design would score inf.
+  auto inner = [](double lo, double hi, int n) {
+    std::vector<double> out;
+    for (int i = 0; i < n; ++i) out.push_back(n == 1 ? 0.5 * (lo + hi) : lo + (hi - lo) * (0.3 + 0.4 * i / (n - 1)));
+    return out;
+  };
+  SampleGrid g;
+  g.x_mm = inner(v.x_min_mm, v.x_max_mm, lateral);
+  g.y_mm = inner(v.y_min_mm, v.y_max_mm, lateral);
+  for (int i = 0; i < depth; ++i)
+    g.depth_mm.push_back(v.depth_min_mm + (v.depth_max_mm - v.depth_min_mm) * (i + 0.5) / depth);
+  return g;
+}
+
+// ---- Objectives and bounds
+
+const std::vector<std::string>& objective_names() {
+  static const std::vector<std::string> names{"mean_crlb_3d", "worst_crlb_3d", "mean_crlb_x", "mean_crlb_y",
+                                              "mean_crlb_z",  "photons",       "depth_ratio"};
+  return names;
+}
+
+bool objective_is_maximised(const std::string& name) { return name == "photons"; }
+
+double objective_value(const Objectives& o, const std::string& name) {
+  if (name == "mean_crlb_3d") return o.mean_crlb_3d_mm;
+  if (name == "worst_crlb_3d") return o.worst_crlb_3d_mm;
+  if (name == "mean_crlb_x") return o.mean_crlb_x_mm;
+  if (name == "mean_crlb_y") return o.mean_crlb_y_mm;
+  if (name == "mean_crlb_z") return o.mean_crlb_z_mm;
+  if (name == "photons") return o.mean_photons;
+  if (name == "depth_ratio") return o.depth_ratio;
+  std::string list;
+  for (const auto& n : objective_names()) list += (list.empty() ? "" : ", ") + n;
+  throw SweepError("unknown objective '" + name + "' (known: " + list + ")");
+}
+
+bool Bound::holds(const Objectives& o) const {
+  double v = objective_value(o, objective);
+  return at_least ? v >= value : v <= value;
+}
+
+std::string Bound::text() const { return objective + (at_least ? ">=" : "<=") + format_number(value); }
+
+Bound parse_bound(const std::string& text) {
+  size_t at = text.find(">=");
+  bool at_least = at != std::string::npos;
+  if (!at_least) at = text.find("<=");
+  if (at == std::string::npos) throw SweepError("--bound '" + text + "': write NAME>=VALUE or NAME<=VALUE, e.g. photons>=100");
+  Bound b{text.substr(0, at), at_least, 0};
+  objective_value(Objectives{}, b.objective);  // throws, listing the names
+  try {
+    size_t used = 0;
+    b.value = std::stod(text.substr(at + 2), &used);
+    if (used != text.size() - at - 2) throw std::invalid_argument(text);
+  } catch (const std::exception&) {
+    throw SweepError("--bound '" + text + "': '" + text.substr(at + 2) + "' is not a number");
+  }
+  return b;
+}
+
+// ---- Scoring
+
+namespace {
+
+// The objectives of one design from its CRLB at the grid's positions.
+Objectives objectives_of(const std::vector<CrlbRow>& rows, const SampleGrid& grid) {
+  Objectives o;
+  double n = double(rows.size()), sum3 = 0, sx = 0, sy = 0, sz = 0, photons = 0, worst = 0;
+  for (const auto& r : rows) {
+    sum3 += r.crlb.r3_mm;
+    sx += r.crlb.x_mm;
+    sy += r.crlb.y_mm;
+    sz += r.crlb.depth_mm;
+    photons += r.photons;
+    worst = std::max(worst, r.crlb.r3_mm);
+  }
+  o.mean_crlb_3d_mm = sum3 / n;
+  o.worst_crlb_3d_mm = worst;
+  o.mean_crlb_x_mm = sx / n;
+  o.mean_crlb_y_mm = sy / n;
+  o.mean_crlb_z_mm = sz / n;
+  o.mean_photons = photons / n;
+  size_t per_plane = grid.x_mm.size() * grid.y_mm.size();  // positions() puts depth outermost
+  for (size_t p = 0; p < grid.depth_mm.size(); ++p) {
+    double s = 0;
+    for (size_t i = 0; i < per_plane; ++i) s += rows[p * per_plane + i].crlb.r3_mm;
+    o.crlb_3d_by_depth_mm.push_back(s / double(per_plane));
+  }
+  auto [lo, hi] = std::minmax_element(o.crlb_3d_by_depth_mm.begin(), o.crlb_3d_by_depth_mm.end());
+  o.depth_ratio = std::isfinite(*hi) ? *hi / *lo : INFINITY;
+  return o;
+}
+
+}  // namespace
+
+// All scenes at all the grid's positions in one multi-design dispatch.
+std::vector<Objectives> score_together(const std::vector<Scene>& scenes, const SampleGrid& grid,
+                                       const TraceSettings& settings, vk::Context& ctx) {
+  std::vector<OpticalSystem> systems;
+  for (const auto& s : scenes) systems.push_back(s.optics);
+  ForwardVulkan fw(ctx, systems, settings);
+  auto positions = grid.positions();
+  std::vector<glm::dvec3> theta;
+  std::vector<uint32_t> design_of;
+  for (uint32_t d = 0; d < scenes.size(); ++d)
+    for (const auto& p : positions) {
+      theta.push_back(p);
+      design_of.push_back(d);
+    }
+  auto fisher = fw.fisher(theta, design_of);
+  std::vector<Objectives> out;
+  for (size_t d = 0; d < scenes.size(); ++d) {
+    std::vector<CrlbRow> rows;
+    for (size_t i = 0; i < positions.size(); ++i) {
+      const FisherResult& f = fisher[d * positions.size() + i];
+      rows.push_back({scenes[d].name, scenes[d].optics.lens_model, positions[i], f.photons,
+                      crlb_from_fisher(f.poisson, f.photons), settings.rays()});
+    }
+    out.push_back(objectives_of(rows, grid));
+  }
+  return out;
+}
+
+Objectives score(const Scene& scene, const SampleGrid& grid, const TraceSettings& settings, Backend backend,
+                 vk::Context* ctx) {
+  return objectives_of(crlb_study(scene, grid.positions(), settings, backend, SensorModel::poisson, ctx), grid);
+}
+
+}  // namespace prism
