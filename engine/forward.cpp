@@ -7,7 +7,7 @@
 #include "engine/vk/error.h"
 #include "spv/fisher_reduce.spv.h"
 #include "spv/psf_splat.spv.h"
-#include "spv/trace_rays.spv.h"
+#include "spv/landing_points.spv.h"
 
 namespace prism {
 
@@ -302,7 +302,7 @@ std::vector<float> ForwardVulkan::psf_values(const glm::dvec3& theta) {
   return out;
 }
 
-std::vector<glm::vec3> trace_rays_vulkan(vk::Context& ctx, const OpticalSystem& sys, size_t lens_index,
+std::vector<glm::vec3> landing_points_vulkan(vk::Context& ctx, const OpticalSystem& sys, size_t lens_index,
                                          std::span<const glm::vec3> origin_dir_pairs) {
   size_t n = origin_dir_pairs.size() / 2;
   if (n == 0) return {};
@@ -314,7 +314,7 @@ std::vector<glm::vec3> trace_rays_vulkan(vk::Context& ctx, const OpticalSystem& 
   vk::Buffer ray_buf(ctx, rays.size() * sizeof(glm::vec4));
   ray_buf.upload(std::span<const glm::vec4>(rays));
   vk::Buffer hit_buf(ctx, n * sizeof(glm::vec4));
-  vk::Kernel kernel(ctx, "trace_rays", spirv(spv_trace_rays), 3, 2 * sizeof(uint32_t),
+  vk::Kernel kernel(ctx, "landing_points", spirv(spv_landing_points), 3, 2 * sizeof(uint32_t),
                     {uint32_t(sys.lens_model == LensModel::real ? shared::LENS_REAL : shared::LENS_THIN)});
   struct {
     float lens_to_sensor_mm;

@@ -64,9 +64,11 @@ class ForwardVulkan {
 // The lenslets as the kernels see them: geometry, strata, first ray.
 std::vector<shared::Lenslet> device_lenslets(const OpticalSystem& sys, const TraceSettings& settings);
 
-// Trace explicit rays (origin, direction pairs) through one lenslet to the
-// sensor plane on the device; returns (x_mm, y_mm, ok) per ray.
-std::vector<glm::vec3> trace_rays_vulkan(vk::Context& ctx, const OpticalSystem& sys, size_t lens_index,
-                                         std::span<const glm::vec3> origin_dir_pairs);
+// Where explicit rays (origin, direction pairs) through one lenslet land on
+// the sensor plane, on the device; returns (x_mm, y_mm, ok) per ray. For the
+// check against an independent optics library (tests/engine/test_lens_landing.cpp),
+// not part of the forward model.
+std::vector<glm::vec3> landing_points_vulkan(vk::Context& ctx, const OpticalSystem& sys, size_t lens_index,
+                                             std::span<const glm::vec3> origin_dir_pairs);
 
 }  // namespace prism

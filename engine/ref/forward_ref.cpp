@@ -2,6 +2,8 @@
 
 #include <cmath>
 
+#include "engine/shared_math.h"
+
 namespace prism::ref {
 
 namespace {
@@ -119,39 +121,15 @@ std::optional<std::pair<D, D>> propagate(const OpticalSystem& sys, const Geometr
   return std::make_pair(exit_point.x + exit_dir.x * ts, exit_point.y + exit_dir.y * ts);
 }
 
-// Same stratified, jittered aperture points as the device (the integer hash is
-// exact in both; the jitter is a multiple of 2^-24, exact in float and double).
-uint32_t hash_u32(uint32_t v) {
-  uint32_t state = v * 747796405u + 2891336453u;
-  uint32_t word = ((state >> ((state >> 28u) + 4u)) ^ state) * 277803737u;
-  return (word >> 22u) ^ word;
-}
-double hash_unit(uint32_t v) { return double(hash_u32(v) >> 8u) / 16777216.0; }
+// The sample points: the device's own sampling code (shaders/common/optics.glsl
+// through engine/shared_math.h), so both trace the very same rays. The points
+// are inputs of the integral, not physics; everything from them to the pixel
+// is this file's own double-precision computation.
 glm::dvec2 unit_disk_sample(uint32_t lens, uint32_t sample, uint32_t strata) {
-  uint32_t i = sample % strata, j = sample / strata;
-  uint32_t key = (lens * 2654435761u) ^ (sample * 2246822519u);
-  double a = 2.0 * (double(i) + hash_unit(key)) / double(strata) - 1.0;
-  double b = 2.0 * (double(j) + hash_unit(key ^ 0x9e3779b9u)) / double(strata) - 1.0;
-  if (a == 0 && b == 0) return {0, 0};
-  double r, phi;
-  if (std::abs(a) > std::abs(b)) {
-    r = a;
-    phi = M_PI / 4 * (b / a);
-  } else {
-    r = b;
-    phi = M_PI / 2 - M_PI / 4 * (a / b);
-  }
-  return {r * std::cos(phi), r * std::sin(phi)};
+  return glm::dvec2(shared::aperture_sample(lens, sample, strata));
 }
-
-// Gaussian source offset of (lens, sample): the same hash draws as the device,
-// Box-Muller in double.
 glm::dvec3 source_offset(uint32_t lens, uint32_t sample, double sigma) {
-  uint32_t key = (lens * 3266489917u) ^ (sample * 668265263u) ^ 0x5bd1e995u;
-  double u1 = std::max(hash_unit(key), 1.0 / 16777216.0), u2 = hash_unit(key ^ 0x27d4eb2fu);
-  double u3 = std::max(hash_unit(key ^ 0x165667b1u), 1.0 / 16777216.0), u4 = hash_unit(key ^ 0x85ebca6bu);
-  double r1 = std::sqrt(-2.0 * std::log(u1)), r3 = std::sqrt(-2.0 * std::log(u3));
-  return sigma * glm::dvec3(r1 * std::cos(2 * M_PI * u2), r1 * std::sin(2 * M_PI * u2), r3 * std::cos(2 * M_PI * u4));
+  return glm::dvec3(shared::source_offset(lens, sample, float(sigma)));
 }
 
 // Scintillator face: find the radial distance rho on the face, from the point
@@ -270,7 +248,7 @@ SparseImage psf(const OpticalSystem& sys, const TraceSettings& settings, const g
     for (uint32_t k = 0; k < strata * strata; ++k) {
       SampleHit h = trace_sample_impl(sys, settings, theta, l, k);
       // Checkerboard half of the strata; each half estimates the whole gradient.
-      int half = int((k % strata + k / strata) % 2);
+      const int half = int(shared::ray_half(k, strata));
       if (!h.ok || std::abs(h.x_mm) > half_w || std::abs(h.y_mm) > half_h) continue;
       double u = (h.x_mm + half_w) / grid.pixel_mm - 0.5;
       double v = (h.y_mm + half_h) / grid.pixel_mm - 0.5;

@@ -229,7 +229,7 @@ PRISM_FN bool inside_aperture(Dual x, Dual y, vec2 center, float radius) {
 
 // Rays sampled on a lenslet's entrance disk are inside it by construction:
 // re-testing them would only let float rounding at the rim clip a few.
-// Explicit rays (trace_rays.comp) are tested.
+// Explicit rays (landing_points.comp) are tested.
 
 // Ideal thin lens in the plane z = 0: the slope turns by -h/f (paraxial).
 PRISM_FN Hit trace_thin(Ray ray, Lenslet lens, float holder_bore_mm, float lens_to_sensor_mm, bool test_entrance) {

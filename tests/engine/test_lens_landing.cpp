@@ -92,7 +92,7 @@ TEST_CASE("real lens lands rays where optiland does (Vulkan)") {
       pairs.push_back(glm::vec3(r->src));
       pairs.push_back(glm::vec3(r->dir));
     }
-    auto hits = prism::trace_rays_vulkan(prism::test::gpu(), sys, 0, pairs);
+    auto hits = prism::landing_points_vulkan(prism::test::gpu(), sys, 0, pairs);
     REQUIRE(hits.size() == group.size());
     for (size_t i = 0; i < group.size(); ++i) {
       CAPTURE(group[i]->line);
