@@ -4,6 +4,7 @@
 // the plain model.
 #include "engine/forward.h"
 #include "engine/ref/forward_ref.h"
+#include "compare.h"
 #include "support.h"
 
 namespace {
@@ -16,19 +17,25 @@ prism::PixelImage render(const prism::OpticalSystem& sys) {
   return fw.psf({1.0, 2.0, 15.0});
 }
 
-// Largest difference over pixels in channel c (0: b; 1..3: its derivatives),
-// relative to that channel's peak in `b`.
-double max_rel_diff(const prism::PixelImage& a, const prism::PixelImage& b, int first = 0, int last = 3) {
-  double worst = 0;
+// Channels first..last (0: b; 1..3: its derivatives) of `got` against
+// `expect`, pixel by pixel, each to `tol` of its peak in `expect`.
+void check_images(const prism::PixelImage& expect, const prism::PixelImage& got, double tol, int first = 0,
+                  int last = 3) {
   for (int c = first; c <= last; ++c) {
-    double peak = 0, m = 0;
-    for (size_t i = c; i < a.data.size(); i += 4) {
-      peak = std::max(peak, double(std::abs(b.data[i])));
-      m = std::max(m, double(std::abs(a.data[i] - b.data[i])));
-    }
-    worst = std::max(worst, peak > 0 ? m / peak : m);
+    std::vector<double> e, g;
+    for (size_t i = size_t(c); i < expect.data.size(); i += 4) e.push_back(expect.data[i]), g.push_back(got.data[i]);
+    auto cmp = prism::test::compare(e, g, {.abs = tol * prism::test::peak_abs(e)});
+    CHECK_MESSAGE(cmp.ok(), cmp.report("channel " + std::to_string(c)));
   }
-  return worst;
+}
+
+// The b channel of a device image against the reference's.
+void check_against_reference(const prism::PixelImage& v, const prism::ref::SparseImage& r, double tol) {
+  std::vector<double> e(size_t(r.width) * size_t(r.height), 0.0), g(e.size());
+  for (const auto& [k, px] : r.pixels) e[size_t(k)] = px[0];
+  for (size_t i = 0; i < g.size(); ++i) g[i] = v.data[4 * i];
+  auto cmp = prism::test::compare(e, g, {.abs = tol * prism::test::peak_abs(e)});
+  CHECK_MESSAGE(cmp.ok(), cmp.report("b (Vulkan vs reference)"));
 }
 
 }  // namespace
@@ -39,7 +46,7 @@ TEST_CASE("an effect the scene does not name changes nothing, whatever its param
   odd.effects.scintillator_index = 2.5;  // named nowhere: must be ignored
   odd.effects.holder_bore_mm = 9.0;
   auto a = render(plain), b = render(odd);
-  CHECK(max_rel_diff(a, b) == 0.0);
+  check_images(a, b, 0.0);
   prism::test::check_validation_clean();
 }
 
@@ -56,13 +63,13 @@ TEST_CASE("effects at neutral parameters reduce to the plain model") {
   // so a 1e-6 mm difference can move one ray's derivative tap: 1e-3 there,
   // as in the backend comparison (test_forward_vulkan.cpp).
   auto refracted = render(face);
-  CHECK(max_rel_diff(refracted, base, 0, 0) < 3e-4);
-  CHECK(max_rel_diff(refracted, base, 1, 3) < 1e-3);
+  check_images(base, refracted, 3e-4, 0, 0);
+  check_images(base, refracted, 1e-3, 1, 3);
 
   auto holder = plain;
   holder.effects.holder_vignetting = true;
   holder.effects.holder_bore_mm = 0.0;  // a bore of zero length clips nothing
-  CHECK(max_rel_diff(render(holder), base) == 0.0);
+  check_images(base, render(holder), 0.0);
   prism::test::check_validation_clean();
 }
 
@@ -77,24 +84,35 @@ TEST_CASE("effects change the light as the physics says, in both backends") {
   // Refraction out of n = 1.58 narrows the cone that reaches the lenses: fewer photons.
   auto face = plain;
   face.effects.scintillator_refraction = true;
-  double with_face = prism::ref::psf(face, t, theta).photons();
+  auto ref_face = prism::ref::psf(face, t, theta);
+  double with_face = ref_face.photons();
   CHECK(with_face < 0.9 * base);
   prism::ForwardVulkan fw_face(prism::test::gpu(), face, t);
-  CHECK(fw_face.psf(theta).photons() == doctest::Approx(with_face).epsilon(1e-4));
+  auto dev_face = fw_face.psf(theta);
+  CHECK(dev_face.photons() == doctest::Approx(with_face).epsilon(1e-4));
+  check_against_reference(dev_face, ref_face, 3e-4);
 
   // A long holder bore clips oblique rays.
   auto holder = plain;
   holder.effects.holder_vignetting = true;
   holder.effects.holder_bore_mm = 4.0;
-  double with_holder = prism::ref::psf(holder, t, theta).photons();
+  auto ref_holder = prism::ref::psf(holder, t, theta);
+  double with_holder = ref_holder.photons();
   CHECK(with_holder < base);
   prism::ForwardVulkan fw_holder(prism::test::gpu(), holder, t);
-  CHECK(fw_holder.psf(theta).photons() == doctest::Approx(with_holder).epsilon(1e-4));
+  auto dev_holder = fw_holder.psf(theta);
+  CHECK(dev_holder.photons() == doctest::Approx(with_holder).epsilon(1e-4));
+  check_against_reference(dev_holder, ref_holder, 3e-4);
 
   // Detection efficiency scales the photons.
   auto eff = plain;
   eff.effects.detection_efficiency = 0.5;
-  CHECK(prism::ref::psf(eff, t, theta).photons() == doctest::Approx(0.5 * base).epsilon(1e-12));
+  auto ref_eff = prism::ref::psf(eff, t, theta);
+  CHECK(ref_eff.photons() == doctest::Approx(0.5 * base).epsilon(1e-12));
+  prism::ForwardVulkan fw_eff(prism::test::gpu(), eff, t);
+  auto dev_eff = fw_eff.psf(theta);
+  CHECK(dev_eff.photons() == doctest::Approx(0.5 * base).epsilon(1e-5));
+  check_against_reference(dev_eff, ref_eff, 3e-4);
   prism::test::check_validation_clean();
 }
 
@@ -110,7 +128,7 @@ TEST_CASE("source extent: reduces to a point at tiny sigma, softens peaks, and b
   tiny.effects.source_extent = true;
   tiny.effects.source_sigma_mm = 1e-6;
   auto tiny_img = render(tiny);
-  CHECK(max_rel_diff(tiny_img, point, 0, 0) < 3e-4);
+  check_images(point, tiny_img, 3e-4, 0, 0);
 
   auto wide = plain;
   wide.effects.source_extent = true;
@@ -119,10 +137,7 @@ TEST_CASE("source extent: reduces to a point at tiny sigma, softens peaks, and b
   auto v = fw.psf(theta);
   auto r = prism::ref::psf(wide, t, theta);
   CHECK(v.photons() == doctest::Approx(r.photons()).epsilon(1e-4));
-  double ref_peak = 0, worst = 0;
-  for (const auto& [k, px] : r.pixels) ref_peak = std::max(ref_peak, px[0]);
-  for (const auto& [k, px] : r.pixels) worst = std::max(worst, std::abs(double(v.data[4 * size_t(k)]) - px[0]));
-  CHECK(worst < 3e-4 * ref_peak);
+  check_against_reference(v, r, 3e-4);
 
   // Same light, spread out: the brightest pixel dims.
   prism::ForwardVulkan fw_point(prism::test::gpu(), plain, t);

@@ -17,21 +17,30 @@
 
 #include "engine/forward.h"
 #include "engine/ref/forward_ref.h"
+#include "compare.h"
 #include "support.h"
 
 namespace {
 
 using prism::test::gpu;
 
-// Max over pixels of |vulkan - reference| for channel c, relative to the peak.
-double image_mismatch(const prism::PixelImage& v, const prism::ref::SparseImage& r, int c) {
-  double peak = 0, worst = 0;
-  for (const auto& [k, px] : r.pixels) peak = std::max(peak, std::abs(r.value(k)[c]));
-  for (int i = 0; i < v.width * v.height; ++i) {
-    double ref = r.value(i)[c];
-    worst = std::max(worst, std::abs(double(v.data[4 * size_t(i) + c]) - ref));
-  }
-  return peak > 0 ? worst / peak : worst;
+// Channel c (0: b; 1..3: its derivatives) pixel by pixel, as doubles.
+std::vector<double> channel(const prism::PixelImage& v, int c) {
+  std::vector<double> out(size_t(v.width) * size_t(v.height));
+  for (size_t i = 0; i < out.size(); ++i) out[i] = v.data[4 * i + size_t(c)];
+  return out;
+}
+std::vector<double> channel(const prism::ref::SparseImage& r, int c) {
+  std::vector<double> out(size_t(r.width) * size_t(r.height), 0.0);
+  for (const auto& [k, px] : r.pixels) out[size_t(k)] = r.value(k)[size_t(c)];
+  return out;
+}
+
+// Channel c of the device image against the reference, to `tol` of the reference's peak.
+void check_channel(const prism::PixelImage& v, const prism::ref::SparseImage& r, int c, double tol) {
+  auto expect = channel(r, c);
+  auto cmp = prism::test::compare(expect, channel(v, c), {.abs = tol * prism::test::peak_abs(expect)});
+  CHECK_MESSAGE(cmp.ok(), cmp.report("channel " + std::to_string(c) + " (Vulkan vs reference)"));
 }
 
 void compare_images(const prism::OpticalSystem& sys, const prism::TraceSettings& t, const glm::dvec3& theta) {
@@ -43,11 +52,8 @@ void compare_images(const prism::OpticalSystem& sys, const prism::TraceSettings&
   CAPTURE(theta.z);
   REQUIRE(r.photons() > 0);
   CHECK(v.photons() == doctest::Approx(r.photons()).epsilon(1e-5));
-  CHECK(image_mismatch(v, r, 0) < 3e-4);
-  for (int c = 1; c < 4; ++c) {
-    CAPTURE(c);
-    CHECK(image_mismatch(v, r, c) < 1e-3);
-  }
+  check_channel(v, r, 0, 3e-4);
+  for (int c = 1; c < 4; ++c) check_channel(v, r, c, 1e-3);
 }
 
 void compare_fisher(const prism::OpticalSystem& sys, const prism::TraceSettings& t, const glm::dvec3& theta,
@@ -56,12 +62,12 @@ void compare_fisher(const prism::OpticalSystem& sys, const prism::TraceSettings&
   auto v = fw.fisher(std::vector<glm::dvec3>{theta}).front();
   auto r = prism::ref::fisher(sys, t, theta);
   CHECK(v.photons == doctest::Approx(r.photons).epsilon(1e-5));
-  double scale = std::max({r.poisson[0], r.poisson[3], r.poisson[5]});
-  for (int k = 0; k < 6; ++k) {
-    CAPTURE(k);
-    CHECK(v.poisson[k] == doctest::Approx(r.poisson[k]).epsilon(tol).scale(scale));
-    CHECK(v.binary[k] == doctest::Approx(r.binary[k]).epsilon(tol).scale(scale));
-  }
+  // The six entries of each matrix, to tol of the largest diagonal entry.
+  const double scale = std::max({r.poisson[0], r.poisson[3], r.poisson[5]});
+  auto p = prism::test::compare_values(r.poisson, v.poisson, {.abs = tol * scale, .rel = tol});
+  CHECK_MESSAGE(p.ok(), p.report("Poisson Fisher entries (xx xy xz yy yz zz)"));
+  auto b = prism::test::compare_values(r.binary, v.binary, {.abs = tol * scale, .rel = tol});
+  CHECK_MESSAGE(b.ok(), b.report("binary Fisher entries (xx xy xz yy yz zz)"));
   auto cv = prism::crlb_from_fisher(v.poisson, v.photons), cr = prism::crlb_from_fisher(r.poisson, r.photons);
   CHECK(cv.r3_mm == doctest::Approx(cr.r3_mm).epsilon(tol));
 }
@@ -173,10 +179,7 @@ TEST_CASE("full sensor resolution: 6696 x 4764 px in bands of at most maxStorage
   // error matters: at most 0.35 um (steep rays through the f = 3 mm corner
   // lenslets; median 0.002 um), i.e. 5% of one ray's photons in one pixel,
   // 4e-3 of this image's peak.
-  double peak = 0, worst = 0;
-  for (const auto& [k, px] : r.pixels) peak = std::max(peak, px[0]);
-  for (const auto& [k, px] : r.pixels) worst = std::max(worst, std::abs(double(img.data[4 * size_t(k)]) - px[0]));
-  CHECK(worst < 1e-2 * peak);
+  check_channel(img, r, 0, 1e-2);
   for (double v : f.poisson) CHECK(std::isfinite(v));
   prism::test::check_validation_clean();
 }
@@ -192,8 +195,10 @@ TEST_CASE("Fisher sums do not depend on how the sensor is cut into bands and bat
   prism::ForwardVulkan cut(prism::test::gpu(), sys, t, 1ull << 20);
   auto a = whole.fisher(sources), b = cut.fisher(sources);
   for (size_t i = 0; i < sources.size(); ++i) {
+    CAPTURE(i);
     CHECK(b[i].photons == doctest::Approx(a[i].photons).epsilon(1e-6));
-    for (int k = 0; k < 6; ++k) CHECK(b[i].poisson[k] == doctest::Approx(a[i].poisson[k]).epsilon(1e-5).scale(a[i].poisson[0]));
+    auto c = prism::test::compare_values(a[i].poisson, b[i].poisson, {.abs = 1e-5 * a[i].poisson[0], .rel = 1e-5});
+    CHECK_MESSAGE(c.ok(), c.report("Poisson Fisher entries, cut vs whole"));
   }
   prism::test::check_validation_clean();
 }
@@ -210,13 +215,11 @@ TEST_CASE("the values-only PSF kernel equals the b channel of the full one, at a
     auto full = fw.psf(theta);
     auto values = fw.psf_values(theta);
     REQUIRE(values.size() == size_t(full.width) * full.height);
-    double peak = 0, worst = 0;
-    for (size_t i = 0; i < values.size(); ++i) {
-      peak = std::max(peak, double(full.data[4 * i]));
-      worst = std::max(worst, double(std::abs(values[i] - full.data[4 * i])));
-    }
-    CHECK(peak > 0);
-    CHECK(worst <= 1e-5 * peak);  // only the order of float atomic adds differs
+    auto b = channel(full, 0);
+    REQUIRE(prism::test::peak_abs(b) > 0);
+    // Only the order of float atomic adds differs.
+    auto c = prism::test::compare_values(b, values, {.abs = 1e-5 * prism::test::peak_abs(b)});
+    CHECK_MESSAGE(c.ok(), c.report("values-only kernel vs the b channel"));
   }
   prism::test::check_validation_clean();
 }
@@ -242,8 +245,8 @@ TEST_CASE("several designs in one dispatch give what each gives alone") {
     auto a = alone.fisher(std::span<const glm::dvec3>(&theta[i], 1)).front();
     CAPTURE(i);
     CHECK(together[i].photons == doctest::Approx(a.photons).epsilon(1e-5));
-    for (int k = 0; k < 6; ++k)
-      CHECK(together[i].poisson[k] == doctest::Approx(a.poisson[k]).epsilon(1e-4).scale(a.poisson[0]));
+    auto c = prism::test::compare_values(a.poisson, together[i].poisson, {.abs = 1e-4 * a.poisson[0], .rel = 1e-4});
+    CHECK_MESSAGE(c.ok(), c.report("Poisson Fisher entries, batched vs alone"));
   }
   auto other = designs[1];
   other.effects.holder_vignetting = true;

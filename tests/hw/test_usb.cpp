@@ -3,7 +3,10 @@
 #define DOCTEST_CONFIG_IMPLEMENT
 #include <doctest/doctest.h>
 
+#include <unistd.h>
+
 #include <cstdio>
+#include <exception>
 #include <filesystem>
 #include <fstream>
 #include <nlohmann/json.hpp>
@@ -180,23 +183,55 @@ TEST_SUITE("usb3 vision session") {
 
   TEST_CASE("prism camera commands run through CLI11") {
     FakeUsb usb;
+    // Runs a camera subcommand and returns what it printed on stdout (the
+    // commands print through stdio and std::cout, which is synced with it).
     auto run = [](std::vector<std::string> args) {
       CLI::App app;
       prism::cmd::add_camera(app);
       std::vector<const char*> argv{"prism"};
       for (auto& a : args) argv.push_back(a.c_str());
-      app.parse(int(argv.size()), argv.data());
+      std::fflush(stdout);
+      FILE* tmp = std::tmpfile();
+      const int saved = dup(fileno(stdout));
+      dup2(fileno(tmp), fileno(stdout));
+      std::exception_ptr failure;
+      try {
+        app.parse(int(argv.size()), argv.data());
+      } catch (...) {
+        failure = std::current_exception();
+      }
+      std::fflush(stdout);
+      dup2(saved, fileno(stdout));
+      close(saved);
+      std::string printed;
+      std::rewind(tmp);
+      for (int c; (c = std::fgetc(tmp)) != EOF;) printed += char(c);
+      std::fclose(tmp);
+      if (failure) std::rethrow_exception(failure);
+      return printed;
     };
-    CHECK_NOTHROW(run({"camera", "list"}));
-    CHECK_NOTHROW(run({"camera", "set", "ExposureTime", "1234.5"}));
+    auto listed = run({"camera", "list"});
+    CHECK(listed.find("serial") != std::string::npos);
+    CHECK(listed.find("no USB3 Vision camera") == std::string::npos);
+    run({"camera", "set", "ExposureTime", "1234.5"});
     CHECK(usb.model().exposure_us() == doctest::Approx(1234.5));
-    CHECK_NOTHROW(run({"camera", "get", "PixelFormat"}));
-    CHECK_NOTHROW(run({"camera", "stream", "--frames", "5"}));
+    CHECK(run({"camera", "get", "ExposureTime"}).find("1234.5") != std::string::npos);
+    auto format = run({"camera", "get", "PixelFormat"});
+    CHECK(format.find("Mono") == 0);
+    auto streamed = run({"camera", "stream", "--frames", "5"});
+    CHECK(streamed.find("5 frames in") == 0);
+    CHECK(streamed.find("dropped") == std::string::npos);
     auto dir = std::filesystem::temp_directory_path() / "prism_hw_cli_stack";
     std::filesystem::remove_all(dir);
-    CHECK_NOTHROW(run({"camera", "capture-hdr", "--out", dir.string(), "--exposures", "3", "--darks", "1",
-                       "--min-us", "100", "--max-us", "10000", "--x-mm", "1", "--y-mm", "2", "--depth-mm", "3"}));
-    CHECK(std::filesystem::exists(dir / "stack.json"));
+    auto wrote = run({"camera", "capture-hdr", "--out", dir.string(), "--exposures", "3", "--darks", "1", "--min-us",
+                      "100", "--max-us", "10000", "--x-mm", "1", "--y-mm", "2", "--depth-mm", "3"});
+    CHECK(wrote.find("stack.json") != std::string::npos);
+    REQUIRE(std::filesystem::exists(dir / "stack.json"));
+    auto j = nlohmann::json::parse(std::ifstream(dir / "stack.json"));
+    CHECK(j["exposures"].size() == 3);
+    CHECK(j["darks"].size() == 1);
+    CHECK(j["exposures"][2]["exposure_us"].get<double>() == doctest::Approx(1e4));
+    CHECK(j["source"]["depth_mm"] == 3);
     std::filesystem::remove_all(dir);
   }
 }

@@ -114,7 +114,7 @@ TEST_CASE("OpenEXR's own tools read the dictionary files") {
   CHECK(std::system(("oiiotool --info -v " + f + " | grep -q '419 x  298'").c_str()) == 0);
 }
 
-TEST_CASE("an interrupted build resumes; a different dictionary in the same place is refused") {
+TEST_CASE("an interrupted build resumes, a different dictionary in the same place is refused") {
   auto& d = small();
   prism::DictionaryReader r(d.dir);
   fs::remove(r.path_of(2));
