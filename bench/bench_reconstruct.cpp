@@ -25,9 +25,9 @@
 #include "bench_util.h"
 #include "host/dictionary/build.h"
 #include "host/events/simulate.h"
-#include "host/util/plot.h"
 #include "host/reconstruct/match.h"
 #include "host/reconstruct/reconstruct.h"
+#include "host/util/plot.h"
 
 using namespace prism;
 namespace fs = std::filesystem;

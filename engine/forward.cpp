@@ -6,8 +6,8 @@
 #include "engine/shared_math.h"
 #include "engine/vk/error.h"
 #include "spv/fisher_reduce.spv.h"
-#include "spv/psf_splat.spv.h"
 #include "spv/landing_points.spv.h"
+#include "spv/psf_splat.spv.h"
 
 namespace prism {
 

@@ -7,9 +7,9 @@
 
 #include "host/cmd/commands.h"
 #include "host/cmd/options.h"
+#include "host/util/format.h"
 #include "host/util/image_io.h"
 #include "host/util/plot.h"
-#include "host/util/format.h"
 
 namespace prism::cmd {
 

@@ -11,9 +11,9 @@
 #include <span>
 
 #include "host/cmd/commands.h"
-#include "host/util/progress.h"
 #include "host/reconstruct/match.h"
 #include "host/reconstruct/pool.h"
+#include "host/util/progress.h"
 
 namespace prism::cmd {
 

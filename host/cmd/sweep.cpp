@@ -9,12 +9,12 @@
 #include <memory>
 
 #include "host/cmd/commands.h"
-#include "host/util/image_io.h"
-#include "host/util/plot.h"
-#include "host/util/progress.h"
 #include "host/sweep/baselines.h"
 #include "host/sweep/sweep.h"
 #include "host/util/format.h"
+#include "host/util/image_io.h"
+#include "host/util/plot.h"
+#include "host/util/progress.h"
 
 namespace prism::cmd {
 

@@ -11,13 +11,13 @@
 #include <numeric>
 #include <stdexcept>
 
-#include "host/scene/crlb_study.h"
 #include "host/dictionary/service.h"
 #include "host/events/simulate.h"
 #include "host/reconstruct/match.h"
+#include "host/scene/crlb_study.h"
+#include "host/util/format.h"
 #include "host/util/image_io.h"
 #include "host/util/plot.h"
-#include "host/util/format.h"
 
 namespace prism {
 

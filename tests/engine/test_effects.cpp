@@ -2,19 +2,25 @@
 // kernels run the plain model (its parameters are ignored, it is compiled out
 // through specialisation constants), and at neutral parameters it reduces to
 // the plain model.
+#include "compare.h"
 #include "engine/forward.h"
 #include "engine/ref/forward_ref.h"
-#include "compare.h"
 #include "support.h"
 
 namespace {
 
-prism::PixelImage render(const prism::OpticalSystem& sys) {
+// Every test traces the source at theta on 55 um pixels.
+const glm::dvec3 theta{1.0, 2.0, 15.0};
+prism::TraceSettings settings(unsigned rays_per_lenslet) {
   prism::TraceSettings t;
-  t.rays_per_lenslet = 256;
+  t.rays_per_lenslet = rays_per_lenslet;
   t.binning = 8;
-  prism::ForwardVulkan fw(prism::test::gpu(), sys, t);
-  return fw.psf({1.0, 2.0, 15.0});
+  return t;
+}
+
+prism::PixelImage render(const prism::OpticalSystem& sys) {
+  prism::ForwardVulkan fw(prism::test::gpu(), sys, settings(256));
+  return fw.psf(theta);
 }
 
 // Channels first..last (0: b; 1..3: its derivatives) of `got` against
@@ -75,53 +81,39 @@ TEST_CASE("effects at neutral parameters reduce to the plain model") {
 
 TEST_CASE("effects change the light as the physics says, in both backends") {
   auto plain = prism::test::small_system(prism::LensModel::real);
-  prism::TraceSettings t;
-  t.rays_per_lenslet = 256;
-  t.binning = 8;
-  glm::dvec3 theta{1.0, 2.0, 15.0};
-  double base = prism::ref::psf(plain, t, theta).photons();
+  const auto t = settings(256);
+  // The system on both backends, image against image; returns the photons.
+  auto traced = [&](const prism::OpticalSystem& sys) {
+    auto r = prism::ref::psf(sys, t, theta);
+    prism::ForwardVulkan fw(prism::test::gpu(), sys, t);
+    auto v = fw.psf(theta);
+    CHECK(v.photons() == doctest::Approx(r.photons()).epsilon(1e-4));
+    check_against_reference(v, r, 3e-4);
+    return r.photons();
+  };
+  const double base = traced(plain);
 
   // Refraction out of n = 1.58 narrows the cone that reaches the lenses: fewer photons.
   auto face = plain;
   face.effects.scintillator_refraction = true;
-  auto ref_face = prism::ref::psf(face, t, theta);
-  double with_face = ref_face.photons();
-  CHECK(with_face < 0.9 * base);
-  prism::ForwardVulkan fw_face(prism::test::gpu(), face, t);
-  auto dev_face = fw_face.psf(theta);
-  CHECK(dev_face.photons() == doctest::Approx(with_face).epsilon(1e-4));
-  check_against_reference(dev_face, ref_face, 3e-4);
+  CHECK(traced(face) < 0.9 * base);
 
   // A long holder bore clips oblique rays.
   auto holder = plain;
   holder.effects.holder_vignetting = true;
   holder.effects.holder_bore_mm = 4.0;
-  auto ref_holder = prism::ref::psf(holder, t, theta);
-  double with_holder = ref_holder.photons();
-  CHECK(with_holder < base);
-  prism::ForwardVulkan fw_holder(prism::test::gpu(), holder, t);
-  auto dev_holder = fw_holder.psf(theta);
-  CHECK(dev_holder.photons() == doctest::Approx(with_holder).epsilon(1e-4));
-  check_against_reference(dev_holder, ref_holder, 3e-4);
+  CHECK(traced(holder) < base);
 
   // Detection efficiency scales the photons.
   auto eff = plain;
   eff.effects.detection_efficiency = 0.5;
-  auto ref_eff = prism::ref::psf(eff, t, theta);
-  CHECK(ref_eff.photons() == doctest::Approx(0.5 * base).epsilon(1e-12));
-  prism::ForwardVulkan fw_eff(prism::test::gpu(), eff, t);
-  auto dev_eff = fw_eff.psf(theta);
-  CHECK(dev_eff.photons() == doctest::Approx(0.5 * base).epsilon(1e-5));
-  check_against_reference(dev_eff, ref_eff, 3e-4);
+  CHECK(traced(eff) == doctest::Approx(0.5 * base).epsilon(1e-12));
   prism::test::check_validation_clean();
 }
 
 TEST_CASE("source extent: reduces to a point at tiny sigma, softens peaks, and both backends agree") {
   auto plain = prism::test::small_system(prism::LensModel::real);
-  prism::TraceSettings t;
-  t.rays_per_lenslet = 1024;
-  t.binning = 8;
-  glm::dvec3 theta{1.0, 2.0, 15.0};
+  const auto t = settings(1024);
   auto point = render(plain);
 
   auto tiny = plain;

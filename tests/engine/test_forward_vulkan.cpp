@@ -15,9 +15,9 @@
 #include <algorithm>
 #include <cmath>
 
+#include "compare.h"
 #include "engine/forward.h"
 #include "engine/ref/forward_ref.h"
-#include "compare.h"
 #include "support.h"
 
 namespace {

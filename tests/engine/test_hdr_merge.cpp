@@ -6,11 +6,11 @@
 #include <cmath>
 #include <numeric>
 
+#include "compare.h"
 #include "engine/hdr_merge.h"
 #include "engine/hdr_shared.h"
 #include "engine/ref/hdr_merge_ref.h"
 #include "host/dictionary/hdr_stack.h"
-#include "compare.h"
 #include "support.h"
 
 namespace {

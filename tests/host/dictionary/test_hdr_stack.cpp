@@ -7,9 +7,9 @@
 #include <numeric>
 #include <sstream>
 
+#include "compare.h"
 #include "host/dictionary/hdr_stack.h"
 #include "host/util/image_io.h"
-#include "compare.h"
 #include "support.h"
 
 namespace fs = std::filesystem;

@@ -13,12 +13,12 @@
 #include <numeric>
 #include <sstream>
 
+#include "compare.h"
 #include "engine/ref/likelihood_ref.h"
 #include "host/dictionary/build.h"
 #include "host/events/simulate.h"
 #include "host/reconstruct/match.h"
 #include "host/reconstruct/reconstruct.h"
-#include "compare.h"
 #include "support.h"
 
 namespace fs = std::filesystem;
