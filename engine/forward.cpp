@@ -2,11 +2,14 @@
 
 #include <algorithm>
 #include <cmath>
+#include <memory>
 
 #include "engine/shared_math.h"
 #include "engine/vk/error.h"
 #include "spv/fisher_reduce.spv.h"
 #include "spv/landing_points.spv.h"
+#include "spv/psf_footprint.spv.h"
+#include "spv/psf_footprint_cuts.spv.h"
 #include "spv/psf_splat.spv.h"
 
 namespace prism {
@@ -48,6 +51,15 @@ double PixelImage::photons() const {
   double s = 0;
   for (size_t i = 0; i < data.size(); i += 4) s += data[i];
   return s;
+}
+
+// The splat kernel of the settings (both take the same buffers and constants).
+std::span<const uint32_t> splat_spirv(const TraceSettings& t) {
+  return t.splat == Splat::footprint ? spirv(spv_psf_footprint) : spirv(spv_psf_splat);
+}
+uint32_t splat_buffers(const TraceSettings& t) { return t.splat == Splat::footprint ? 6 : 5; }
+std::string kernel_name(const TraceSettings& t, bool values_only) {
+  return std::string(t.splat == Splat::footprint ? "psf_footprint" : "psf_splat") + (values_only ? " (values)" : "");
 }
 
 // psf_splat.comp's specialisation constants: lens model, effects, derivatives.
@@ -116,6 +128,28 @@ struct ForwardVulkan::Impl {
   uint32_t band_rows;       // grid rows per band
   uint32_t sources_per_batch;
 
+  // The footprint splat's second pass: the triangles of its cut list
+  // (psf_footprint_cuts.comp).
+  struct Footprint {
+    vk::Kernel cuts, cuts_values;
+    std::unique_ptr<vk::Buffer> list;  // header (count, capacity, 2 unused) + entries of 16 bytes
+    uint32_t capacity = 0;
+    Footprint(vk::Context& c, const OpticalSystem& sys)
+        : cuts(c, "psf_footprint_cuts", spirv(spv_psf_footprint_cuts), 6, sizeof(shared::TraceParams),
+               specialisation(sys, true)),
+          cuts_values(c, "psf_footprint_cuts (values)", spirv(spv_psf_footprint_cuts), 6,
+                      sizeof(shared::TraceParams), specialisation(sys, false)) {
+      grow(c, 1u << 14);
+    }
+    void grow(vk::Context& c, uint32_t entries) {
+      capacity = entries;
+      list = std::make_unique<vk::Buffer>(c, 16 + uint64_t(entries) * 16);
+      uint32_t header[4] = {0, capacity, 0, 0};
+      list->upload(header, sizeof(header));
+    }
+  };
+  std::unique_ptr<Footprint> footprint;
+
   Impl(vk::Context& c, const std::vector<OpticalSystem>& all, const TraceSettings& t, const AnalysisGrid& grid,
        uint64_t budget)
       : Impl(c, all, t, grid, budget, design_buffers(all, t)) {}
@@ -129,8 +163,9 @@ struct ForwardVulkan::Impl {
         lenses(c, layout.lenses.size() * sizeof(shared::Lenslet)),
         designs(c, layout.ranges.size() * sizeof(shared::DesignRange)),
         design_zero(c, sizeof(uint32_t)),
-        splat(c, "psf_splat", spirv(spv_psf_splat), 5, sizeof(shared::TraceParams), specialisation(sys, true)),
-        splat_values(c, "psf_splat (values)", spirv(spv_psf_splat), 5, sizeof(shared::TraceParams),
+        splat(c, kernel_name(t, false), splat_spirv(t), splat_buffers(t), sizeof(shared::TraceParams),
+              specialisation(sys, true)),
+        splat_values(c, kernel_name(t, true), splat_spirv(t), splat_buffers(t), sizeof(shared::TraceParams),
                      specialisation(sys, false)),
         reduce(c, "fisher_reduce", spirv(spv_fisher_reduce), 2, 3 * sizeof(uint32_t),
                {uint32_t(t.estimator == FisherEstimator::split ? shared::FISHER_SPLIT : shared::FISHER_NAIVE)}) {
@@ -150,6 +185,7 @@ struct ForwardVulkan::Impl {
     params.scint_index = float(s.effects.scintillator_index);
     params.holder_bore_mm = float(s.effects.holder_bore_mm);
     params.source_sigma_mm = float(s.effects.source_sigma_mm);
+    params.stratification = t.stratification;
     params.grid_w = grid.width;
     params.grid_h = grid.height;
     params.lens_count = uint32_t(layout.lenses.size());
@@ -162,10 +198,49 @@ struct ForwardVulkan::Impl {
     if (band_rows == 0) throw vk::Error("one sensor row does not fit in a storage buffer");
     uint64_t image_bytes = row_bytes * band_rows;
     sources_per_batch = uint32_t(std::clamp<uint64_t>(cap / image_bytes, 1, 65535));
+    if (t.splat == Splat::footprint) footprint = std::make_unique<Footprint>(c, sys);
+  }
+
+  // Record the splat of the dispatch's sources (p.source_offset, count) into
+  // `images` (zeroed), band p; leaves every pixel's value there, ready for
+  // what the caller records next. The footprint splat needs the count of its
+  // cut list on the host between its passes: it submits, and returns the
+  // kernel milliseconds submitted so far.
+  double record_splat(vk::Stream& stream, bool derivatives, const vk::Buffer& sources,
+                      const vk::Buffer& source_designs, vk::Buffer& images, const shared::TraceParams& p) {
+    vk::Kernel& main = derivatives ? splat : splat_values;
+    if (!footprint) {
+      stream.dispatch(main, {&lenses, &sources, &images, &source_designs, &designs}, &p, splat_groups(), p.source_count);
+      return 0.0;
+    }
+    Footprint& f = *footprint;
+    double ms = 0;
+    uint32_t count = 0;
+    for (;;) {
+      stream.fill_zero(*f.list, 0, 4);
+      stream.barrier();
+      stream.dispatch(main, {&lenses, &sources, &images, &source_designs, &designs, f.list.get()}, &p, splat_groups(),
+                      p.source_count);
+      ms += stream.submit();
+      f.list->download(&count, sizeof(count));
+      if (count <= f.capacity) break;
+      // More cut triangles than the list holds: a bigger list, and again.
+      f.grow(ctx, count + count / 2);
+      stream.fill_zero(images);
+    }
+    if (count > 0) {
+      stream.barrier();
+      const uint32_t groups = std::min<uint32_t>((count + kSplatGroup - 1) / kSplatGroup, 65535u);
+      stream.dispatch(derivatives ? f.cuts : f.cuts_values,
+                      {&lenses, &sources, &images, &source_designs, &designs, f.list.get()}, &p, groups, 1);
+    }
+    return ms;
   }
 
   uint32_t bands() const { return (uint32_t(params.grid_h) + band_rows - 1) / band_rows; }
 
+  // Workgroups along x: one per 64 rays (point) or cells (footprint),
+  // capped; the kernels loop over the rest.
   uint32_t splat_groups() const {
     uint64_t total = params.total_rays;
     return uint32_t(std::min<uint64_t>((total + kSplatGroup - 1) / kSplatGroup, std::min(ctx.max_group_count_x(), 65535u)));
@@ -228,8 +303,7 @@ std::vector<FisherResult> ForwardVulkan::fisher(std::span<const glm::dvec3> thet
       p.source_count = uint32_t(std::min<size_t>(batch, theta.size() - first));
       stream.fill_zero(images);
       stream.barrier();
-      stream.dispatch(m.splat, {&m.lenses, &sources, &images, &source_designs, &m.designs}, &p, m.splat_groups(),
-                      p.source_count);
+      last_kernel_ms_ += m.record_splat(stream, true, sources, source_designs, images, p);
       stream.barrier();
       stream.dispatch(m.reduce, {&images, &partials}, &rp, rp.chunks, p.source_count);
       last_kernel_ms_ += stream.submit();
@@ -253,8 +327,9 @@ std::vector<FisherResult> ForwardVulkan::fisher(std::span<const glm::dvec3> thet
 // Render one source band by band with `kernel` (pixel_floats floats per
 // pixel); hand each band's pixels to consume(first_row, rows, pixels).
 template <class Consume>
-double render_bands(ForwardVulkan::Impl& m, const AnalysisGrid& grid, vk::Kernel& kernel, uint32_t pixel_floats,
-                    const glm::dvec3& theta, Consume&& consume) {
+double render_bands(ForwardVulkan::Impl& m, const AnalysisGrid& grid, bool derivatives, const glm::dvec3& theta,
+                    Consume&& consume) {
+  const uint32_t pixel_floats = derivatives ? 8 : 1;
   glm::vec4 src(glm::vec3(theta), 0.0f);
   vk::Buffer sources(m.ctx, sizeof(glm::vec4));
   sources.upload(&src, sizeof(src));
@@ -273,7 +348,7 @@ double render_bands(ForwardVulkan::Impl& m, const AnalysisGrid& grid, vk::Kernel
     p.source_count = 1;
     stream.fill_zero(images);
     stream.barrier();
-    stream.dispatch(kernel, {&m.lenses, &sources, &images, &m.design_zero, &m.designs}, &p, m.splat_groups(), 1);
+    ms += m.record_splat(stream, derivatives, sources, m.design_zero, images, p);
     ms += stream.submit();
     images.download(pixels.data(), uint64_t(p.band_rows) * grid.width * pixel_floats * sizeof(float));
     consume(row0, uint32_t(p.band_rows), pixels.data());
@@ -283,7 +358,7 @@ double render_bands(ForwardVulkan::Impl& m, const AnalysisGrid& grid, vk::Kernel
 
 PixelImage ForwardVulkan::psf(const glm::dvec3& theta) {
   PixelImage img{grid_.width, grid_.height, grid_.pixel_mm, std::vector<float>(size_t(grid_.width) * grid_.height * 4)};
-  last_kernel_ms_ = render_bands(*impl_, grid_, impl_->splat, 8, theta, [&](uint32_t row0, uint32_t rows, const float* q) {
+  last_kernel_ms_ = render_bands(*impl_, grid_, true, theta, [&](uint32_t row0, uint32_t rows, const float* q) {
     // Keep b and the mean of the two half-ray gradient estimates.
     float* out = &img.data[size_t(row0) * grid_.width * 4];
     for (size_t i = 0; i < size_t(rows) * grid_.width; ++i, q += 8) {
@@ -296,7 +371,7 @@ PixelImage ForwardVulkan::psf(const glm::dvec3& theta) {
 
 std::vector<float> ForwardVulkan::psf_values(const glm::dvec3& theta) {
   std::vector<float> out(size_t(grid_.width) * grid_.height);
-  last_kernel_ms_ = render_bands(*impl_, grid_, impl_->splat_values, 1, theta, [&](uint32_t row0, uint32_t rows, const float* q) {
+  last_kernel_ms_ = render_bands(*impl_, grid_, false, theta, [&](uint32_t row0, uint32_t rows, const float* q) {
     std::copy_n(q, size_t(rows) * grid_.width, &out[size_t(row0) * grid_.width]);
   });
   return out;

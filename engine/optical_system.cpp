@@ -8,6 +8,14 @@ namespace prism {
 const char* to_string(LensModel m) { return m == LensModel::real ? "real" : "thin"; }
 const char* to_string(FisherEstimator e) { return e == FisherEstimator::split ? "split" : "naive"; }
 
+const char* to_string(Splat s) { return s == Splat::footprint ? "footprint" : "point"; }
+
+Splat splat_from_string(const std::string& s) {
+  if (s == "point") return Splat::point;
+  if (s == "footprint") return Splat::footprint;
+  throw std::invalid_argument("splat '" + s + "': choose point or footprint");
+}
+
 double OpticalSystem::sag_mm(size_t i) const {
   double r = curvature_radius_mm(i);
   double a = 0.5 * lenslets[i].diameter_mm;

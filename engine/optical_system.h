@@ -65,6 +65,15 @@ struct OpticalSystem {
 enum class FisherEstimator { naive, split };
 const char* to_string(FisherEstimator e);
 
+// How a traced ray becomes pixel values (shaders/common/footprint.glsl):
+// `point` splats each ray bilinearly into the 4 nearest pixel centres (the
+// paper's way: the box pixel blurred once more by a one-pixel tent, and shot
+// noise at fine pixels); `footprint` traces the aperture strata's corners and
+// gives each box pixel the exact area of every cell image inside it.
+enum class Splat { point, footprint };
+const char* to_string(Splat s);
+Splat splat_from_string(const std::string& s);  // throws naming the choices
+
 // Analysis settings of one forward-model run.
 struct TraceSettings {
   // Rays through a lenslet of the prototype's 3 mm diameter, rounded up to an
@@ -74,6 +83,11 @@ struct TraceSettings {
   unsigned binning = defaults::analysis_binning;           // analyse on binning x binning sensor pixels
   double photons_emitted = defaults::photons_emitted;
   FisherEstimator estimator = FisherEstimator::split;
+  Splat splat = Splat::point;
+  // 0: the default strata; another value gives another stratification of the
+  // same apertures (other jitter for point rays, cells turned for footprints):
+  // truth rendered apart from the model that fits it.
+  unsigned stratification = 0;
 
   unsigned strata() const { return strata_for(defaults::lenslet_diameter_mm); }
   unsigned rays() const { return strata() * strata(); }  // through a 3 mm lenslet

@@ -29,7 +29,10 @@ struct SparseImage {
   std::array<double, 4> value(int64_t key) const;
 };
 
+// The image by settings.splat: point rays splatted bilinearly, or footprints.
 SparseImage psf(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta);
+// The footprint splat's image (psf() with Splat::footprint).
+SparseImage psf_footprint(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta);
 FisherResult fisher(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta);
 FisherResult fisher_of(const SparseImage& image, double dark_counts_per_pixel, FisherEstimator estimator);
 

@@ -222,6 +222,11 @@ void Stream::fill_zero(Buffer& buffer) {
   vkCmdFillBuffer(cmd_, buffer.handle(), 0, VK_WHOLE_SIZE, 0);
 }
 
+void Stream::fill_zero(Buffer& buffer, uint64_t offset, uint64_t bytes) {
+  begin_if_needed();
+  vkCmdFillBuffer(cmd_, buffer.handle(), offset, bytes, 0);
+}
+
 void Stream::barrier() {
   begin_if_needed();
   VkMemoryBarrier mb{VK_STRUCTURE_TYPE_MEMORY_BARRIER};

@@ -73,6 +73,7 @@ class Stream {
   Stream& operator=(const Stream&) = delete;
 
   void fill_zero(Buffer& buffer);
+  void fill_zero(Buffer& buffer, uint64_t offset, uint64_t bytes);  // a multiple of 4 bytes
   void dispatch(Kernel& kernel, std::initializer_list<const Buffer*> buffers, const void* push, uint32_t groups_x,
                 uint32_t groups_y = 1, uint32_t groups_z = 1);
   // Make the writes of everything recorded so far visible to what follows.

@@ -28,7 +28,7 @@ struct Lenslet {
   float glass_index;          // refractive index of the glass (real model)
   int curved_toward_sensor;   // real model: 0 = curved face toward the source, 1 = flipped
   uint strata;                // aperture samples = strata^2 (equal density over lens sizes)
-  uint first_ray;             // index of its first ray among its design's rays
+  uint first_ray;             // index of its first ray (or footprint cell) among its design's
   uint pad_;                  // std430: the struct aligns to its vec2
 };
 
@@ -37,11 +37,11 @@ struct Lenslet {
 struct DesignRange {
   uint first_lens;  // index of its first lenslet in the lens buffer
   uint lens_count;
-  uint total_rays;  // rays per source through all its lenslets
+  uint total_rays;  // rays (or footprint cells) per source through all its lenslets
   uint pad_;
 };
 
-// Per-dispatch constants (push constants, std430, 68 bytes).
+// Per-dispatch constants (push constants, std430, 72 bytes).
 struct TraceParams {
   float pixel_mm;             // analysis pixel pitch (sensor pixel x binning)
   float sensor_half_w_mm;     // half the physical sensor width (x)
@@ -60,6 +60,7 @@ struct TraceParams {
   uint source_offset;         // first source of this dispatch
   uint source_count;          // sources in this dispatch
   float source_sigma_mm;      // effect: Gaussian extent of the source (per axis)
+  uint stratification;        // 0: the default strata; another value: other jitter (point) and cells turned (footprint)
 };
 
 // A ray on its way to the sensor, with the photons it carries.
@@ -107,22 +108,35 @@ PRISM_FN vec2 concentric_disk(float a, float b) {
   return vec2(r * cos(phi), r * sin(phi));
 }
 
-// Point on the unit disk for jittered stratum `sample_index` of lenslet `lens`.
-PRISM_FN vec2 aperture_sample(uint lens, uint sample_index, uint strata) {
+// How far lenslet `lens`'s strata are turned about its centre under
+// stratification `seed` (radians; 0 for the default seed 0).
+PRISM_FN float strata_turn(uint lens, uint seed) {
+  if (seed == 0u) return 0.0f;
+  return 6.28318530718f * hash_unit(lens * 3266489917u ^ seed * 2246822519u ^ 0x68e31da4u);
+}
+
+// Point on the unit disk for jittered stratum `sample_index` of lenslet `lens`
+// under stratification `seed` (another seed: other jitter, strata turned).
+PRISM_FN vec2 aperture_sample(uint lens, uint sample_index, uint strata, uint seed) {
   uint i = sample_index % strata;
   uint j = sample_index / strata;
-  uint key = lens * 2654435761u ^ sample_index * 2246822519u;
+  uint key = lens * 2654435761u ^ sample_index * 2246822519u ^ seed * 0x2545f491u;
   float a = (float(i) + hash_unit(key)) / float(strata);
   float b = (float(j) + hash_unit(key ^ 0x9e3779b9u)) / float(strata);
-  return concentric_disk(2.0f * a - 1.0f, 2.0f * b - 1.0f);
+  vec2 p = concentric_disk(2.0f * a - 1.0f, 2.0f * b - 1.0f);
+  float turn = strata_turn(lens, seed);
+  if (turn == 0.0f) return p;
+  float c = cos(turn);
+  float s = sin(turn);
+  return vec2(c * p.x - s * p.y, s * p.x + c * p.y);
 }
 
 // Effect "source_extent": each ray leaves from the source centre plus a
 // Gaussian offset (sigma per axis), a fixed function of (lens, sample) like the
 // aperture point, so the PSF is the point PSF convolved with the source's
 // extent and derivatives in theta stay exact. Box-Muller on the hash.
-PRISM_FN vec3 source_offset(uint lens, uint sample_index, float sigma_mm) {
-  uint key = lens * 3266489917u ^ sample_index * 668265263u ^ 0x5bd1e995u;
+PRISM_FN vec3 source_offset(uint lens, uint sample_index, float sigma_mm, uint seed) {
+  uint key = lens * 3266489917u ^ sample_index * 668265263u ^ 0x5bd1e995u ^ seed * 0x9e3779b9u;
   float u1 = max(hash_unit(key), 1.0f / 16777216.0f);
   float u2 = hash_unit(key ^ 0x27d4eb2fu);
   float u3 = max(hash_unit(key ^ 0x165667b1u), 1.0f / 16777216.0f);
@@ -355,26 +369,33 @@ PRISM_FN Hit trace_real(Ray ray, Lenslet lens, float holder_bore_mm, float lens_
   return hit;
 }
 
-// Trace aperture sample `sample_index` of lenslet `lens_index` from source theta.
-// The effect switches are compile-time constants in the kernels (specialisation
-// constants), so an effect the scene does not name is compiled out.
-PRISM_FN Hit trace_sample(vec3 theta, Lenslet lens, uint lens_index, uint sample_index, TraceParams P,
-                          int lens_model, bool scint_refraction, bool holder, bool source_extent) {
-  if (source_extent) theta = theta + source_offset(lens_index, sample_index, P.source_sigma_mm);
-  vec2 unit = aperture_sample(lens_index, sample_index, lens.strata);
+// Trace the ray from source theta through point `unit` of the lenslet's
+// entrance disk (unit-disk coordinates). Its weight is the photons per mm^2
+// of aperture there times `area_mm2`. The effect switches are compile-time
+// constants in the kernels (specialisation constants), so an effect the scene
+// does not name is compiled out.
+PRISM_FN Hit trace_aperture_point(vec3 theta, Lenslet lens, vec2 unit, float area_mm2, TraceParams P, int lens_model,
+                                  bool scint_refraction, bool holder) {
   // The entrance disk: the rim plane of a front sphere, else the plane z = 0.
   float aperture_z = (lens_model == LENS_REAL && lens.curved_toward_sensor == 0) ? lens.sag_mm : 0.0f;
-  float aperture_r = lens.radius_mm;
-  vec3 p = vec3(lens.center_mm.x + aperture_r * unit.x, lens.center_mm.y + aperture_r * unit.y, aperture_z);
-  // Each stratum carries an equal share of the aperture area.
-  float photons_per_sample = P.photons_per_sr * 3.14159265358979f * aperture_r * aperture_r / float(lens.strata * lens.strata);
+  vec3 p = vec3(lens.center_mm.x + lens.radius_mm * unit.x, lens.center_mm.y + lens.radius_mm * unit.y, aperture_z);
+  float photons = P.photons_per_sr * area_mm2;
   DVec3 src = source_point(theta, P.working_distance_mm);
-  Ray ray = scint_refraction
-                ? emit_through_face(src, p, photons_per_sample, P.scint_index, -P.working_distance_mm)
-                : emit_direct(src, p, photons_per_sample);
+  Ray ray = scint_refraction ? emit_through_face(src, p, photons, P.scint_index, -P.working_distance_mm)
+                             : emit_direct(src, p, photons);
   float bore = holder ? P.holder_bore_mm : 0.0f;
   return (lens_model == LENS_REAL) ? trace_real(ray, lens, bore, P.lens_to_sensor_mm, false)
                                    : trace_thin(ray, lens, bore, P.lens_to_sensor_mm, false);
+}
+
+// Trace aperture sample `sample_index` of lenslet `lens_index` from source
+// theta: its jittered stratum's point, carrying an equal share of the area.
+PRISM_FN Hit trace_sample(vec3 theta, Lenslet lens, uint lens_index, uint sample_index, TraceParams P,
+                          int lens_model, bool scint_refraction, bool holder, bool source_extent) {
+  if (source_extent) theta = theta + source_offset(lens_index, sample_index, P.source_sigma_mm, P.stratification);
+  vec2 unit = aperture_sample(lens_index, sample_index, lens.strata, P.stratification);
+  float area = 3.14159265358979f * lens.radius_mm * lens.radius_mm / float(lens.strata * lens.strata);
+  return trace_aperture_point(theta, lens, unit, area, P, lens_model, scint_refraction, holder);
 }
 
 // ---------------------------------------------------------------------------

@@ -1,0 +1,81 @@
+// Footprint splatting, the common path (shaders/common/footprint.glsl): one
+// invocation per aperture cell traces the cell's four corners and gives each
+// of its two triangles' light to the pixels by exact area (footprint_raster.glsl).
+// Triangles an aperture or total internal reflection cuts, large ones (split
+// further, footprint.glsl), and those over a partial last pixel at the
+// sensor's far edge go to the cut list for psf_footprint_cuts.comp: rare, and
+// on lavapipe every branch of a kernel is paid by every invocation, so they
+// are kept out of this one.
+// Grid x: cells (strided), grid y: sources in this dispatch.
+#version 460
+#extension GL_GOOGLE_include_directive : require
+#extension GL_EXT_shader_atomic_float : require
+#define PRISM_FN
+#include "footprint_raster.glsl"
+
+layout(local_size_x = 64) in;
+
+// The lenslet of design d that cell r belongs to: the last whose first_ray <= r.
+uint lens_of_cell(DesignRange d, uint r) {
+  uint lo = d.first_lens;
+  uint hi = d.first_lens + d.lens_count - 1u;
+  while (lo < hi) {
+    uint mid = (lo + hi + 1u) / 2u;
+    if (lenses[mid].first_ray <= r) lo = mid;
+    else hi = mid - 1u;
+  }
+  return lo;
+}
+
+void main() {
+  uint s = gl_GlobalInvocationID.y;
+  if (s >= P.source_count) return;
+  DesignRange design = designs[source_design[P.source_offset + s]];
+  vec3 theta = sources[P.source_offset + s].xyz;
+  uint image_base = s * uint(P.grid_w) * uint(P.band_rows) * PIXEL_FLOATS;
+  uint stride = gl_NumWorkGroups.x * gl_WorkGroupSize.x;
+  float u_max = sensor_u_max();
+  float v_max = sensor_v_max();
+  for (uint r = gl_GlobalInvocationID.x; r < design.total_rays; r += stride) {
+    uint lens_index = lens_of_cell(design, r);
+    Lenslet lens = lenses[lens_index];
+    uint in_design = lens_index - design.first_lens;  // hashes by the index within the design
+    uint cell = r - lens.first_ray;
+    uint n = lens.strata;
+    uint i = cell % n;
+    uint j = cell / n;
+    float turn = strata_turn(in_design, P.stratification);
+    vec3 from = cell_source(theta, in_design, cell);
+    Corner k[4];
+    k[0] = trace_corner(from, lens, aperture_corner(i, j, n, turn));
+    k[1] = trace_corner(from, lens, aperture_corner(i + 1u, j, n, turn));
+    k[2] = trace_corner(from, lens, aperture_corner(i, j + 1u, n, turn));
+    k[3] = trace_corner(from, lens, aperture_corner(i + 1u, j + 1u, n, turn));
+    // Half the cell's exact aperture area (the concentric map preserves area).
+    float half_area = 0.5f * 3.14159265358979f * lens.radius_mm * lens.radius_mm / float(n * n);
+    uint half_offset = 1u + 3u * ((i + j) & 1u);  // checkerboard halves, as ray_half
+    for (uint t = 0u; t < 2u; ++t) {
+      CellTriangle tri = cell_triangle(i, j, n, t);
+      Corner a = k[tri.ab.x + 2u * tri.ab.y];
+      Corner b = k[tri.ab.z + 2u * tri.ab.w];
+      Corner c = k[tri.c.x + 2u * tri.c.y];
+      float u_hi = max(max(a.u.v, b.u.v), c.u.v);
+      float v_hi = max(max(a.v.v, b.v.v), c.v.v);
+      float u_lo = min(min(a.u.v, b.u.v), c.u.v);
+      float v_lo = min(min(a.v.v, b.v.v), c.v.v);
+      bool cut = !(a.ok && b.ok && c.ok);
+      bool off = a.ok && b.ok && c.ok && (u_lo >= u_max || v_lo >= v_max || u_hi <= 0.0f || v_hi <= 0.0f);
+      // Over a partial last column or row: the far edge cuts it.
+      bool edge = (u_hi > u_max && u_max < float(P.grid_w)) || (v_hi > v_max && v_max < float(P.grid_h));
+      bool large = max(u_hi - u_lo, v_hi - v_lo) > LARGE_TRIANGLE_PX;
+      if (!(a.ok || b.ok || c.ok) || off) continue;
+      if (cut || edge || large) {
+        uint at = atomicAdd(cut_count, 1u);
+        if (at < cut_capacity) cuts[at] = uvec4(s, lens_index, cell, t);
+        continue;
+      }
+      Dual w = d_scale(d_add(d_add(a.w, b.w), c.w), half_area / 3.0f);
+      rasterise_triangle(image_base, a, b, c, w, half_offset);
+    }
+  }
+}

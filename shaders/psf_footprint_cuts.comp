@@ -1,0 +1,210 @@
+// Footprint splatting, the triangles psf_footprint.comp leaves in its cut
+// list: those an aperture or total internal reflection cuts (some of their
+// corners' rays are stopped), large ones (split, footprint.glsl), and those
+// crossing the sensor's far edge inside a partial last column or row. One
+// invocation per entry.
+//
+// An aperture cut: the boundary is found by bisection along each edge between
+// a corner whose ray passes and one whose ray does not (CUT_STEPS halvings of
+// the aperture segment), and the part that passes (a triangle, or a quad as
+// two triangles) carries its share of the aperture area. The cut's aperture
+// point is held fixed in theta: its motion, like a point ray crossing an
+// aperture edge, is not in the derivatives. The far edge: each triangle is
+// clipped to the sensor and the part on it rasterised with the light per
+// image area of the whole triangle (light beyond is lost).
+#version 460
+#extension GL_GOOGLE_include_directive : require
+#extension GL_EXT_shader_atomic_float : require
+#define PRISM_FN
+#include "footprint_raster.glsl"
+
+layout(local_size_x = 64) in;
+
+const int CUT_STEPS = 12;
+
+// `weight` spread over triangle (a, b, c), clipped to u <= u_max, v <= v_max
+// (light beyond is lost; the rest keeps the whole triangle's light per area).
+void rasterise_clipped(uint image_base, Corner a, Corner b, Corner c, Dual weight, uint half_offset) {
+  if (is_large(a, b, c)) {  // a piece no further split (footprint.glsl): at its centroid
+    deposit_at_centroid(image_base, a, b, c, weight, half_offset);
+    return;
+  }
+  Dual area = triangle_area(a.u, a.v, b.u, b.v, c.u, c.v);
+  if (is_thin(a, b, c, area)) {
+    rasterise_thin(image_base, a, b, c, weight, sensor_u_max(), sensor_v_max(), half_offset);
+    return;
+  }
+  // Sutherland-Hodgman against the two far edges: at most 5 vertices.
+  Dual pu[MAX_SIDES];
+  Dual pv[MAX_SIDES];
+  Dual qu[MAX_SIDES];
+  Dual qv[MAX_SIDES];
+  pu[0] = a.u;
+  pv[0] = a.v;
+  pu[1] = b.u;
+  pv[1] = b.v;
+  pu[2] = c.u;
+  pv[2] = c.v;
+  int n = 3;
+  for (int plane = 0; plane < 2; ++plane) {
+    float limit = plane == 0 ? sensor_u_max() : sensor_v_max();
+    int m = 0;
+    for (int i = 0; i < n; ++i) {
+      int j = (i + 1 == n) ? 0 : i + 1;
+      Dual di = d_sub(d_const(limit), plane == 0 ? pu[i] : pv[i]);
+      Dual dj = d_sub(d_const(limit), plane == 0 ? pu[j] : pv[j]);
+      if (di.v >= 0.0f) {
+        qu[m] = pu[i];
+        qv[m] = pv[i];
+        ++m;
+      }
+      if ((di.v >= 0.0f) != (dj.v >= 0.0f)) {
+        Dual t = d_div(di, d_sub(di, dj));
+        qu[m] = d_add(pu[i], d_mul(t, d_sub(pu[j], pu[i])));
+        qv[m] = d_add(pv[i], d_mul(t, d_sub(pv[j], pv[i])));
+        ++m;
+      }
+    }
+    n = m;
+    for (int k = 0; k < n; ++k) {
+      pu[k] = qu[k];
+      pv[k] = qv[k];
+    }
+    if (n < 3) return;
+  }
+  rasterise_polygon(image_base, pu, pv, n, weight, area, half_offset);
+}
+
+// Twice the aperture area of triangle (a, b, c), unit-disk coordinates.
+float twice_area(vec2 a, vec2 b, vec2 c) { return abs((b.x - a.x) * (c.y - a.y) - (c.x - a.x) * (b.y - a.y)); }
+
+// Triangle (a, b, c) with some corners stopped: the part that passes, found
+// by bisection along a-b and a-c from the odd corner out, with its share of
+// `area_mm2` of aperture.
+void rasterise_cut(uint image_base, vec3 from, Lenslet lens, Corner a, Corner b, Corner c, vec2 pa, vec2 pb, vec2 pc,
+                   float area_mm2, uint half_offset) {
+  int passed = int(a.ok) + int(b.ok) + int(c.ok);
+  // The odd one out first, cyclic order kept: a stopped with b, c through
+  // (passed == 2), or a through with b, c stopped (passed == 1).
+  bool odd_ok = passed == 1;
+  if (b.ok == odd_ok) {
+    Corner t = a; a = b; b = c; c = t;
+    vec2 q = pa; pa = pb; pb = pc; pc = q;
+  } else if (c.ok == odd_ok) {
+    Corner t = a; a = c; c = b; b = t;
+    vec2 q = pa; pa = pc; pc = pb; pb = q;
+  }
+  // Bisect a-b and a-c for the last point on the through side.
+  Corner cut0 = a;
+  Corner cut1 = a;
+  vec2 cut_p0 = pa;
+  vec2 cut_p1 = pa;
+  for (int side = 0; side < 2; ++side) {
+    vec2 other = side == 0 ? pb : pc;
+    vec2 through = odd_ok ? pa : other;
+    vec2 stopped = odd_ok ? other : pa;
+    Corner best = odd_ok ? a : (side == 0 ? b : c);
+    for (int k = 0; k < CUT_STEPS; ++k) {
+      vec2 mid = 0.5f * (through + stopped);
+      Corner m = trace_corner(from, lens, mid);
+      if (m.ok) {
+        through = mid;
+        best = m;
+      } else {
+        stopped = mid;
+      }
+    }
+    if (side == 0) {
+      cut0 = best;
+      cut_p0 = through;
+    } else {
+      cut1 = best;
+      cut_p1 = through;
+    }
+  }
+  float whole = twice_area(pa, pb, pc);
+  if (!(whole > 0.0f)) return;
+  if (odd_ok) {
+    float part = area_mm2 * twice_area(pa, cut_p0, cut_p1) / whole;
+    rasterise_clipped(image_base, a, cut0, cut1, d_scale(d_add(d_add(a.w, cut0.w), cut1.w), part / 3.0f), half_offset);
+    return;
+  }
+  // Quad cut0, b, c, cut1 as two triangles, each with its own aperture area.
+  float part1 = area_mm2 * twice_area(cut_p0, pb, pc) / whole;
+  float part2 = area_mm2 * twice_area(cut_p0, pc, cut_p1) / whole;
+  rasterise_clipped(image_base, cut0, b, c, d_scale(d_add(d_add(cut0.w, b.w), c.w), part1 / 3.0f), half_offset);
+  rasterise_clipped(image_base, cut0, c, cut1, d_scale(d_add(d_add(cut0.w, c.w), cut1.w), part2 / 3.0f), half_offset);
+}
+
+// A triangle waiting on the stack: aperture points, traced corners, the
+// aperture area it carries, and how often it was split.
+struct Piece {
+  vec2 pa;
+  vec2 pb;
+  vec2 pc;
+  Corner a;
+  Corner b;
+  Corner c;
+  float area_mm2;
+  int depth;
+};
+const int STACK = 3 * SPLIT_DEPTH + 1;  // depth first, four children per split
+
+void main() {
+  uint total = min(cut_count, cut_capacity);
+  uint stride = gl_NumWorkGroups.x * gl_WorkGroupSize.x;
+  for (uint e = gl_GlobalInvocationID.x; e < total; e += stride) {
+    uvec4 entry = cuts[e];
+    uint s = entry.x;
+    DesignRange design = designs[source_design[P.source_offset + s]];
+    Lenslet lens = lenses[entry.y];
+    uint in_design = entry.y - design.first_lens;
+    uint cell = entry.z;
+    uint n = lens.strata;
+    uint i = cell % n;
+    uint j = cell / n;
+    uint image_base = s * uint(P.grid_w) * uint(P.band_rows) * PIXEL_FLOATS;
+    uint half_offset = 1u + 3u * ((i + j) & 1u);
+    float turn = strata_turn(in_design, P.stratification);
+    vec3 from = cell_source(sources[P.source_offset + s].xyz, in_design, cell);
+    CellTriangle tri = cell_triangle(i, j, n, entry.w);
+    Piece stack[STACK];
+    stack[0].pa = aperture_corner(i + tri.ab.x, j + tri.ab.y, n, turn);
+    stack[0].pb = aperture_corner(i + tri.ab.z, j + tri.ab.w, n, turn);
+    stack[0].pc = aperture_corner(i + tri.c.x, j + tri.c.y, n, turn);
+    stack[0].a = trace_corner(from, lens, stack[0].pa);
+    stack[0].b = trace_corner(from, lens, stack[0].pb);
+    stack[0].c = trace_corner(from, lens, stack[0].pc);
+    stack[0].area_mm2 = 0.5f * 3.14159265358979f * lens.radius_mm * lens.radius_mm / float(n * n);
+    stack[0].depth = 0;
+    int top = 1;
+    while (top > 0) {
+      Piece t = stack[--top];
+      int passed = int(t.a.ok) + int(t.b.ok) + int(t.c.ok);
+      if (passed == 0) continue;
+      if (is_large(t.a, t.b, t.c) && t.depth < SPLIT_DEPTH) {
+        // Four children at the aperture edges' midpoints, a quarter of the area each.
+        vec2 pab = 0.5f * (t.pa + t.pb);
+        vec2 pbc = 0.5f * (t.pb + t.pc);
+        vec2 pca = 0.5f * (t.pc + t.pa);
+        Corner ab = trace_corner(from, lens, pab);
+        Corner bc = trace_corner(from, lens, pbc);
+        Corner ca = trace_corner(from, lens, pca);
+        float quarter = 0.25f * t.area_mm2;
+        int d = t.depth + 1;
+        stack[top++] = Piece(t.pa, pab, pca, t.a, ab, ca, quarter, d);
+        stack[top++] = Piece(pab, t.pb, pbc, ab, t.b, bc, quarter, d);
+        stack[top++] = Piece(pca, pbc, t.pc, ca, bc, t.c, quarter, d);
+        stack[top++] = Piece(pab, pbc, pca, ab, bc, ca, quarter, d);
+        continue;
+      }
+      if (passed < 3) {
+        rasterise_cut(image_base, from, lens, t.a, t.b, t.c, t.pa, t.pb, t.pc, t.area_mm2, half_offset);
+        continue;
+      }
+      // (Still large after the last split: at its centroid, in rasterise_clipped.)
+      rasterise_clipped(image_base, t.a, t.b, t.c, d_scale(d_add(d_add(t.a.w, t.b.w), t.c.w), t.area_mm2 / 3.0f),
+                        half_offset);
+    }
+  }
+}

@@ -1,0 +1,231 @@
+// The footprint splat (shaders/common/footprint.glsl) against the exact
+// box-pixel oracle for thin lenses (engine/ref/thin_lens_oracle.h) and against
+// its own double-precision CPU reference on hard inputs; the oracle against a
+// closed form and against its own finite differences.
+//
+// Tolerances. The footprint's error against the oracle is second order in the
+// cell size (uniform light over each cell's image triangle): its CRLB is
+// within 0.1% of the oracle's at the cell counts used here (bench_forward
+// measures the convergence). Vulkan against the reference: float landing
+// points (about 2e-4 of a 6.9 um pixel at the sensor's edge), so pixel values
+// agree to 1e-3 of the peak and derivatives to 2e-3; decisions on a
+// triangle's shape (thin, large) can flip between float and double for a few
+// cells near a caustic, so those cases compare totals and the CRLB.
+#include <cmath>
+#include <string>
+
+#include "engine/forward.h"
+#include "engine/ref/forward_ref.h"
+#include "engine/ref/thin_lens_oracle.h"
+#include "compare.h"
+#include "support.h"
+
+namespace {
+
+using prism::test::gpu;
+
+prism::TraceSettings footprint(unsigned rays, unsigned binning) {
+  prism::TraceSettings t;
+  t.rays_per_lenslet = rays;
+  t.binning = binning;
+  t.splat = prism::Splat::footprint;
+  t.estimator = prism::FisherEstimator::naive;
+  return t;
+}
+
+// Channel c (0: b; 1..3: its derivatives) of each, pixel by pixel.
+std::vector<double> channel(const prism::ref::SparseImage& r, int c) {
+  std::vector<double> out(size_t(r.width) * size_t(r.height), 0.0);
+  for (const auto& [k, px] : r.pixels) out[size_t(k)] = r.value(k)[size_t(c)];
+  return out;
+}
+std::vector<double> channel(const prism::PixelImage& v, int c) {
+  std::vector<double> out(size_t(v.width) * size_t(v.height));
+  for (size_t i = 0; i < out.size(); ++i) out[i] = v.data[4 * i + size_t(c)];
+  return out;
+}
+
+double crlb_3d(const prism::FisherResult& f) { return prism::crlb_from_fisher(f.poisson, f.photons).r3_mm; }
+
+}  // namespace
+
+TEST_CASE("thin-lens oracle: a lenslet's whole light equals the solid angle of its disc") {
+  // One lenslet on the axis, a source on the axis: Phi / 2 (1 - h / sqrt(h^2 + R^2)).
+  prism::OpticalSystem sys;
+  sys.lens_model = prism::LensModel::thin;
+  sys.lenslets = {{0.0, 0.0, 3.0, 9.0}};
+  prism::TraceSettings t;
+  t.binning = 16;
+  for (double depth : {2.0, 13.5, 40.0}) {
+    CAPTURE(depth);
+    auto img = prism::ref::thin_lens_image(sys, t, {0.0, 0.0, depth});
+    const double h = depth + sys.working_distance_mm, R = 1.5;
+    CHECK(img.photons() == doctest::Approx(0.5 * t.photons_emitted * (1 - h / std::sqrt(h * h + R * R))).epsilon(1e-10));
+  }
+}
+
+TEST_CASE("thin-lens oracle: its derivatives are those of its values (central differences)") {
+  auto sys = prism::test::small_system(prism::LensModel::thin);
+  prism::TraceSettings t;
+  t.binning = 16;
+  const glm::dvec3 theta{1.3, -0.7, 25.0};
+  auto img = prism::ref::thin_lens_image(sys, t, theta);
+  const double h = 1e-5;
+  for (int axis = 0; axis < 3; ++axis) {
+    CAPTURE(axis);
+    glm::dvec3 d(0.0);
+    d[axis] = h;
+    auto plus = channel(prism::ref::thin_lens_image(sys, t, theta + d), 0);
+    auto minus = channel(prism::ref::thin_lens_image(sys, t, theta - d), 0);
+    std::vector<double> fd(plus.size());
+    for (size_t i = 0; i < fd.size(); ++i) fd[i] = (plus[i] - minus[i]) / (2 * h);
+    auto derivative = channel(img, 1 + axis);
+    auto c = prism::test::compare(fd, derivative, {.abs = 1e-6 * prism::test::peak_abs(fd)});
+    CHECK_MESSAGE(c.ok(), c.report("d b / d theta vs central differences"));
+  }
+}
+
+TEST_CASE("footprint splat equals the box-pixel oracle for thin lenses at 6.9, 27.6 and 110 um") {
+  auto sys = prism::test::small_system(prism::LensModel::thin);
+  const glm::dvec3 theta{1.3, -0.7, 25.0};
+  struct Case {
+    unsigned binning, rays;
+  } cases[] = {{16, 4096}, {4, 16384}, {1, 16384}};
+  for (const auto& k : cases) {
+    CAPTURE(k.binning);
+    auto t = footprint(k.rays, k.binning);
+    auto oracle = prism::ref::thin_lens_image(sys, t, theta);
+    prism::ForwardVulkan fw(gpu(), sys, t);
+    auto image = fw.psf(theta);
+    CHECK(image.photons() == doctest::Approx(oracle.photons()).epsilon(1e-5));
+    // Pixel by pixel: L1 distance under 0.1% of the light.
+    auto want = channel(oracle, 0), got = channel(image, 0);
+    double l1 = 0;
+    for (size_t i = 0; i < want.size(); ++i) l1 += std::abs(got[i] - want[i]);
+    CHECK(l1 < 1e-3 * oracle.photons());
+    // The CRLB within 1%.
+    const double exact = crlb_3d(prism::ref::fisher_of(oracle, 0.0, prism::FisherEstimator::naive));
+    const double traced = crlb_3d(fw.fisher(std::vector<glm::dvec3>{theta}).front());
+    MESSAGE("binning " << k.binning << ", " << k.rays << " cells per lenslet: CRLB " << traced << " mm, oracle " << exact
+                       << " mm");
+    CHECK(traced == doctest::Approx(exact).epsilon(0.01));
+  }
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("footprint splat: Vulkan equals the CPU reference on real lenses, cut cells and every effect") {
+  auto plain = prism::test::small_system(prism::LensModel::real);
+  auto holder = plain;
+  holder.effects.holder_vignetting = true;
+  holder.effects.holder_bore_mm = 3.0;
+  auto face = plain;
+  face.effects.scintillator_refraction = true;
+  auto extent = plain;
+  extent.effects.source_extent = true;
+  extent.effects.source_sigma_mm = 0.3;
+  auto efficiency = plain;
+  efficiency.effects.detection_efficiency = 0.4;
+  // Pixel by pixel where no triangle sits on a float/double decision; at the
+  // sensor's edge, 25 mm off axis, split pieces given to their centroid can
+  // land in neighbouring pixels: there the totals and the CRLB.
+  struct Case {
+    std::string name;
+    prism::OpticalSystem sys;
+    glm::dvec3 theta;
+    unsigned binning, stratification;
+    bool pixels;
+  } cases[] = {{"real, depth 25", plain, {1.3, -0.7, 25.0}, 8, 0, true},
+               {"real, near and off axis (large cells split)", plain, {8.0, 3.0, 2.0}, 8, 0, true},
+               {"holder 3 mm (cells cut by bisection)", holder, {8.0, 3.0, 2.0}, 8, 0, true},
+               {"scintillator refraction", face, {1.3, -0.7, 25.0}, 8, 0, true},
+               {"extended source", extent, {1.3, -0.7, 25.0}, 8, 0, true},
+               {"detection efficiency", efficiency, {1.3, -0.7, 25.0}, 8, 0, true},
+               {"another stratification", plain, {1.3, -0.7, 25.0}, 8, 3, true},
+               {"at the sensor's edge (partial last pixels)", plain, {-25.0, 0.0, 5.0}, 16, 0, false}};
+  for (const auto& k : cases) {
+    CAPTURE(k.name);
+    auto t = footprint(1024, k.binning);
+    t.stratification = k.stratification;
+    auto ref = prism::ref::psf(k.sys, t, k.theta);
+    prism::ForwardVulkan fw(gpu(), k.sys, t);
+    auto image = fw.psf(k.theta);
+    REQUIRE(ref.photons() > 0);
+    CHECK(image.photons() == doctest::Approx(ref.photons()).epsilon(1e-5));
+    for (int c = 0; c < 4 && k.pixels; ++c) {
+      auto want = channel(ref, c);
+      auto got = channel(image, c);
+      auto cmp = prism::test::compare(want, got, {.abs = (c == 0 ? 1e-3 : 2e-3) * prism::test::peak_abs(want)});
+      CHECK_MESSAGE(cmp.ok(), cmp.report("channel " + std::to_string(c) + " (Vulkan vs reference)"));
+    }
+    const double ref_crlb = crlb_3d(prism::ref::fisher_of(ref, 0.0, prism::FisherEstimator::naive));
+    CHECK(crlb_3d(fw.fisher(std::vector<glm::dvec3>{k.theta}).front()) == doctest::Approx(ref_crlb).epsilon(1e-3));
+  }
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("footprint splat: cells folded by an f/1 lens's caustic converge to where the rays put the light") {
+  // The f = 3 mm lenslet alone: spherical aberration folds cells into slivers
+  // (spread along their longest edge) and stretches others (split). Its light
+  // on the sensor must be the rays' (a fine stratified sum of the reference's
+  // ray weights that reach the sensor), and the image must converge with the
+  // cells: at first order in the cell size here, where cells fold (second
+  // order where the map is smooth).
+  auto sys = prism::builtin_scene("prototype").optics;
+  sys.lenslets = {sys.lenslets[15]};
+  REQUIRE(sys.lenslets[0].focal_mm == 3.0);
+  for (glm::dvec3 theta : {glm::dvec3{1.3, -0.7, 25.0}, glm::dvec3{2.0, 1.0, 10.0}}) {
+    CAPTURE(theta.z);
+    prism::TraceSettings rays;
+    rays.rays_per_lenslet = 262144;
+    const double half_w = 0.5 * sys.sensor_width_mm(), half_h = 0.5 * sys.sensor_height_mm();
+    double on_sensor = 0;
+    for (uint32_t k = 0; k < rays.rays(); ++k) {
+      auto h = prism::ref::trace_sample(sys, rays, theta, 0, k);
+      if (h.ok && std::abs(h.x_mm) <= half_w && std::abs(h.y_mm) <= half_h) on_sensor += h.weight;
+    }
+    REQUIRE(on_sensor > 0.1);
+    auto image = [&](unsigned cells) {
+      prism::ForwardVulkan fw(gpu(), sys, footprint(cells, 16));
+      return fw.psf(theta);
+    };
+    auto finest = image(65536);
+    CHECK(finest.photons() == doctest::Approx(on_sensor).epsilon(5e-4));
+    auto l1 = [&](const prism::PixelImage& x) {
+      double d = 0;
+      auto p = channel(x, 0), q = channel(finest, 0);
+      for (size_t i = 0; i < p.size(); ++i) d += std::abs(p[i] - q[i]);
+      return d / finest.photons();
+    };
+    const double e1 = l1(image(1024)), e4 = l1(image(4096)), e16 = l1(image(16384));
+    MESSAGE("L1 to 65536 cells: 1024 cells " << e1 << ", 4096 " << e4 << ", 16384 " << e16);
+    CHECK(e4 < 0.7 * e1);
+    CHECK(e16 < 0.7 * e4);
+    CHECK(e16 < 0.02);
+    for (float v : finest.data) CHECK(std::isfinite(v));
+  }
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("footprint splat: Fisher sums do not depend on bands and batches, and turned strata agree") {
+  auto sys = prism::builtin_scene("prototype").optics;
+  auto t = footprint(1024, 8);
+  std::vector<glm::dvec3> sources{{0, 0, 5}, {3, -2, 20}, {-4, 1, 45}};
+  prism::ForwardVulkan whole(gpu(), sys, t);
+  prism::ForwardVulkan cut(gpu(), sys, t, 1ull << 20);  // 8 bands, one source per batch
+  auto a = whole.fisher(sources), b = cut.fisher(sources);
+  auto turned = t;
+  turned.stratification = 7;
+  prism::ForwardVulkan other(gpu(), sys, turned);
+  auto o = other.fisher(sources);
+  for (size_t i = 0; i < sources.size(); ++i) {
+    CAPTURE(i);
+    CHECK(b[i].photons == doctest::Approx(a[i].photons).epsilon(1e-6));
+    auto c = prism::test::compare_values(a[i].poisson, b[i].poisson, {.abs = 1e-5 * a[i].poisson[0], .rel = 1e-5});
+    CHECK_MESSAGE(c.ok(), c.report("Poisson Fisher entries, banded vs whole"));
+    // Another stratification: other cells, the same physics to the cells' error.
+    CHECK(o[i].photons == doctest::Approx(a[i].photons).epsilon(1e-4));
+    CHECK(crlb_3d(o[i]) == doctest::Approx(crlb_3d(a[i])).epsilon(0.02));
+    CHECK(o[i].poisson[0] != a[i].poisson[0]);
+  }
+  prism::test::check_validation_clean();
+}
