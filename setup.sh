@@ -50,7 +50,7 @@ fi
 # Fig. 3 designs. Results go to out/.
 mkdir -p out
 prism=./build/host/prism
-$prism dictionary build --scene prototype --out out/dictionary --binning 16 --rays 4096
+$prism dictionary build --scene prototype --out out/dictionary --binning 16 --rays 4096 --splat point
 $prism simulate --scene prototype --vertex 1,1,31,100 --events 1000 --binning 16 --seed 1 --out out/events.events
 $prism reconstruct --dictionary out/dictionary --events out/events.events --vertices 1 --out out/vertices.csv
 $prism evaluate --dictionary out/dictionary --out out/evaluation

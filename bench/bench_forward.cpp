@@ -1,18 +1,24 @@
 // What accuracy costs in time for the forward model and Fisher information:
-//   1. rays per second, Vulkan backend vs the double-precision CPU reference;
-//   2. CRLB against rays per lenslet, analysis binning and Fisher estimator,
-//      relative to a very large ray count, with the time each took;
+//   1. throughput, Vulkan vs the double-precision CPU reference, point rays and
+//      footprint cells;
+//   2. the CRLB's error against time, point splat vs footprint splat, at the
+//      native 6.9 um pixels and binned 27.6 and 110 um: for thin lenses
+//      against the exact box-pixel oracle (engine/ref/thin_lens_oracle.h), for
+//      real lenses against the footprint at 4x the cells;
 //   3. the cost of each optional effect per ray.
 // Prints tables; every figure names the machine and the device. Times are
 // medians over repeats (these machines are noisy).
 #include <cmath>
 #include <cstdio>
 #include <cstring>
+#include <span>
 #include <string>
+#include <vector>
 
 #include "bench_util.h"
 #include "engine/forward.h"
 #include "engine/ref/forward_ref.h"
+#include "engine/ref/thin_lens_oracle.h"
 #include "host/scene/scene.h"
 
 using namespace prism;
@@ -21,10 +27,10 @@ namespace {
 
 struct Options {
   std::string device;
-  unsigned max_rays = 262144;        // largest ray count in the convergence table
-  unsigned reference_rays = 1048576; // "very large": the reference CRLB
+  unsigned max_rays = 262144;  // largest ray (or cell) count per lenslet in the convergence table
   int repeats = 3;
   bool skip_convergence = false;
+  std::vector<unsigned> binnings{16, 4, 1};
 };
 
 double crlb3d(const FisherResult& f) { return crlb_from_fisher(f.poisson, f.photons).r3_mm; }
@@ -47,49 +53,95 @@ void throughput(vk::Context& ctx, const Options& o) {
   });
   double vk_many = bench::median_seconds(o.repeats, [&] { fw.fisher(many); }) / double(many.size());
   double cpu_one = bench::median_seconds(o.repeats, [&] { ref::fisher(scene.optics, t, one[0]); });
-  std::printf("\n## 1. Throughput: trace + splat + Fisher, prototype (real lenses), %u rays/lenslet, 8x8 binning\n",
+  TraceSettings tf = t;
+  tf.splat = Splat::footprint;
+  tf.estimator = FisherEstimator::naive;
+  ForwardVulkan ff(ctx, scene.optics, tf);
+  ff.fisher(one);
+  double fp_many = bench::median_seconds(o.repeats, [&] { ff.fisher(many); }) / double(many.size());
+  double fp_cpu = bench::median_seconds(o.repeats, [&] { ref::fisher(scene.optics, tf, one[0]); });
+  std::printf("\n## 1. Throughput: trace + splat + Fisher, prototype (real lenses), %u rays or cells/lenslet, 8x8 "
+              "binning (55 um)\n",
               t.rays());
-  std::printf("%-44s %12s %14s\n", "path", "s/source", "Mrays/s");
-  std::printf("%-44s %12.4f %14.2f\n", "Vulkan, 1 source per call (wall)", vk_one, rays / vk_one * 1e-6);
-  std::printf("%-44s %12.4f %14.2f\n", "Vulkan, 1 source per call (kernel timestamps)", bench::median(kernel_ms) * 1e-3,
-              rays / (bench::median(kernel_ms) * 1e-3) * 1e-6);
-  std::printf("%-44s %12.4f %14.2f\n", "Vulkan, 16 sources per call (wall)", vk_many, rays / vk_many * 1e-6);
-  std::printf("%-44s %12.4f %14.2f\n", "CPU reference (double, 1 thread)", cpu_one, rays / cpu_one * 1e-6);
-  std::printf("ratio Vulkan (16 per call) / CPU reference: %.1fx faster\n", cpu_one / vk_many);
+  std::printf("%-52s %12s %18s\n", "path", "s/source", "M rays (cells)/s");
+  std::printf("%-52s %12.4f %18.2f\n", "point, Vulkan, 1 source per call (wall)", vk_one, rays / vk_one * 1e-6);
+  std::printf("%-52s %12.4f %18.2f\n", "point, Vulkan, 1 source per call (kernel timestamps)",
+              bench::median(kernel_ms) * 1e-3, rays / (bench::median(kernel_ms) * 1e-3) * 1e-6);
+  std::printf("%-52s %12.4f %18.2f\n", "point, Vulkan, 16 sources per call (wall)", vk_many, rays / vk_many * 1e-6);
+  std::printf("%-52s %12.4f %18.2f\n", "point, CPU reference (double, 1 thread)", cpu_one, rays / cpu_one * 1e-6);
+  std::printf("%-52s %12.4f %18.2f\n", "footprint, Vulkan, 16 sources per call (wall)", fp_many, rays / fp_many * 1e-6);
+  std::printf("%-52s %12.4f %18.2f\n", "footprint, CPU reference (double, 1 thread)", fp_cpu, rays / fp_cpu * 1e-6);
+  std::printf("ratios: point Vulkan / CPU reference %.1fx faster; footprint Vulkan / CPU reference %.1fx faster; "
+              "a footprint cell costs %.1fx a point ray\n",
+              cpu_one / vk_many, fp_cpu / fp_many, fp_many / vk_many);
+}
+
+// One row of the convergence table: a splat at some rays, its time and its
+// worst relative error over the sources against `exact`.
+struct Converged {
+  unsigned rays = 0;
+  double seconds = 0, worst = 0;
+  std::vector<double> crlb;
+};
+
+Converged measure(vk::Context& ctx, const OpticalSystem& sys, TraceSettings t, const std::vector<glm::dvec3>& sources,
+                  const std::vector<double>& exact, int repeats) {
+  ForwardVulkan fw(ctx, sys, t);
+  std::vector<FisherResult> res = fw.fisher(std::span<const glm::dvec3>(sources.data(), 1));  // warm up
+  Converged c;
+  c.rays = t.rays();
+  c.seconds = bench::median_seconds(repeats, [&] { res = fw.fisher(sources); });
+  for (size_t i = 0; i < sources.size(); ++i) {
+    c.crlb.push_back(crlb3d(res[i]));
+    c.worst = std::max(c.worst, std::abs(c.crlb.back() / exact[i] - 1));
+  }
+  return c;
 }
 
 void convergence(vk::Context& ctx, const Options& o) {
-  Scene scene = builtin_scene("prototype");
-  std::vector<glm::dvec3> depths{{0, 0, 2.5}, {0, 0, 25.0}, {0, 0, 47.5}};
-  std::printf("\n## 2. CRLB (3D, Poisson) against rays per lenslet, binning and estimator\n");
-  std::printf("prototype, real lenses, 6280 photons, sources on the axis at depths 2.5, 25, 47.5 mm;\n");
-  std::printf("reference: split estimator at %u rays/lenslet, same binning. err = |crlb / reference - 1|.\n",
-              o.reference_rays);
-  std::printf("%-4s %-6s %9s %10s %10s %10s %10s %9s %8s\n", "bin", "est.", "rays", "s (3 src)", "z=2.5", "z=25",
-              "z=47.5", "max err", "");
-  for (unsigned binning : {4u, 8u, 16u, 32u}) {
-    TraceSettings ref_t;
-    ref_t.rays_per_lenslet = o.reference_rays;
-    ref_t.binning = binning;
-    ForwardVulkan ref_fw(ctx, scene.optics, ref_t);
-    auto ref = ref_fw.fisher(depths);
-    std::printf("%-4u %-6s %9u %10s %10.4g %10.4g %10.4g %9s %8s\n", binning, "split", ref_t.rays(), "-",
-                crlb3d(ref[0]), crlb3d(ref[1]), crlb3d(ref[2]), "(ref)", "");
-    for (auto est : {FisherEstimator::naive, FisherEstimator::split})
-      for (unsigned rays = 1024; rays <= o.max_rays; rays *= 4) {
-        TraceSettings t = ref_t;
-        t.rays_per_lenslet = rays;
-        t.estimator = est;
-        ForwardVulkan fw(ctx, scene.optics, t);
-        std::vector<FisherResult> res;
-        double s = bench::median_seconds(o.repeats, [&] { res = fw.fisher(depths); });
-        double worst = 0;
-        for (size_t i = 0; i < depths.size(); ++i) worst = std::max(worst, std::abs(crlb3d(res[i]) / crlb3d(ref[i]) - 1));
-        std::printf("%-4u %-6s %9u %10.3f %10.4g %10.4g %10.4g %9.3f %8s\n", binning, to_string(est), t.rays(), s,
-                    crlb3d(res[0]), crlb3d(res[1]), crlb3d(res[2]), worst, worst <= 0.02 ? "<= 2%" : "");
-        std::fflush(stdout);
+  std::vector<glm::dvec3> sources{{0, 0, 2.5}, {0, 0, 25.0}, {0, 0, 47.5}, {6.0, -4.0, 15.0}};
+  std::printf("\n## 2. CRLB (3D, Poisson) error against time: point splat (split estimator) vs footprint splat "
+              "(naive)\n");
+  std::printf("prototype, 6280 photons; sources on the axis at depths 2.5, 25, 47.5 mm and at (6, -4, 15) mm.\n");
+  std::printf("Thin lenses: error against the exact box-pixel oracle. Real lenses: against the footprint at 4x the\n"
+              "largest cell count (its self-convergence). err = max over the sources of |crlb / exact - 1|.\n");
+  std::printf("%-5s %-5s %-10s %9s %10s %10s %10s %10s %10s %9s\n", "lens", "pixel", "splat", "rays", "s (4 src)",
+              "z=2.5", "z=25", "z=47.5", "off-axis", "max err");
+  for (LensModel model : {LensModel::thin, LensModel::real})
+    for (unsigned binning : o.binnings) {
+      Scene scene = builtin_scene("prototype");
+      scene.optics.lens_model = model;
+      const OpticalSystem& sys = scene.optics;
+      TraceSettings base;
+      base.binning = binning;
+      std::vector<double> exact;
+      const char* pixel = binning == 1 ? "6.9" : binning == 4 ? "27.6" : binning == 16 ? "110" : "?";
+      if (model == LensModel::thin) {
+        for (const auto& s : sources) exact.push_back(crlb3d(ref::thin_lens_fisher(sys, base, s)));
+      } else {
+        TraceSettings t = base;
+        t.splat = Splat::footprint;
+        t.estimator = FisherEstimator::naive;
+        t.rays_per_lenslet = 4 * o.max_rays;
+        ForwardVulkan fw(ctx, sys, t);
+        for (const auto& f : fw.fisher(sources)) exact.push_back(crlb3d(f));
       }
-  }
+      std::printf("%-5s %-5s %-10s %9s %10s %10.4g %10.4g %10.4g %10.4g %9s\n", to_string(model), pixel,
+                  model == LensModel::thin ? "oracle" : "footprint", model == LensModel::thin ? "exact" : "4x max", "-",
+                  exact[0], exact[1], exact[2], exact[3], "(ref)");
+      for (Splat splat : {Splat::point, Splat::footprint})
+        for (unsigned rays = (splat == Splat::point ? 4096u : 256u); rays <= o.max_rays; rays *= 4) {
+          TraceSettings t = base;
+          t.splat = splat;
+          t.estimator = TraceSettings::default_estimator(splat);
+          t.rays_per_lenslet = rays;
+          Converged c = measure(ctx, sys, t, sources, exact, o.repeats);
+          std::printf("%-5s %-5s %-10s %9u %10.3f %10.4g %10.4g %10.4g %10.4g %9.4f%s\n", to_string(model), pixel,
+                      to_string(splat), c.rays, c.seconds, c.crlb[0], c.crlb[1], c.crlb[2], c.crlb[3], c.worst,
+                      c.worst <= 0.01 ? "  <= 1%" : "");
+          std::fflush(stdout);
+        }
+    }
 }
 
 void effects(vk::Context& ctx, const Options& o) {
@@ -130,11 +182,20 @@ int main(int argc, char** argv) {
     };
     if (a == "--device") o.device = next();
     else if (a == "--max-rays") o.max_rays = unsigned(std::stoul(next()));
-    else if (a == "--reference-rays") o.reference_rays = unsigned(std::stoul(next()));
+    else if (a == "--binnings") {
+      o.binnings.clear();
+      std::string list = next();
+      for (size_t at = 0; at < list.size();) {
+        size_t end = list.find(',', at);
+        o.binnings.push_back(unsigned(std::stoul(list.substr(at, end - at))));
+        at = end == std::string::npos ? list.size() : end + 1;
+      }
+    }
     else if (a == "--repeats") o.repeats = std::stoi(next());
     else if (a == "--skip-convergence") o.skip_convergence = true;
     else {
-      std::printf("usage: bench_forward [--device D] [--max-rays N] [--reference-rays N] [--repeats R] [--skip-convergence]\n");
+      std::printf("usage: bench_forward [--device D] [--max-rays N] [--binnings 16,4,1] [--repeats R] "
+                  "[--skip-convergence]\n");
       return a == "--help" ? 0 : 2;
     }
   }

@@ -37,14 +37,22 @@ inline constexpr double holder_bore_mm = 2.0;        // bore behind the lens pla
 inline constexpr double detection_efficiency = 1.0;  // fill factor x PDE
 inline constexpr double dark_counts_per_pixel = 0.0; // expected dark counts per pixel per event
 inline constexpr double source_sigma_mm = 0.3;       // Gaussian source extent, per axis (LED die ~0.5 mm)
+inline constexpr double wavelength_nm = 570.0;       // effect diffraction: the calibration LED (DESIGN.md)
+// Effect diffraction: the Airy core approximated by a Gaussian of
+// sigma = airy_gaussian_factor * lambda * L / D (L: lens to sensor, D: lenslet
+// diameter; Zhang, Zerubia & Olivo-Marin, Appl. Opt. 46 (2007): 0.21 lambda / NA).
+inline constexpr double airy_gaussian_factor = 0.42;
 
 // Analysis defaults, chosen by the convergence study (README, "Convergence";
-// bench/bench_forward): with the split Fisher estimator, 65536 rays per
-// lenslet at 16 x 16 binning (110 um analysis pixels) give a 3D CRLB within
-// 2% of its value at 16x the rays. Binning only loses information, so the
-// CRLB at 110 um is an upper bound on the CRLB at the native 6.9 um pixels.
-inline constexpr unsigned rays_per_lenslet = 65536;  // 256 x 256 strata
-inline constexpr unsigned analysis_binning = 16;     // 110.4 um analysis pixels
-inline constexpr double crlb_convergence_tol = 0.02; // relative, vs. 16x the rays
+// bench/bench_forward). The footprint splat (box pixels, the default) gives a
+// 3D CRLB within 1% of its converged value at 16384 cells per 3 mm lenslet for
+// thin and real lenses at 110, 27.6 and 6.9 um pixels (thin lenses: against
+// the exact box-pixel oracle). The point splat (the paper's bilinear rays)
+// needs 65536 rays at 110 um with the split estimator, and is not converged at
+// 262144 rays at 27.6 um or below.
+inline constexpr unsigned rays_per_lenslet = 16384;        // footprint cells: 128 x 128 strata
+inline constexpr unsigned rays_per_lenslet_point = 65536;  // point rays: 256 x 256 strata
+inline constexpr unsigned analysis_binning = 16;           // 110.4 um analysis pixels
+inline constexpr double crlb_convergence_tol = 0.01;       // relative, vs. 4x the rays (cells)
 
 }  // namespace prism::defaults

@@ -9,7 +9,8 @@
 #include "spv/fisher_reduce.spv.h"
 #include "spv/landing_points.spv.h"
 #include "spv/psf_footprint.spv.h"
-#include "spv/psf_footprint_cuts.spv.h"
+#include "spv/psf_footprint_cut.spv.h"
+#include "spv/psf_footprint_split.spv.h"
 #include "spv/psf_splat.spv.h"
 
 namespace prism {
@@ -57,7 +58,7 @@ double PixelImage::photons() const {
 std::span<const uint32_t> splat_spirv(const TraceSettings& t) {
   return t.splat == Splat::footprint ? spirv(spv_psf_footprint) : spirv(spv_psf_splat);
 }
-uint32_t splat_buffers(const TraceSettings& t) { return t.splat == Splat::footprint ? 6 : 5; }
+uint32_t splat_buffers(const TraceSettings& t) { return t.splat == Splat::footprint ? 7 : 5; }
 std::string kernel_name(const TraceSettings& t, bool values_only) {
   return std::string(t.splat == Splat::footprint ? "psf_footprint" : "psf_splat") + (values_only ? " (values)" : "");
 }
@@ -66,7 +67,7 @@ std::string kernel_name(const TraceSettings& t, bool values_only) {
 std::vector<uint32_t> specialisation(const OpticalSystem& s, bool derivatives) {
   return {uint32_t(s.lens_model == LensModel::real ? shared::LENS_REAL : shared::LENS_THIN),
           uint32_t(s.effects.scintillator_refraction), uint32_t(s.effects.holder_vignetting), uint32_t(derivatives),
-          uint32_t(s.effects.source_extent)};
+          uint32_t(s.effects.source_extent), uint32_t(s.effects.diffraction)};
 }
 
 // The lenslets of every design, one after the other, and each design's range.
@@ -105,7 +106,8 @@ void check_batchable(const std::vector<OpticalSystem>& designs) {
     else if (ea.scintillator_refraction != eb.scintillator_refraction || ea.scintillator_index != eb.scintillator_index ||
              ea.holder_vignetting != eb.holder_vignetting || ea.holder_bore_mm != eb.holder_bore_mm ||
              ea.detection_efficiency != eb.detection_efficiency || ea.dark_counts_per_pixel != eb.dark_counts_per_pixel ||
-             ea.source_extent != eb.source_extent || ea.source_sigma_mm != eb.source_sigma_mm)
+             ea.source_extent != eb.source_extent || ea.source_sigma_mm != eb.source_sigma_mm ||
+             ea.diffraction != eb.diffraction || ea.wavelength_nm != eb.wavelength_nm)
       what = "the effects";
     if (what)
       throw std::invalid_argument("design " + std::to_string(k) + " differs from design 0 in " + what +
@@ -128,24 +130,38 @@ struct ForwardVulkan::Impl {
   uint32_t band_rows;       // grid rows per band
   uint32_t sources_per_batch;
 
-  // The footprint splat's second pass: the triangles of its cut list
-  // (psf_footprint_cuts.comp).
-  struct Footprint {
-    vk::Kernel cuts, cuts_values;
-    std::unique_ptr<vk::Buffer> list;  // header (count, capacity, 2 unused) + entries of 16 bytes
+  // The footprint splat's later passes and their lists (footprint_raster.glsl):
+  // the split pass (psf_footprint_split.comp) and the cut pass
+  // (psf_footprint_cut.comp).
+  struct List {
+    std::unique_ptr<vk::Buffer> buffer;  // header (count, capacity, 2 unused) + entries of 16 bytes
     uint32_t capacity = 0;
-    Footprint(vk::Context& c, const OpticalSystem& sys)
-        : cuts(c, "psf_footprint_cuts", spirv(spv_psf_footprint_cuts), 6, sizeof(shared::TraceParams),
-               specialisation(sys, true)),
-          cuts_values(c, "psf_footprint_cuts (values)", spirv(spv_psf_footprint_cuts), 6,
-                      sizeof(shared::TraceParams), specialisation(sys, false)) {
-      grow(c, 1u << 14);
-    }
     void grow(vk::Context& c, uint32_t entries) {
       capacity = entries;
-      list = std::make_unique<vk::Buffer>(c, 16 + uint64_t(entries) * 16);
+      buffer = std::make_unique<vk::Buffer>(c, 16 + uint64_t(entries) * 16);
       uint32_t header[4] = {0, capacity, 0, 0};
-      list->upload(header, sizeof(header));
+      buffer->upload(header, sizeof(header));
+    }
+    uint32_t count() const {
+      uint32_t n = 0;
+      buffer->download(&n, sizeof(n));
+      return n;
+    }
+  };
+  struct Footprint {
+    vk::Kernel split, split_values, cut, cut_values;
+    List splits, cuts;
+    Footprint(vk::Context& c, const OpticalSystem& sys)
+        : split(c, "psf_footprint_split", spirv(spv_psf_footprint_split), 7, sizeof(shared::TraceParams),
+                specialisation(sys, true)),
+          split_values(c, "psf_footprint_split (values)", spirv(spv_psf_footprint_split), 7,
+                       sizeof(shared::TraceParams), specialisation(sys, false)),
+          cut(c, "psf_footprint_cut", spirv(spv_psf_footprint_cut), 7, sizeof(shared::TraceParams),
+              specialisation(sys, true)),
+          cut_values(c, "psf_footprint_cut (values)", spirv(spv_psf_footprint_cut), 7, sizeof(shared::TraceParams),
+                     specialisation(sys, false)) {
+      splits.grow(c, 1u << 14);
+      cuts.grow(c, 1u << 14);
     }
   };
   std::unique_ptr<Footprint> footprint;
@@ -186,6 +202,8 @@ struct ForwardVulkan::Impl {
     params.holder_bore_mm = float(s.effects.holder_bore_mm);
     params.source_sigma_mm = float(s.effects.source_sigma_mm);
     params.stratification = t.stratification;
+    params.airy_sigma_mm_times_diameter =
+        float(defaults::airy_gaussian_factor * s.effects.wavelength_nm * 1e-6 * s.lens_to_sensor_mm);
     params.grid_w = grid.width;
     params.grid_h = grid.height;
     params.lens_count = uint32_t(layout.lenses.size());
@@ -203,9 +221,9 @@ struct ForwardVulkan::Impl {
 
   // Record the splat of the dispatch's sources (p.source_offset, count) into
   // `images` (zeroed), band p; leaves every pixel's value there, ready for
-  // what the caller records next. The footprint splat needs the count of its
-  // cut list on the host between its passes: it submits, and returns the
-  // kernel milliseconds submitted so far.
+  // what the caller records next. The footprint splat needs the counts of its
+  // lists on the host between its passes: it submits, and returns the kernel
+  // milliseconds submitted so far.
   double record_splat(vk::Stream& stream, bool derivatives, const vk::Buffer& sources,
                       const vk::Buffer& source_designs, vk::Buffer& images, const shared::TraceParams& p) {
     vk::Kernel& main = derivatives ? splat : splat_values;
@@ -214,25 +232,37 @@ struct ForwardVulkan::Impl {
       return 0.0;
     }
     Footprint& f = *footprint;
+    auto groups = [](uint32_t entries) { return std::min<uint32_t>((entries + kSplatGroup - 1) / kSplatGroup, 65535u); };
+    // Every footprint kernel takes the same seven buffers.
+    auto dispatch = [&](vk::Kernel& k, uint32_t groups_x, uint32_t groups_y) {
+      stream.dispatch(k, {&lenses, &sources, &images, &source_designs, &designs, f.splits.buffer.get(), f.cuts.buffer.get()},
+                      &p, groups_x, groups_y);
+    };
     double ms = 0;
-    uint32_t count = 0;
+    uint32_t cut_count = 0;
     for (;;) {
-      stream.fill_zero(*f.list, 0, 4);
+      stream.fill_zero(*f.splits.buffer, 0, 4);
+      stream.fill_zero(*f.cuts.buffer, 0, 4);
       stream.barrier();
-      stream.dispatch(main, {&lenses, &sources, &images, &source_designs, &designs, f.list.get()}, &p, splat_groups(),
-                      p.source_count);
+      dispatch(main, splat_groups(), p.source_count);
       ms += stream.submit();
-      f.list->download(&count, sizeof(count));
-      if (count <= f.capacity) break;
-      // More cut triangles than the list holds: a bigger list, and again.
-      f.grow(ctx, count + count / 2);
+      const uint32_t split_count = f.splits.count();
+      cut_count = f.cuts.count();
+      if (split_count <= f.splits.capacity && cut_count <= f.cuts.capacity && split_count > 0) {
+        stream.barrier();
+        dispatch(derivatives ? f.split : f.split_values, groups(split_count), 1);
+        ms += stream.submit();
+        cut_count = f.cuts.count();  // with the split pieces' cuts
+      }
+      if (split_count <= f.splits.capacity && cut_count <= f.cuts.capacity) break;
+      // More entries than a list holds: bigger lists, and again.
+      if (split_count > f.splits.capacity) f.splits.grow(ctx, split_count + split_count / 2);
+      if (cut_count > f.cuts.capacity) f.cuts.grow(ctx, cut_count + cut_count / 2);
       stream.fill_zero(images);
     }
-    if (count > 0) {
+    if (cut_count > 0) {
       stream.barrier();
-      const uint32_t groups = std::min<uint32_t>((count + kSplatGroup - 1) / kSplatGroup, 65535u);
-      stream.dispatch(derivatives ? f.cuts : f.cuts_values,
-                      {&lenses, &sources, &images, &source_designs, &designs, f.list.get()}, &p, groups, 1);
+      dispatch(derivatives ? f.cut : f.cut_values, groups(cut_count), 1);
     }
     return ms;
   }

@@ -76,6 +76,8 @@ void validate(const OpticalSystem& sys) {
   if (!(e.detection_efficiency > 0 && e.detection_efficiency <= 1)) fail("effects.detection_efficiency.value", "must be in (0, 1]");
   if (!(e.dark_counts_per_pixel >= 0)) fail("effects.dark_counts.per_pixel", "must be >= 0");
   if (e.source_extent && !(e.source_sigma_mm > 0)) fail("effects.source_extent.sigma_mm", "must be > 0");
+  if (e.diffraction && !(e.wavelength_nm > 0 && e.wavelength_nm < 1e5))
+    fail("effects.diffraction.wavelength_nm", "must be in (0, 100000) nm");
 }
 
 }  // namespace prism

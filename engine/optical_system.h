@@ -30,6 +30,8 @@ struct Effects {
   double dark_counts_per_pixel = defaults::dark_counts_per_pixel;
   bool source_extent = false;  // Gaussian source instead of a point
   double source_sigma_mm = defaults::source_sigma_mm;
+  bool diffraction = false;    // each lenslet's image blurred by its Airy core (a Gaussian)
+  double wavelength_nm = defaults::wavelength_nm;
 };
 
 struct OpticalSystem {
@@ -55,6 +57,10 @@ struct OpticalSystem {
   // through a lenslet's centre: a lateral source shift s moves every lenslet
   // image by -s * magnification(d) on the sensor (the images are inverted).
   double magnification(double depth_mm) const { return lens_to_sensor_mm / (depth_mm + working_distance_mm); }
+  // Effect diffraction: the Gaussian sigma of lenslet i's Airy core on the sensor.
+  double airy_sigma_mm(size_t i) const {
+    return defaults::airy_gaussian_factor * effects.wavelength_nm * 1e-6 * lens_to_sensor_mm / lenslets[i].diameter_mm;
+  }
   double sensor_width_mm() const { return sensor_width_px * pixel_um * 1e-3; }
   double sensor_height_mm() const { return sensor_height_px * pixel_um * 1e-3; }
 };
@@ -82,12 +88,33 @@ struct TraceSettings {
   unsigned rays_per_lenslet = defaults::rays_per_lenslet;
   unsigned binning = defaults::analysis_binning;           // analyse on binning x binning sensor pixels
   double photons_emitted = defaults::photons_emitted;
-  FisherEstimator estimator = FisherEstimator::split;
-  Splat splat = Splat::point;
+  // The footprint's Fisher terms carry no sampling noise: the plug-in
+  // estimate is exact for them (the split one pairs cells of the two halves
+  // and under-counts where a pixel sees cells of one half only).
+  FisherEstimator estimator = FisherEstimator::naive;
+  Splat splat = Splat::footprint;
   // 0: the default strata; another value gives another stratification of the
   // same apertures (other jitter for point rays, cells turned for footprints):
   // truth rendered apart from the model that fits it.
   unsigned stratification = 0;
+
+  // The converged default rays (cells) per lenslet of a splat (defaults.h),
+  // its Fisher estimator (the point splat's plug-in estimate is biased by ray
+  // noise, README "Convergence"; the footprint's pixels are smooth), and
+  // settings with a splat's defaults.
+  static unsigned default_rays(Splat s) {
+    return s == Splat::point ? defaults::rays_per_lenslet_point : defaults::rays_per_lenslet;
+  }
+  static FisherEstimator default_estimator(Splat s) {
+    return s == Splat::point ? FisherEstimator::split : FisherEstimator::naive;
+  }
+  static TraceSettings defaults_for(Splat s) {
+    TraceSettings t;
+    t.splat = s;
+    t.rays_per_lenslet = default_rays(s);
+    t.estimator = default_estimator(s);
+    return t;
+  }
 
   unsigned strata() const { return strata_for(defaults::lenslet_diameter_mm); }
   unsigned rays() const { return strata() * strata(); }  // through a 3 mm lenslet

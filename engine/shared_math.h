@@ -10,9 +10,10 @@ using uint = unsigned int;
 #define PRISM_FN inline
 #include "common/optics.glsl"
 #include "common/footprint.glsl"
+#include "common/gauss.glsl"
 #undef PRISM_FN
 
 static_assert(sizeof(Lenslet) == 48, "Lenslet must match its std430 layout");
 static_assert(sizeof(DesignRange) == 16, "DesignRange must match its std430 layout");
-static_assert(sizeof(TraceParams) == 72, "TraceParams must match its std430 push-constant layout");
+static_assert(sizeof(TraceParams) == 76, "TraceParams must match its std430 push-constant layout");
 }  // namespace prism::shared

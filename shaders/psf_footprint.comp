@@ -1,11 +1,12 @@
 // Footprint splatting, the common path (shaders/common/footprint.glsl): one
 // invocation per aperture cell traces the cell's four corners and gives each
 // of its two triangles' light to the pixels by exact area (footprint_raster.glsl).
-// Triangles an aperture or total internal reflection cuts, large ones (split
-// further, footprint.glsl), and those over a partial last pixel at the
-// sensor's far edge go to the cut list for psf_footprint_cuts.comp: rare, and
-// on lavapipe every branch of a kernel is paid by every invocation, so they
-// are kept out of this one.
+// Large triangles (split further, footprint.glsl) and those over a partial
+// last pixel at the sensor's far edge go to the split list for
+// psf_footprint_split.comp, triangles an aperture or total internal
+// reflection cuts to the cut list for psf_footprint_cut.comp: rare, and on
+// lavapipe every branch of a kernel is paid by every invocation, so each
+// kind has a kernel of its own.
 // Grid x: cells (strided), grid y: sources in this dispatch.
 #version 460
 #extension GL_GOOGLE_include_directive : require
@@ -54,6 +55,7 @@ void main() {
     // Half the cell's exact aperture area (the concentric map preserves area).
     float half_area = 0.5f * 3.14159265358979f * lens.radius_mm * lens.radius_mm / float(n * n);
     uint half_offset = 1u + 3u * ((i + j) & 1u);  // checkerboard halves, as ray_half
+    float blur_px = DIFFRACTION ? airy_sigma_px(lens) : 0.0f;
     for (uint t = 0u; t < 2u; ++t) {
       CellTriangle tri = cell_triangle(i, j, n, t);
       Corner a = k[tri.ab.x + 2u * tri.ab.y];
@@ -64,18 +66,34 @@ void main() {
       float u_lo = min(min(a.u.v, b.u.v), c.u.v);
       float v_lo = min(min(a.v.v, b.v.v), c.v.v);
       bool cut = !(a.ok && b.ok && c.ok);
-      bool off = a.ok && b.ok && c.ok && (u_lo >= u_max || v_lo >= v_max || u_hi <= 0.0f || v_hi <= 0.0f);
+      // Off the sensor, or off this band's rows (a large sensor is done in
+      // bands), by more than a blur reaches.
+      float reach = DIFFRACTION ? GAUSS_REACH * (blur_px + (u_hi - u_lo) + (v_hi - v_lo)) : 0.0f;
+      float band_lo = float(P.band_row0);
+      float band_hi = float(min(P.band_row0 + P.band_rows, P.grid_h));
+      bool off = a.ok && b.ok && c.ok &&
+                 (u_lo >= u_max + reach || v_lo >= v_max + reach || u_hi <= -reach || v_hi <= -reach ||
+                  v_hi <= band_lo - reach || v_lo >= band_hi + reach);
       // Over a partial last column or row: the far edge cuts it.
-      bool edge = (u_hi > u_max && u_max < float(P.grid_w)) || (v_hi > v_max && v_max < float(P.grid_h));
+      bool edge = !DIFFRACTION &&
+                  ((u_hi > u_max && u_max < float(P.grid_w)) || (v_hi > v_max && v_max < float(P.grid_h)));
       bool large = max(u_hi - u_lo, v_hi - v_lo) > LARGE_TRIANGLE_PX;
       if (!(a.ok || b.ok || c.ok) || off) continue;
-      if (cut || edge || large) {
+      if (large || edge) {
+        // A large one as an entry per piece it may split into (footprint.glsl), others as one.
+        uint pieces = large ? SPLIT_ENTRIES : 1u;
+        uint at = atomicAdd(split_count, pieces);
+        for (uint leaf = 0u; leaf < pieces && at + leaf < split_capacity; ++leaf)
+          splits[at + leaf] = uvec4(s, lens_index, cell, t | (leaf << 1u));
+        continue;
+      }
+      if (cut) {
         uint at = atomicAdd(cut_count, 1u);
         if (at < cut_capacity) cuts[at] = uvec4(s, lens_index, cell, t);
         continue;
       }
       Dual w = d_scale(d_add(d_add(a.w, b.w), c.w), half_area / 3.0f);
-      rasterise_triangle(image_base, a, b, c, w, half_offset);
+      rasterise_triangle(image_base, a, b, c, w, blur_px, half_offset);
     }
   }
 }

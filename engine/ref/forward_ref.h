@@ -14,6 +14,7 @@
 
 #include "engine/fisher.h"
 #include "engine/optical_system.h"
+#include "engine/ref/dual_ref.h"
 
 namespace prism::ref {
 
@@ -50,5 +51,17 @@ struct SampleHit {
 };
 SampleHit trace_sample(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta,
                        size_t lens, uint32_t sample);
+
+// The ray from source point `centre` through point `u` (unit-disk
+// coordinates) of lenslet `lens`'s entrance disk, carrying the photons of
+// `area_mm2` of aperture there (the footprint's corners: footprint_ref.cpp).
+SampleHit trace_point(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& centre, size_t lens,
+                      glm::dvec2 u, double area_mm2);
+// Effect diffraction: `weight` as a Gaussian (mean (mu, mv), sigmas (su, sv),
+// grid pixels) over box pixels within GAUSS_REACH sigmas, clipped at the
+// sensor's far edges (u_max, v_max); derivatives to checkerboard half `half`.
+void add_gaussian(SparseImage& img, D mu, D mv, D su, D sv, D weight, int half, double u_max, double v_max);
+// Effect source_extent: the source point of sample `sample` (shared sampling code).
+glm::dvec3 source_offset(uint32_t lens, uint32_t sample, double sigma, uint32_t seed);
 
 }  // namespace prism::ref

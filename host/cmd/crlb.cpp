@@ -47,19 +47,28 @@ void run(const CrlbArgs& a) {
   }
   TraceSettings t0 = a.fw.settings(scenes.front());
   AnalysisGrid g0 = AnalysisGrid::of(scenes.front().optics, t0.binning);
-  std::printf("# device: %s\n# rays per lenslet: %u, analysis pixel: %u x %u binned = %.1f um, sensor model: %s\n",
-              device.c_str(), t0.rays(), t0.binning, t0.binning, g0.pixel_mm * 1e3, a.sensor.c_str());
-  bool at_defaults = t0.rays() >= defaults::rays_per_lenslet && t0.binning == defaults::analysis_binning;
+  std::printf("# device: %s\n# %s splat, %u %s per lenslet, analysis pixel: %u x %u binned = %.1f um, sensor model: %s, "
+              "%s Fisher estimator\n",
+              device.c_str(), to_string(t0.splat), t0.rays(), t0.splat == Splat::footprint ? "cells" : "rays", t0.binning,
+              t0.binning, g0.pixel_mm * 1e3, a.sensor.c_str(), to_string(t0.estimator));
+  bool at_defaults = t0.rays() >= TraceSettings{TraceSettings::default_rays(t0.splat)}.rays();
   if (a.converge > 0)
     std::printf("# convergence: rays x4 until the 3D CRLB changes by <= %s%% (column 'change'), at most %u rays\n",
                 format_number(100 * a.converge).c_str(), a.max_rays);
   else
     std::printf("# convergence: %s\n",
-                at_defaults ? ("defaults: prototype CRLB within " + format_number(100 * defaults::crlb_convergence_tol) +
-                               "% of 16x the rays (README, \"Convergence\"); other designs: use --converge").c_str()
+                at_defaults ? ("defaults: the prototype's CRLB within " +
+                               format_number(100 * defaults::crlb_convergence_tol) +
+                               "% of its value at 4x the cells at 110, 27.6 and 6.9 um pixels (README, \"Convergence\"; "
+                               "real lenses at 6.9 um with the diffraction effect); other designs: use --converge")
+                                  .c_str()
                             : "not the converged defaults; use --converge TOL to measure it");
-  std::printf("# CRLB at %.0f um analysis pixels: an upper bound on the CRLB at the native %.1f um pixels\n",
-              g0.pixel_mm * 1e3, scenes.front().optics.pixel_um);
+  if (t0.binning > 1)
+    std::printf("# CRLB at %.0f um analysis pixels: an upper bound on the CRLB at the native %.1f um pixels "
+                "(--binning 1)\n",
+                g0.pixel_mm * 1e3, scenes.front().optics.pixel_um);
+  else
+    std::printf("# CRLB at the sensor's native %.1f um pixels\n", scenes.front().optics.pixel_um);
   std::printf("%-14s %-4s %7s %7s %7s %9s %10s %10s %10s %10s %8s %7s  %s\n", "scene", "lens", "x_mm", "y_mm", "depth",
               "photons", "crlb_x", "crlb_y", "crlb_z", "crlb_3d", "rays", "change", "flag");
 

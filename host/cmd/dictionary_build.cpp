@@ -17,6 +17,7 @@ struct BuildArgs {
   std::string grid_x = "-25:25:5", grid_y = "-25:25:5", grid_depth = "5:50:5";
   int binning = 4;
   unsigned rays = 4096;
+  SplatOptions splat;
   std::string device;
 };
 
@@ -27,6 +28,10 @@ void run_build(const BuildArgs& a) {
             parse_list(a.grid_depth, "--grid-depth-mm")};
   o.base_binning = a.binning;
   o.rays_per_lenslet = a.rays;
+  TraceSettings t;
+  a.splat.apply(t);
+  o.splat = t.splat;
+  o.stratification = t.stratification;
   vk::Context ctx(vk::ContextOptions{a.device});
   std::printf("# device: %s\n", ctx.describe().c_str());
   Progress progress("prism dictionary build", o.grid.size());
@@ -61,7 +66,8 @@ void run_info(const std::string& dir) {
               present < m.grid.size() ? " (run `prism dictionary build` again to finish)" : "");
   std::printf("  storage     half floats x 2^15, ZIP, %d px tiles; %.1f MiB on disk (%.2f MiB per PSF)\n", m.tile_px,
               bytes / 1048576.0, present ? bytes / 1048576.0 / present : 0.0);
-  std::printf("  rays        %u per 3 mm lenslet\n", m.rays_per_lenslet);
+  std::printf("  rays        %u per 3 mm lenslet, %s splat, stratification %u\n", m.rays_per_lenslet,
+              to_string(m.splat), m.stratification);
   std::printf("  levels      %d; every level of every PSF sums to 1 over the sensor\n", m.levels);
   for (int l = 0; l < m.levels; ++l)
     std::printf("    level %-2d  %5d x %-5d px of %7.1f um\n", l, m.level_width(l), m.level_height(l), m.pixel_mm(l) * 1e3);
@@ -80,6 +86,7 @@ void add_dictionary_build(CLI::App& dictionary) {
   c->add_option("--binning", a->binning, "level 0 = sensor pixels binned B x B (1: full resolution, 128 MB/PSF in memory)")
       ->capture_default_str()->check(CLI::Range(1, 256));
   c->add_option("--rays", a->rays, "rays per 3 mm lenslet for each PSF")->capture_default_str()->check(CLI::Range(4u, 1u << 24));
+  a->splat.add_to(c);
   c->add_option("--device", a->device, "Vulkan device (see prism devices)");
   c->callback([a] { run_build(*a); });
 }

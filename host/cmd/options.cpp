@@ -10,9 +10,12 @@ void ForwardOptions::add_to(CLI::App* app, unsigned default_binning) {
   app->add_option("--device", device,
                   "Vulkan device: auto (GPU if present), gpu, cpu (lavapipe), an index or part of a name; "
                   "default $PRISM_DEVICE or auto");
-  app->add_option("--rays", rays, "rays per 3 mm lenslet aperture, rounded up to an even square of strata; "
-                  "other lens sizes get the same rays per mm^2")
-      ->capture_default_str()->check(CLI::Range(1u, 1u << 24));
+  app->add_option("--rays", rays,
+                  "rays (footprint: aperture cells) per 3 mm lenslet, rounded up to an even square of strata; other "
+                  "lens sizes get the same per mm^2; 0: the converged default, " +
+                      std::to_string(defaults::rays_per_lenslet) + " footprint cells or " +
+                      std::to_string(defaults::rays_per_lenslet_point) + " point rays (README, \"Convergence\")")
+      ->capture_default_str()->check(CLI::Range(0u, 1u << 24));
   app->add_option("--binning", binning, "analyse on B x B binned sensor pixels")
       ->capture_default_str()->check(CLI::Range(1u, 1024u));
   app->add_option("--lens-model", lens_model, "override the scene's lens model")->check(CLI::IsMember({"thin", "real"}));
@@ -22,16 +25,36 @@ void ForwardOptions::add_to(CLI::App* app, unsigned default_binning) {
       ->capture_default_str()->check(CLI::IsMember({"vulkan", "cpu"}));
   app->add_option("--fisher-estimator", estimator,
                   "split: pair two independent halves of the rays (no noise bias in grad b grad b^T); "
-                  "naive: plug-in estimate, biased upward by sampling noise")
-      ->capture_default_str()->check(CLI::IsMember({"split", "naive"}));
+                  "naive: plug-in estimate (biased upward by point rays' sampling noise; exact for footprints); "
+                  "auto: split for --splat point, naive for footprint")
+      ->capture_default_str()->check(CLI::IsMember({"auto", "split", "naive"}));
+  splat.add_to(app);
+}
+
+void SplatOptions::add_to(CLI::App* app) {
+  app->add_option("--splat", splat,
+                  "footprint: each aperture cell's image gives box pixels their exact area (the sensor's pixels); "
+                  "point: each ray splatted bilinearly to the 4 nearest pixel centres (the paper's way)")
+      ->capture_default_str()->check(CLI::IsMember({"footprint", "point"}));
+  app->add_option("--stratification", stratification,
+                  "0: the default strata; another number: another stratification of the same apertures (other jitter "
+                  "for point rays, cells turned for footprints)")
+      ->capture_default_str();
+}
+
+void SplatOptions::apply(TraceSettings& t) const {
+  t.splat = splat_from_string(splat);
+  t.stratification = stratification;
 }
 
 TraceSettings ForwardOptions::settings(const Scene& scene) const {
   TraceSettings t;
-  t.rays_per_lenslet = rays;
   t.binning = binning;
   t.photons_emitted = photons > 0 ? photons : scene.photons_emitted;
-  t.estimator = estimator == "naive" ? FisherEstimator::naive : FisherEstimator::split;
+  splat.apply(t);
+  t.rays_per_lenslet = rays ? rays : TraceSettings::default_rays(t.splat);
+  if (estimator == "auto") t.estimator = TraceSettings::default_estimator(t.splat);
+  else t.estimator = estimator == "naive" ? FisherEstimator::naive : FisherEstimator::split;
   return t;
 }
 

@@ -11,16 +11,27 @@
 
 namespace prism::cmd {
 
-// --device, --rays, --binning, --lens-model, --photons, --backend: the forward
-// model's knobs, with the same names and defaults everywhere.
+// --device, --rays, --binning, --lens-model, --photons, --backend,
+// --fisher-estimator, --splat, --stratification: the forward model's knobs,
+// with the same names and defaults everywhere.
+// --splat and --stratification (TraceSettings): how rays become pixel values,
+// on every command that traces, with the same names and defaults.
+struct SplatOptions {
+  std::string splat = to_string(TraceSettings{}.splat);
+  unsigned stratification = 0;
+  void add_to(CLI::App* app);
+  void apply(TraceSettings& t) const;  // splat and stratification
+};
+
 struct ForwardOptions {
   std::string device;
-  unsigned rays = defaults::rays_per_lenslet;
+  unsigned rays = 0;  // 0: the splat's converged default (TraceSettings::default_rays)
   unsigned binning = defaults::analysis_binning;
   std::string lens_model;  // empty: the scene's own
   double photons = 0;      // 0: the scene's own
   std::string backend = "vulkan";
-  std::string estimator = "split";
+  std::string estimator = "auto";  // split for point rays, naive for footprints
+  SplatOptions splat;
 
   void add_to(CLI::App* app, unsigned default_binning);
   TraceSettings settings(const Scene& scene) const;

@@ -27,7 +27,8 @@ struct SimulateArgs {
   uint64_t seed = 1;
   unsigned binning = 1;
   bool binning_given = false;
-  unsigned rays = defaults::rays_per_lenslet;
+  unsigned rays = 0;  // 0: the splat's converged default
+  SplatOptions splat;
   std::string device;
 };
 
@@ -69,9 +70,10 @@ void run(const SimulateArgs& a) {
     h.truth = TruthModel::dictionary;
   } else {
     TraceSettings t;
-    t.rays_per_lenslet = a.rays;
     t.binning = a.binning;
     t.photons_emitted = scene.photons_emitted;
+    a.splat.apply(t);
+    t.rays_per_lenslet = a.rays ? a.rays : TraceSettings::default_rays(t.splat);
     ctx.emplace(vk::ContextOptions{a.device});
     truth = std::make_unique<ForwardTruth>(*ctx, scene, t);
   }
@@ -151,8 +153,10 @@ void add_simulate(CLI::App& app) {
   c->add_option("--binning", a->binning, "clicks on B x B binned pixels (forward; dictionary: base binning x 2^k, "
                                          "default its base binning)")
       ->capture_default_str()->check(CLI::Range(1u, 1024u))->each([a](const std::string&) { a->binning_given = true; });
-  c->add_option("--rays", a->rays, "forward model: rays per 3 mm lenslet aperture")
-      ->capture_default_str()->check(CLI::Range(1u, 1u << 24));
+  c->add_option("--rays", a->rays, "forward model: rays (footprint: cells) per 3 mm lenslet aperture; 0: the splat's "
+                                   "converged default")
+      ->capture_default_str()->check(CLI::Range(0u, 1u << 24));
+  a->splat.add_to(c);
   c->add_option("--device", a->device, "Vulkan device: auto, gpu, cpu, an index or part of a name; default "
                                        "$PRISM_DEVICE or auto");
   c->callback([a] { run(*a); });

@@ -9,6 +9,7 @@
 #include <memory>
 
 #include "host/cmd/commands.h"
+#include "host/cmd/options.h"
 #include "host/sweep/baselines.h"
 #include "host/sweep/sweep.h"
 #include "host/util/format.h"
@@ -26,6 +27,7 @@ struct SweepArgs {
   uint64_t seed = 1;
   size_t batch = 8;
   unsigned rays = 4096, binning = 32;
+  SplatOptions splat;
   std::vector<std::string> bounds;
   unsigned keep = 3, confirm = 0;
 };
@@ -117,6 +119,8 @@ void run(const SweepArgs& a) {
   s.trace.rays_per_lenslet = a.rays;
   s.trace.binning = a.binning;
   s.trace.photons_emitted = space.base.photons_emitted;
+  a.splat.apply(s.trace);
+  s.trace.estimator = TraceSettings::default_estimator(s.trace.splat);
   s.backend = a.backend == "cpu" ? Backend::cpu : Backend::vulkan;
   s.objective = a.objective;
   s.budget = a.budget;
@@ -138,10 +142,10 @@ void run(const SweepArgs& a) {
               objective_is_maximised(a.objective) ? ("-" + a.objective).c_str() : a.objective.c_str(),
               s.bounds.empty() ? "" : ", bounds:");
   for (const auto& b : s.bounds) std::printf("#   %s\n", b.text().c_str());
-  std::printf("# device: %s\n# rays per 3 mm lenslet: %u, analysis pixel: %u x %u binned = %.1f um, split Fisher "
-              "estimator, poisson sensor, %s photons emitted\n",
-              device.c_str(), s.trace.rays(), a.binning, a.binning, g.pixel_mm * 1e3,
-              format_number(s.trace.photons_emitted).c_str());
+  std::printf("# device: %s\n# rays per 3 mm lenslet: %u, analysis pixel: %u x %u binned = %.1f um, %s splat, %s "
+              "Fisher estimator, poisson sensor, %s photons emitted\n",
+              device.c_str(), s.trace.rays(), a.binning, a.binning, g.pixel_mm * 1e3, to_string(s.trace.splat),
+              to_string(s.trace.estimator), format_number(s.trace.photons_emitted).c_str());
   std::printf("# volume samples: %s\n", space.samples.describe().c_str());
   std::printf("# state: %s/evaluated.jsonl (%zu designs already scored), seed %llu, budget %zu\n", a.out.c_str(),
               sweep.evaluated().size(), static_cast<unsigned long long>(a.seed), a.budget);
@@ -228,6 +232,7 @@ void add_sweep(CLI::App& app) {
       ->capture_default_str()->check(CLI::Range(1u, 1u << 24));
   c->add_option("--binning", a->binning, "analyse on B x B binned sensor pixels")
       ->capture_default_str()->check(CLI::Range(1u, 1024u));
+  a->splat.add_to(c);
   c->add_option("--device", a->device, "Vulkan device: auto, gpu, cpu (lavapipe), an index or part of a name");
   c->add_option("--backend", a->backend, "vulkan, or cpu (double-precision reference; slow)")
       ->capture_default_str()->check(CLI::IsMember({"vulkan", "cpu"}));

@@ -25,6 +25,8 @@ DictionaryManifest manifest_for(const Scene& scene, const DictionaryBuildOptions
   m.levels = levels;
   m.tile_px = o.tile_px;
   m.rays_per_lenslet = TraceSettings{o.rays_per_lenslet}.rays();
+  m.splat = o.splat;
+  m.stratification = o.stratification;
   m.source = "synthesised";
   return m;
 }
@@ -50,7 +52,7 @@ DictionaryBuildReport build_dictionary(vk::Context& ctx, const Scene& scene, con
     // Resume only the very same dictionary.
     DictionaryReader existing(dir);
     if (existing.manifest().to_json() != wanted.to_json())
-      throw DictionaryError(dir + ": holds a different dictionary (scene, grid, binning or rays differ); "
+      throw DictionaryError(dir + ": holds a different dictionary (scene, grid, binning, rays or splat differ); "
                                   "choose another --out or delete it");
   } else {
     write_manifest(dir, wanted);
@@ -61,6 +63,8 @@ DictionaryBuildReport build_dictionary(vk::Context& ctx, const Scene& scene, con
   t.rays_per_lenslet = o.rays_per_lenslet;
   t.binning = unsigned(o.base_binning);
   t.photons_emitted = scene.photons_emitted;
+  t.splat = o.splat;
+  t.stratification = o.stratification;
   ForwardVulkan fw(ctx, scene.optics, t);
 
   DictionaryBuildReport report;

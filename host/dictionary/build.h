@@ -15,6 +15,8 @@ struct DictionaryBuildOptions {
   DictionaryGrid grid = DictionaryGrid::paper();
   int base_binning = 4;       // level 0 = sensor binned B x B (1: full resolution)
   unsigned rays_per_lenslet = 4096;
+  Splat splat = TraceSettings{}.splat;  // how the forward model's rays become pixel values
+  unsigned stratification = 0;
   int tile_px = 64;
 };
 

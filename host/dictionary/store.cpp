@@ -99,7 +99,9 @@ nlohmann::json DictionaryManifest::to_json() const {
             {"rule", "level k pixel = sum of its 2^k x 2^k level-0 pixels (OpenEXR mip levels, ROUND_UP)"}}},
           {"storage", {{"pixel", "half"}, {"compression", "zip"}, {"tile_px", tile_px}, {"scale_log2", kScaleLog2}}},
           {"normalisation", "every level of every PSF sums to 1 over the sensor"},
-          {"rays_per_lenslet", rays_per_lenslet}};
+          {"rays_per_lenslet", rays_per_lenslet},
+          {"splat", to_string(splat)},
+          {"stratification", stratification}};
 }
 
 DictionaryManifest DictionaryManifest::from_json(const nlohmann::json& j, const std::string& path) {
@@ -127,6 +129,8 @@ DictionaryManifest DictionaryManifest::from_json(const nlohmann::json& j, const 
     m.height = lv.at("level0_px").at(1);
     m.tile_px = j.at("storage").at("tile_px");
     m.rays_per_lenslet = j.value("rays_per_lenslet", 0u);
+    m.splat = splat_from_string(j.value("splat", std::string("point")));
+    m.stratification = j.value("stratification", 0u);
   } catch (const SceneError&) {
     throw;
   } catch (const std::exception& e) {

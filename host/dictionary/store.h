@@ -54,6 +54,8 @@ struct DictionaryManifest {
   int levels = 0;         // mip levels in every file (OpenEXR ROUND_UP chain down to 1 x 1)
   int tile_px = 64;
   unsigned rays_per_lenslet = 0;  // synthesis; 0 for a calibrated dictionary
+  Splat splat = Splat::point;     // synthesis: how rays became pixel values (manifests before it: point)
+  unsigned stratification = 0;    // synthesis
   std::string source = "synthesised";  // or "calibrated"
 
   std::string file_of(size_t i) const;  // relative to the directory

@@ -135,7 +135,8 @@ ForwardTruth::ForwardTruth(vk::Context& ctx, const Scene& scene, const TraceSett
     : EventTruth(cache_entries), settings_(settings), fw_(ctx, scene.optics, settings) {}
 
 std::string ForwardTruth::provenance() const {
-  return "forward model, " + std::to_string(settings_.rays()) + " rays per 3 mm lenslet, binning " +
+  return "forward model, " + std::string(to_string(settings_.splat)) + " splat, " + std::to_string(settings_.rays()) +
+         " rays per 3 mm lenslet, stratification " + std::to_string(settings_.stratification) + ", binning " +
          std::to_string(settings_.binning);
 }
 

@@ -144,8 +144,11 @@ std::vector<EvaluationRow> evaluate(vk::Context& ctx, const Scene& scene, const 
 
   TraceSettings t;
   t.binning = unsigned(m.base_binning << o.level);
-  t.rays_per_lenslet = o.rays ? o.rays : (m.rays_per_lenslet ? m.rays_per_lenslet : defaults::rays_per_lenslet);
+  t.rays_per_lenslet = o.rays ? o.rays : (m.rays_per_lenslet ? m.rays_per_lenslet : TraceSettings::default_rays(o.splat));
   t.photons_emitted = scene.photons_emitted;
+  t.splat = o.splat;
+  t.estimator = TraceSettings::default_estimator(o.splat);
+  t.stratification = o.stratification;
 
   // CRLB of every vertex position in one study, scaled to its photon count.
   std::vector<glm::dvec3> positions;

@@ -55,6 +55,8 @@ struct EvaluationOptions {
   int trials = paper_protocol::trials;
   int level = 0;               // click level: binning = base_binning * 2^level
   unsigned rays = 0;           // forward truth and CRLB; 0: the dictionary's own (or the default)
+  Splat splat = TraceSettings{}.splat;  // forward truth and CRLB
+  unsigned stratification = 1;  // forward truth: other strata than the dictionary's (0) by default
   uint64_t seed = 1;
   bool quick = false;          // few points per experiment (use with few trials)
   ReconstructionSettings settings;  // search_level -1: level + 2, capped at the coarsest

@@ -209,10 +209,14 @@ Scene parse_scene(const json& j, const std::string& origin) {
         check_keys(rd, e, path, {"name", "sigma_mm"});
         fx.source_extent = true;
         fx.source_sigma_mm = rd.number(e, "sigma_mm", path, fx.source_sigma_mm);
+      } else if (name == "diffraction") {
+        check_keys(rd, e, path, {"name", "wavelength_nm"});
+        fx.diffraction = true;
+        fx.wavelength_nm = rd.number(e, "wavelength_nm", path, fx.wavelength_nm);
       } else {
         rd.fail(path + "name", "unknown effect '" + name +
                                    "' (known: scintillator_refraction, holder_vignetting, detection_efficiency, "
-                                   "dark_counts, source_extent)");
+                                   "dark_counts, source_extent, diffraction)");
       }
     }
   }
@@ -254,6 +258,7 @@ json to_json(const Scene& s) {
   if (e.detection_efficiency != 1.0) fx.push_back({{"name", "detection_efficiency"}, {"value", e.detection_efficiency}});
   if (e.dark_counts_per_pixel != 0.0) fx.push_back({{"name", "dark_counts"}, {"per_pixel", e.dark_counts_per_pixel}});
   if (e.source_extent) fx.push_back({{"name", "source_extent"}, {"sigma_mm", e.source_sigma_mm}});
+  if (e.diffraction) fx.push_back({{"name", "diffraction"}, {"wavelength_nm", e.wavelength_nm}});
   return {{"name", s.name},
           {"lens_model", to_string(o.lens_model)},
           {"glass",

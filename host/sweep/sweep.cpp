@@ -124,6 +124,8 @@ json Sweep::header() const {
           {"rays_per_lenslet", t.rays()},
           {"binning", t.binning},
           {"estimator", to_string(t.estimator)},
+          {"splat", to_string(t.splat)},
+          {"stratification", t.stratification},
           {"photons_emitted", t.photons_emitted},
           {"backend", settings_.backend == Backend::cpu ? "cpu" : "vulkan"},
           {"batch", settings_.batch},

@@ -1,6 +1,6 @@
-// What the footprint kernels share (GLSL only: buffers and atomics): their
-// bindings, the traced corners, and exact box-pixel coverage of a polygon
-// from its edges.
+// What the footprint kernels share (GLSL only: buffers and atomics): the cut
+// list, the traced corners, and exact box-pixel coverage of a polygon from its
+// edges (the rest in splat_image.glsl).
 //
 // Coverage by edges. Along any row of the sensor, a polygon's indicator is a
 // sum over its edges of steps, 1_poly(x, y) = -sign(A) sum_e s_e H(x - x_e(y)),
@@ -22,35 +22,28 @@
 #define PRISM_FOOTPRINT_RASTER_GLSL
 
 #include "footprint.glsl"
+#include "splat_image.glsl"
 
-layout(constant_id = 0) const int LENS_MODEL = LENS_THIN;
-layout(constant_id = 1) const bool SCINT_REFRACTION = false;
-layout(constant_id = 2) const bool HOLDER = false;
-layout(constant_id = 3) const bool DERIVATIVES = true;
-layout(constant_id = 4) const bool SOURCE_EXTENT = false;
-const uint PIXEL_FLOATS = DERIVATIVES ? 8u : 1u;
-
-layout(push_constant) uniform Push { TraceParams P; };
-layout(std430, binding = 0) readonly buffer Lenses { Lenslet lenses[]; };
-layout(std430, binding = 1) readonly buffer Sources { vec4 sources[]; };
-// Per pixel (b, grad b from cell half A, from half B, unused), or b alone.
-layout(std430, binding = 2) buffer Images { float images[]; };
-layout(std430, binding = 3) readonly buffer SourceDesigns { uint source_design[]; };
-layout(std430, binding = 4) readonly buffer Designs { DesignRange designs[]; };
-// Triangles the common path leaves to psf_footprint_cuts.comp: count, then
-// (source in dispatch, lens index, cell index, triangle) per entry.
-layout(std430, binding = 5) buffer Cuts {
+// Triangles the common path leaves to the later passes, each list a count,
+// its capacity, then (source in dispatch, lens index, cell index, triangle |
+// path << 1) per entry (the path: footprint.glsl, SPLIT_ENTRIES). Splits:
+// large triangles and those over the sensor's far edge
+// (psf_footprint_split.comp). Cuts: triangles and pieces some of whose
+// corners' rays are stopped (psf_footprint_cut.comp).
+layout(std430, binding = 5) buffer Splits {
+  uint split_count;
+  uint split_capacity;
+  uint split_pad0;
+  uint split_pad1;
+  uvec4 splits[];
+};
+layout(std430, binding = 6) buffer Cuts {
   uint cut_count;
   uint cut_capacity;
   uint cut_pad0;
   uint cut_pad1;
   uvec4 cuts[];
 };
-
-// The physical sensor's far edges in grid pixels: the last column and row may
-// hang over it (binning that does not divide the sensor), and light beyond is lost.
-float sensor_u_max() { return 2.0f * P.sensor_half_w_mm / P.pixel_mm; }
-float sensor_v_max() { return 2.0f * P.sensor_half_h_mm / P.pixel_mm; }
 
 // A traced corner: landing point in grid pixels (u, v from the sensor's
 // top-left corner), weight density (photons per mm^2 of aperture), and
@@ -74,18 +67,6 @@ Corner trace_corner(vec3 theta, Lenslet lens, vec2 unit) {
 vec3 cell_source(vec3 theta, uint lens_index, uint cell) {
   if (!SOURCE_EXTENT) return theta;
   return theta + source_offset(lens_index, cell, P.source_sigma_mm, P.stratification);
-}
-
-// Add `value` (with its derivatives) to pixel (col, row) of the band.
-void deposit(uint image_base, int col, int row, Dual value, uint half_offset) {
-  if (col < 0 || col >= P.grid_w || row < P.band_row0 || row >= P.band_row0 + P.band_rows || row >= P.grid_h) return;
-  uint i = image_base + PIXEL_FLOATS * (uint(row - P.band_row0) * uint(P.grid_w) + uint(col));
-  atomicAdd(images[i], value.v);
-  if (!DERIVATIVES) return;
-  // Each half of the cells (checkerboard) estimates the whole gradient.
-  atomicAdd(images[i + half_offset], 2.0f * value.d.x);
-  atomicAdd(images[i + half_offset + 1u], 2.0f * value.d.y);
-  atomicAdd(images[i + half_offset + 2u], 2.0f * value.d.z);
 }
 
 const int MAX_SIDES = 5;  // a triangle clipped by the sensor's two far edges
@@ -290,9 +271,45 @@ bool is_thin(Corner a, Corner b, Corner c, Dual area) {
   return !(abs(area.v) >= THIN_TRIANGLE * max(ab, max(bc, ca)));
 }
 
+// Effect diffraction: `weight` spread over triangle (a, b, c) and blurred by
+// the lenslet's Airy core (sigma blur_px), as one Gaussian: its mean the
+// centroid, its variance the triangle's own (uniform light over it: the sum
+// of the corners' squared offsets over 12) plus the core's. It tends to the
+// exactly blurred image as the cells shrink (second order in their size), and
+// it is smooth where a sharp geometric edge would leave a sliver of light in
+// a pixel with a large derivative (whose g^2 / b the CRLB would follow).
+void blur_triangle(uint image_base, Corner a, Corner b, Corner c, Dual weight, float blur_px, uint half_offset) {
+  Dual mu = d_scale(d_add(d_add(a.u, b.u), c.u), 1.0f / 3.0f);
+  Dual mv = d_scale(d_add(d_add(a.v, b.v), c.v), 1.0f / 3.0f);
+  Dual au = d_sub(a.u, mu);
+  Dual bu = d_sub(b.u, mu);
+  Dual cu = d_sub(c.u, mu);
+  Dual av = d_sub(a.v, mv);
+  Dual bv = d_sub(b.v, mv);
+  Dual cv = d_sub(c.v, mv);
+  Dual var_u = d_addc(d_scale(d_add(d_add(d_mul(au, au), d_mul(bu, bu)), d_mul(cu, cu)), 1.0f / 12.0f), blur_px * blur_px);
+  Dual var_v = d_addc(d_scale(d_add(d_add(d_mul(av, av), d_mul(bv, bv)), d_mul(cv, cv)), 1.0f / 12.0f), blur_px * blur_px);
+  deposit_gaussian(image_base, mu, mv, d_sqrt(var_u), d_sqrt(var_v), weight, half_offset);
+}
+
+// Triangle (a, b, c) as the first three vertices of a polygon.
+void triangle_polygon(Corner a, Corner b, Corner c, inout Dual pu[MAX_SIDES], inout Dual pv[MAX_SIDES]) {
+  pu[0] = a.u;
+  pv[0] = a.v;
+  pu[1] = b.u;
+  pv[1] = b.v;
+  pu[2] = c.u;
+  pv[2] = c.v;
+}
+
 // `weight` spread uniformly over triangle (a, b, c), every pixel given its
-// exact share (the caller has checked it lies within the sensor's far edges).
-void rasterise_triangle(uint image_base, Corner a, Corner b, Corner c, Dual weight, uint half_offset) {
+// exact share (the caller has checked it lies within the sensor's far edges),
+// or with diffraction blurred (blur_px, blur_triangle).
+void rasterise_triangle(uint image_base, Corner a, Corner b, Corner c, Dual weight, float blur_px, uint half_offset) {
+  if (DIFFRACTION) {
+    blur_triangle(image_base, a, b, c, weight, blur_px, half_offset);
+    return;
+  }
   int col = int(floor(a.u.v));
   int row = int(floor(a.v.v));
   bool one_pixel = int(floor(b.u.v)) == col && int(floor(c.u.v)) == col && int(floor(b.v.v)) == row &&
@@ -309,12 +326,7 @@ void rasterise_triangle(uint image_base, Corner a, Corner b, Corner c, Dual weig
   }
   Dual pu[MAX_SIDES];
   Dual pv[MAX_SIDES];
-  pu[0] = a.u;
-  pv[0] = a.v;
-  pu[1] = b.u;
-  pv[1] = b.v;
-  pu[2] = c.u;
-  pv[2] = c.v;
+  triangle_polygon(a, b, c, pu, pv);
   rasterise_polygon(image_base, pu, pv, 3, weight, area, half_offset);
 }
 

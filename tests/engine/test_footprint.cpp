@@ -125,6 +125,9 @@ TEST_CASE("footprint splat: Vulkan equals the CPU reference on real lenses, cut 
   extent.effects.source_sigma_mm = 0.3;
   auto efficiency = plain;
   efficiency.effects.detection_efficiency = 0.4;
+  auto airy = plain;
+  airy.effects.diffraction = true;
+  airy.effects.wavelength_nm = 5000.0;  // a core of ~0.4 px at 55 um
   // Pixel by pixel where no triangle sits on a float/double decision; at the
   // sensor's edge, 25 mm off axis, split pieces given to their centroid can
   // land in neighbouring pixels: there the totals and the CRLB.
@@ -140,6 +143,7 @@ TEST_CASE("footprint splat: Vulkan equals the CPU reference on real lenses, cut 
                {"scintillator refraction", face, {1.3, -0.7, 25.0}, 8, 0, true},
                {"extended source", extent, {1.3, -0.7, 25.0}, 8, 0, true},
                {"detection efficiency", efficiency, {1.3, -0.7, 25.0}, 8, 0, true},
+               {"diffraction (each triangle as a Gaussian)", airy, {1.3, -0.7, 25.0}, 8, 0, true},
                {"another stratification", plain, {1.3, -0.7, 25.0}, 8, 3, true},
                {"at the sensor's edge (partial last pixels)", plain, {-25.0, 0.0, 5.0}, 16, 0, false}};
   for (const auto& k : cases) {

@@ -14,6 +14,8 @@
 // the same digits (see README, "Convergence").
 #include <algorithm>
 #include <cmath>
+#include <string>
+#include <utility>
 
 #include "compare.h"
 #include "engine/forward.h"
@@ -105,6 +107,9 @@ TEST_CASE("hard inputs: a source on a lenslet edge, and one far outside the fiel
   prism::TraceSettings t;
   t.rays_per_lenslet = 400;
   t.binning = 8;
+  // The point splat pixel by pixel (the footprint's hard inputs, cells whose
+  // shape decisions flip between float and double: test_footprint.cpp).
+  t.splat = prism::Splat::point;
   auto sys = prism::test::small_system(prism::LensModel::real);
   const auto& l = sys.lenslets[3];
   compare_images(sys, t, {l.x_mm + 0.5 * l.diameter_mm, l.y_mm, 0.0});
@@ -131,8 +136,13 @@ TEST_CASE("hard inputs: rays focused exactly on pixel borders and pixel centres"
   // Even sensor width: x = 0 is a pixel border (fractions 0.5). Odd width: x = 0
   // is a pixel centre, so the neighbour gets b = 0 with a nonzero derivative,
   // which the Fisher sum must skip rather than divide by.
-  for (int width : {64, 65}) {
+  // Footprint splat: each cell images to a triangle of float's rounding size;
+  // across a border its shares are rounding noise, its light conserved to 1e-4.
+  for (auto [width, splat] : {std::pair{64, prism::Splat::point}, std::pair{65, prism::Splat::point},
+                              std::pair{64, prism::Splat::footprint}, std::pair{65, prism::Splat::footprint}}) {
     CAPTURE(width);
+    std::string splat_name = prism::to_string(splat);
+    CAPTURE(splat_name);
     prism::OpticalSystem sys;
     sys.lens_model = prism::LensModel::thin;
     sys.lenslets = {{0.0, 0.0, 3.0, 9.0}};
@@ -143,10 +153,11 @@ TEST_CASE("hard inputs: rays focused exactly on pixel borders and pixel centres"
     prism::TraceSettings t;
     t.rays_per_lenslet = 256;
     t.binning = 1;
+    t.splat = splat;
     prism::ForwardVulkan fw(prism::test::gpu(), sys, t);
     auto v = fw.fisher(std::vector<glm::dvec3>{focus}).front();
     auto r = prism::ref::fisher(sys, t, focus);
-    CHECK(v.photons == doctest::Approx(r.photons).epsilon(1e-5));
+    CHECK(v.photons == doctest::Approx(r.photons).epsilon(splat == prism::Splat::point ? 1e-5 : 2e-4));
     for (int k = 0; k < 6; ++k) {
       CHECK(std::isfinite(v.poisson[k]));
       CHECK(std::isfinite(v.binary[k]));
@@ -189,6 +200,7 @@ TEST_CASE("Fisher sums do not depend on how the sensor is cut into bands and bat
   prism::TraceSettings t;
   t.rays_per_lenslet = 1024;
   t.binning = 8;
+  t.splat = prism::Splat::point;  // the footprint's: test_footprint.cpp
   std::vector<glm::dvec3> sources{{0, 0, 5}, {3, -2, 20}, {-4, 1, 45}};
   prism::ForwardVulkan whole(prism::test::gpu(), sys, t);
   // A 1 MiB budget forces 837 x 596 px into 8 bands and one source per batch.

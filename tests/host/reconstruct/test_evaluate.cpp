@@ -17,7 +17,9 @@ namespace fs = std::filesystem;
 namespace {
 
 // x, y in {-5, 0, 5}, depth 5..35 every 5 mm (7.5 mm, the double experiment's
-// fixed vertex, inside): 63 PSFs at 16 x 16 binning.
+// fixed vertex, inside): 63 PSFs at 16 x 16 binning. Dictionary, truth and
+// CRLB with the point splat, which keeps these end-to-end runs quick on
+// lavapipe (the footprint splat's own tests: test_footprint.cpp).
 struct EvalDictionary {
   std::string dir = (fs::temp_directory_path() / ("prism-eval-test-" + std::to_string(::getpid()))).string();
   std::unique_ptr<prism::DictionaryReader> reader;
@@ -26,6 +28,7 @@ struct EvalDictionary {
     o.grid = {{-5.0, 0.0, 5.0}, {-5.0, 0.0, 5.0}, {5.0, 10.0, 15.0, 20.0, 25.0, 30.0, 35.0}};
     o.base_binning = 16;
     o.rays_per_lenslet = 1024;
+    o.splat = prism::Splat::point;
     prism::build_dictionary(prism::test::gpu(), prism::builtin_scene("prototype"), dir + "/dict", o);
     reader = std::make_unique<prism::DictionaryReader>(dir + "/dict");
   }
@@ -65,6 +68,7 @@ TEST_CASE("evaluation: every experiment on a reduced grid, CSV and PNG per exper
   o.quick = true;
   o.trials = 4;
   o.rays = 1024;
+  o.splat = prism::Splat::point;
   o.seed = 3;
   auto rows = prism::evaluate(prism::test::gpu(), d.reader->manifest().scene, *d.reader, o);
   // Lines: 2 points each (centre +- 2 mm); photons: 50 and 400; double: one
@@ -91,6 +95,9 @@ TEST_CASE("evaluation: every experiment on a reduced grid, CSV and PNG per exper
   prism::TraceSettings t;
   t.binning = 16;
   t.rays_per_lenslet = 1024;
+  t.splat = prism::Splat::point;
+  t.estimator = prism::TraceSettings::default_estimator(t.splat);  // as prism evaluate,
+  t.stratification = o.stratification;                             // with the truth's strata
   t.photons_emitted = scene.photons_emitted;
   const glm::dvec3 centre = rows[6].position_mm;
   auto at_default = prism::crlb_study(scene, {centre}, t, prism::Backend::vulkan, prism::SensorModel::poisson,
@@ -127,7 +134,7 @@ TEST_CASE("prism evaluate: --quick from the CLI, and errors that say what to do"
   auto& d = dictionary();
   const std::string out = d.dir + "/cli";
   auto r = prism::test::run_prism("evaluate --dictionary " + d.dir + "/dict --experiments photons --quick --trials 3 "
-                                  "--rays 1024 --seed 5 --out " + out);
+                                  "--rays 1024 --splat point --seed 5 --out " + out);
   INFO(r.output);
   REQUIRE(r.status == 0);
   CHECK(r.output.find("vulkan scan") != std::string::npos);  // the default backend

@@ -1,8 +1,6 @@
-// Footprint splatting, the triangles psf_footprint.comp leaves in its cut
-// list: those an aperture or total internal reflection cuts (some of their
-// corners' rays are stopped), large ones (split, footprint.glsl), and those
-// crossing the sensor's far edge inside a partial last column or row. One
-// invocation per entry.
+// The footprint splat's later passes (psf_footprint_split.comp,
+// psf_footprint_cut.comp): the pieces of a listed triangle, and how a cut or
+// clipped piece gives its light to the pixels.
 //
 // An aperture cut: the boundary is found by bisection along each edge between
 // a corner whose ray passes and one whose ray does not (CUT_STEPS halvings of
@@ -12,21 +10,22 @@
 // aperture edge, is not in the derivatives. The far edge: each triangle is
 // clipped to the sensor and the part on it rasterised with the light per
 // image area of the whole triangle (light beyond is lost).
-#version 460
-#extension GL_GOOGLE_include_directive : require
-#extension GL_EXT_shader_atomic_float : require
-#define PRISM_FN
+#ifndef PRISM_FOOTPRINT_PIECES_GLSL
+#define PRISM_FOOTPRINT_PIECES_GLSL
+
 #include "footprint_raster.glsl"
 
-layout(local_size_x = 64) in;
-
-const int CUT_STEPS = 12;
+const int CUT_STEPS = 8;  // the cut within 1/256 of the cell edge: boundary cells only
 
 // `weight` spread over triangle (a, b, c), clipped to u <= u_max, v <= v_max
 // (light beyond is lost; the rest keeps the whole triangle's light per area).
-void rasterise_clipped(uint image_base, Corner a, Corner b, Corner c, Dual weight, uint half_offset) {
+void rasterise_clipped(uint image_base, Corner a, Corner b, Corner c, Dual weight, float blur_px, uint half_offset) {
   if (is_large(a, b, c)) {  // a piece no further split (footprint.glsl): at its centroid
     deposit_at_centroid(image_base, a, b, c, weight, half_offset);
+    return;
+  }
+  if (DIFFRACTION) {  // the Gaussian's box integrals clip at the far edges themselves
+    blur_triangle(image_base, a, b, c, weight, blur_px, half_offset);
     return;
   }
   Dual area = triangle_area(a.u, a.v, b.u, b.v, c.u, c.v);
@@ -39,12 +38,7 @@ void rasterise_clipped(uint image_base, Corner a, Corner b, Corner c, Dual weigh
   Dual pv[MAX_SIDES];
   Dual qu[MAX_SIDES];
   Dual qv[MAX_SIDES];
-  pu[0] = a.u;
-  pv[0] = a.v;
-  pu[1] = b.u;
-  pv[1] = b.v;
-  pu[2] = c.u;
-  pv[2] = c.v;
+  triangle_polygon(a, b, c, pu, pv);
   int n = 3;
   for (int plane = 0; plane < 2; ++plane) {
     float limit = plane == 0 ? sensor_u_max() : sensor_v_max();
@@ -82,7 +76,7 @@ float twice_area(vec2 a, vec2 b, vec2 c) { return abs((b.x - a.x) * (c.y - a.y) 
 // by bisection along a-b and a-c from the odd corner out, with its share of
 // `area_mm2` of aperture.
 void rasterise_cut(uint image_base, vec3 from, Lenslet lens, Corner a, Corner b, Corner c, vec2 pa, vec2 pb, vec2 pc,
-                   float area_mm2, uint half_offset) {
+                   float area_mm2, float blur_px, uint half_offset) {
   int passed = int(a.ok) + int(b.ok) + int(c.ok);
   // The odd one out first, cyclic order kept: a stopped with b, c through
   // (passed == 2), or a through with b, c stopped (passed == 1).
@@ -126,18 +120,21 @@ void rasterise_cut(uint image_base, vec3 from, Lenslet lens, Corner a, Corner b,
   if (!(whole > 0.0f)) return;
   if (odd_ok) {
     float part = area_mm2 * twice_area(pa, cut_p0, cut_p1) / whole;
-    rasterise_clipped(image_base, a, cut0, cut1, d_scale(d_add(d_add(a.w, cut0.w), cut1.w), part / 3.0f), half_offset);
+    rasterise_clipped(image_base, a, cut0, cut1, d_scale(d_add(d_add(a.w, cut0.w), cut1.w), part / 3.0f), blur_px,
+                      half_offset);
     return;
   }
   // Quad cut0, b, c, cut1 as two triangles, each with its own aperture area.
   float part1 = area_mm2 * twice_area(cut_p0, pb, pc) / whole;
   float part2 = area_mm2 * twice_area(cut_p0, pc, cut_p1) / whole;
-  rasterise_clipped(image_base, cut0, b, c, d_scale(d_add(d_add(cut0.w, b.w), c.w), part1 / 3.0f), half_offset);
-  rasterise_clipped(image_base, cut0, c, cut1, d_scale(d_add(d_add(cut0.w, c.w), cut1.w), part2 / 3.0f), half_offset);
+  rasterise_clipped(image_base, cut0, b, c, d_scale(d_add(d_add(cut0.w, b.w), c.w), part1 / 3.0f), blur_px,
+                    half_offset);
+  rasterise_clipped(image_base, cut0, c, cut1, d_scale(d_add(d_add(cut0.w, c.w), cut1.w), part2 / 3.0f), blur_px,
+                    half_offset);
 }
 
-// A triangle waiting on the stack: aperture points, traced corners, the
-// aperture area it carries, and how often it was split.
+// A triangle of the split: aperture points, traced corners, the aperture
+// area it carries.
 struct Piece {
   vec2 pa;
   vec2 pb;
@@ -146,65 +143,62 @@ struct Piece {
   Corner b;
   Corner c;
   float area_mm2;
-  int depth;
 };
-const int STACK = 3 * SPLIT_DEPTH + 1;  // depth first, four children per split
 
-void main() {
-  uint total = min(cut_count, cut_capacity);
-  uint stride = gl_NumWorkGroups.x * gl_WorkGroupSize.x;
-  for (uint e = gl_GlobalInvocationID.x; e < total; e += stride) {
-    uvec4 entry = cuts[e];
-    uint s = entry.x;
-    DesignRange design = designs[source_design[P.source_offset + s]];
-    Lenslet lens = lenses[entry.y];
-    uint in_design = entry.y - design.first_lens;
-    uint cell = entry.z;
-    uint n = lens.strata;
-    uint i = cell % n;
-    uint j = cell / n;
-    uint image_base = s * uint(P.grid_w) * uint(P.band_rows) * PIXEL_FLOATS;
-    uint half_offset = 1u + 3u * ((i + j) & 1u);
-    float turn = strata_turn(in_design, P.stratification);
-    vec3 from = cell_source(sources[P.source_offset + s].xyz, in_design, cell);
-    CellTriangle tri = cell_triangle(i, j, n, entry.w);
-    Piece stack[STACK];
-    stack[0].pa = aperture_corner(i + tri.ab.x, j + tri.ab.y, n, turn);
-    stack[0].pb = aperture_corner(i + tri.ab.z, j + tri.ab.w, n, turn);
-    stack[0].pc = aperture_corner(i + tri.c.x, j + tri.c.y, n, turn);
-    stack[0].a = trace_corner(from, lens, stack[0].pa);
-    stack[0].b = trace_corner(from, lens, stack[0].pb);
-    stack[0].c = trace_corner(from, lens, stack[0].pc);
-    stack[0].area_mm2 = 0.5f * 3.14159265358979f * lens.radius_mm * lens.radius_mm / float(n * n);
-    stack[0].depth = 0;
-    int top = 1;
-    while (top > 0) {
-      Piece t = stack[--top];
-      int passed = int(t.a.ok) + int(t.b.ok) + int(t.c.ok);
-      if (passed == 0) continue;
-      if (is_large(t.a, t.b, t.c) && t.depth < SPLIT_DEPTH) {
-        // Four children at the aperture edges' midpoints, a quarter of the area each.
-        vec2 pab = 0.5f * (t.pa + t.pb);
-        vec2 pbc = 0.5f * (t.pb + t.pc);
-        vec2 pca = 0.5f * (t.pc + t.pa);
-        Corner ab = trace_corner(from, lens, pab);
-        Corner bc = trace_corner(from, lens, pbc);
-        Corner ca = trace_corner(from, lens, pca);
-        float quarter = 0.25f * t.area_mm2;
-        int d = t.depth + 1;
-        stack[top++] = Piece(t.pa, pab, pca, t.a, ab, ca, quarter, d);
-        stack[top++] = Piece(pab, t.pb, pbc, ab, t.b, bc, quarter, d);
-        stack[top++] = Piece(pca, pbc, t.pc, ca, bc, t.c, quarter, d);
-        stack[top++] = Piece(pab, pbc, pca, ab, bc, ca, quarter, d);
-        continue;
-      }
-      if (passed < 3) {
-        rasterise_cut(image_base, from, lens, t.a, t.b, t.c, t.pa, t.pb, t.pc, t.area_mm2, half_offset);
-        continue;
-      }
-      // (Still large after the last split: at its centroid, in rasterise_clipped.)
-      rasterise_clipped(image_base, t.a, t.b, t.c, d_scale(d_add(d_add(t.a.w, t.b.w), t.c.w), t.area_mm2 / 3.0f),
-                        half_offset);
-    }
-  }
+// Child k (0..3) of piece t, split at its aperture edges' midpoints (traced
+// as ab, bc, ca): a quarter of the area each.
+Piece child_piece(Piece t, Corner ab, Corner bc, Corner ca, uint k) {
+  vec2 pab = 0.5f * (t.pa + t.pb);
+  vec2 pbc = 0.5f * (t.pb + t.pc);
+  vec2 pca = 0.5f * (t.pc + t.pa);
+  float quarter = 0.25f * t.area_mm2;
+  if (k == 0u) return Piece(t.pa, pab, pca, t.a, ab, ca, quarter);
+  if (k == 1u) return Piece(pab, t.pb, pbc, ab, t.b, bc, quarter);
+  if (k == 2u) return Piece(pca, pbc, t.pc, ca, bc, t.c, quarter);
+  return Piece(pab, pbc, pca, ab, bc, ca, quarter);
 }
+
+// Whether piece t, split `depth` times so far, is split again (footprint.glsl).
+bool is_split(Piece t, int depth) {
+  return depth < SPLIT_DEPTH && (t.a.ok || t.b.ok || t.c.ok) && is_large(t.a, t.b, t.c);
+}
+
+// The piece of list entry `entry` (footprint_raster.glsl): its triangle
+// split along the entry's path while large. False where the piece belongs
+// to another entry of the same triangle (one whose remaining path digits are
+// 0); `from` is the cell's source point.
+bool listed_piece(uvec4 entry, out Piece t, out vec3 from, out Lenslet lens, out uint image_base,
+                  out uint half_offset, out float blur_px) {
+  uint s = entry.x;
+  DesignRange design = designs[source_design[P.source_offset + s]];
+  lens = lenses[entry.y];
+  uint in_design = entry.y - design.first_lens;
+  uint cell = entry.z;
+  uint n = lens.strata;
+  uint i = cell % n;
+  uint j = cell / n;
+  uint path = entry.w >> 1u;  // base 4, first split in the lowest digit
+  image_base = s * uint(P.grid_w) * uint(P.band_rows) * PIXEL_FLOATS;
+  half_offset = 1u + 3u * ((i + j) & 1u);
+  blur_px = DIFFRACTION ? airy_sigma_px(lens) : 0.0f;
+  float turn = strata_turn(in_design, P.stratification);
+  from = cell_source(sources[P.source_offset + s].xyz, in_design, cell);
+  CellTriangle tri = cell_triangle(i, j, n, entry.w & 1u);
+  t.pa = aperture_corner(i + tri.ab.x, j + tri.ab.y, n, turn);
+  t.pb = aperture_corner(i + tri.ab.z, j + tri.ab.w, n, turn);
+  t.pc = aperture_corner(i + tri.c.x, j + tri.c.y, n, turn);
+  t.a = trace_corner(from, lens, t.pa);
+  t.b = trace_corner(from, lens, t.pb);
+  t.c = trace_corner(from, lens, t.pc);
+  t.area_mm2 = 0.5f * 3.14159265358979f * lens.radius_mm * lens.radius_mm / float(n * n);
+  for (int depth = 0; is_split(t, depth); ++depth) {
+    Corner ab = trace_corner(from, lens, 0.5f * (t.pa + t.pb));
+    Corner bc = trace_corner(from, lens, 0.5f * (t.pb + t.pc));
+    Corner ca = trace_corner(from, lens, 0.5f * (t.pc + t.pa));
+    t = child_piece(t, ab, bc, ca, path & 3u);
+    path >>= 2u;
+  }
+  return path == 0u;
+}
+
+#endif

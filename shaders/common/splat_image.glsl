@@ -1,0 +1,71 @@
+// What every splat kernel shares (GLSL only: buffers and atomics): the
+// specialisation constants (lens model, effects, derivatives), the trace
+// parameters, the buffers, and how light is added to the image of a source:
+// at one pixel, or as a Gaussian over box pixels (effect diffraction).
+#ifndef PRISM_SPLAT_IMAGE_GLSL
+#define PRISM_SPLAT_IMAGE_GLSL
+
+#include "gauss.glsl"
+#include "optics.glsl"
+
+// Effects are compile-time: a scene that does not name one compiles it out.
+layout(constant_id = 0) const int LENS_MODEL = LENS_THIN;
+layout(constant_id = 1) const bool SCINT_REFRACTION = false;
+layout(constant_id = 2) const bool HOLDER = false;
+// Without derivatives a pixel is just b (dictionary synthesis, event simulation).
+layout(constant_id = 3) const bool DERIVATIVES = true;
+layout(constant_id = 4) const bool SOURCE_EXTENT = false;
+layout(constant_id = 5) const bool DIFFRACTION = false;
+const uint PIXEL_FLOATS = DERIVATIVES ? 8u : 1u;
+
+layout(push_constant) uniform Push { TraceParams P; };
+layout(std430, binding = 0) readonly buffer Lenses { Lenslet lenses[]; };
+layout(std430, binding = 1) readonly buffer Sources { vec4 sources[]; };  // xyz = (x, y, depth) mm
+// Per pixel 8 floats: b, grad b from ray (cell) half A, from half B, unused;
+// or b alone without DERIVATIVES.
+layout(std430, binding = 2) buffer Images { float images[]; };  // [source][band row][col][PIXEL_FLOATS]
+layout(std430, binding = 3) readonly buffer SourceDesigns { uint source_design[]; };  // design of each source
+layout(std430, binding = 4) readonly buffer Designs { DesignRange designs[]; };
+
+// The physical sensor's far edges in grid pixels: the last column and row may
+// hang over it (binning that does not divide the sensor), and light beyond is lost.
+float sensor_u_max() { return 2.0f * P.sensor_half_w_mm / P.pixel_mm; }
+float sensor_v_max() { return 2.0f * P.sensor_half_h_mm / P.pixel_mm; }
+
+// Add `value` (with its derivatives) to pixel (col, row) of the band.
+void deposit(uint image_base, int col, int row, Dual value, uint half_offset) {
+  if (col < 0 || col >= P.grid_w || row < P.band_row0 || row >= P.band_row0 + P.band_rows || row >= P.grid_h) return;
+  uint i = image_base + PIXEL_FLOATS * (uint(row - P.band_row0) * uint(P.grid_w) + uint(col));
+  atomicAdd(images[i], value.v);
+  if (!DERIVATIVES) return;
+  // Each half of the rays (cells; checkerboard) estimates the whole gradient.
+  atomicAdd(images[i + half_offset], 2.0f * value.d.x);
+  atomicAdd(images[i + half_offset + 1u], 2.0f * value.d.y);
+  atomicAdd(images[i + half_offset + 2u], 2.0f * value.d.z);
+}
+
+// Effect diffraction: lenslet `lens`'s Airy-core sigma in grid pixels.
+float airy_sigma_px(Lenslet lens) { return P.airy_sigma_mm_times_diameter / (2.0f * lens.radius_mm) / P.pixel_mm; }
+
+// `weight` as a Gaussian (mean (mu, mv), sigmas (su, sv), grid pixels): each
+// box pixel within GAUSS_REACH sigmas gets its integral over the pixel (the
+// sensor's far edges clip the last column and row).
+void deposit_gaussian(uint image_base, Dual mu, Dual mv, Dual su, Dual sv, Dual weight, uint half_offset) {
+  float u_max = sensor_u_max();
+  float v_max = sensor_v_max();
+  int c0 = max(int(floor(mu.v - GAUSS_REACH * su.v)), 0);
+  int c1 = min(int(floor(mu.v + GAUSS_REACH * su.v)), P.grid_w - 1);
+  int r0 = max(int(floor(mv.v - GAUSS_REACH * sv.v)), max(P.band_row0, 0));
+  int r1 = min(int(floor(mv.v + GAUSS_REACH * sv.v)), min(P.band_row0 + P.band_rows, P.grid_h) - 1);
+  for (int row = r0; row <= r1; ++row) {
+    Dual fy = gaussian_share(mv, sv, float(row), min(float(row + 1), v_max));
+    if (fy.v == 0.0f && fy.d == vec3(0.0f)) continue;
+    Dual wy = d_mul(weight, fy);
+    for (int col = c0; col <= c1; ++col) {
+      Dual fx = gaussian_share(mu, su, float(col), min(float(col + 1), u_max));
+      if (fx.v != 0.0f || fx.d != vec3(0.0f)) deposit(image_base, col, row, d_mul(wy, fx), half_offset);
+    }
+  }
+}
+
+#endif
