@@ -57,10 +57,12 @@ struct OpticalSystem {
   // through a lenslet's centre: a lateral source shift s moves every lenslet
   // image by -s * magnification(d) on the sensor (the images are inverted).
   double magnification(double depth_mm) const { return lens_to_sensor_mm / (depth_mm + working_distance_mm); }
-  // Effect diffraction: the Gaussian sigma of lenslet i's Airy core on the sensor.
-  double airy_sigma_mm(size_t i) const {
-    return defaults::airy_gaussian_factor * effects.wavelength_nm * 1e-6 * lens_to_sensor_mm / lenslets[i].diameter_mm;
+  // Effect diffraction: the Gaussian sigma of a lenslet's Airy core on the
+  // sensor is this over the lenslet's diameter (mm^2; defaults.h).
+  double airy_sigma_mm_times_diameter() const {
+    return defaults::airy_gaussian_factor * effects.wavelength_nm * 1e-6 * lens_to_sensor_mm;
   }
+  double airy_sigma_mm(size_t i) const { return airy_sigma_mm_times_diameter() / lenslets[i].diameter_mm; }
   double sensor_width_mm() const { return sensor_width_px * pixel_um * 1e-3; }
   double sensor_height_mm() const { return sensor_height_px * pixel_um * 1e-3; }
 };

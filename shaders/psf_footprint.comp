@@ -16,18 +16,6 @@
 
 layout(local_size_x = 64) in;
 
-// The lenslet of design d that cell r belongs to: the last whose first_ray <= r.
-uint lens_of_cell(DesignRange d, uint r) {
-  uint lo = d.first_lens;
-  uint hi = d.first_lens + d.lens_count - 1u;
-  while (lo < hi) {
-    uint mid = (lo + hi + 1u) / 2u;
-    if (lenses[mid].first_ray <= r) lo = mid;
-    else hi = mid - 1u;
-  }
-  return lo;
-}
-
 void main() {
   uint s = gl_GlobalInvocationID.y;
   if (s >= P.source_count) return;
@@ -38,7 +26,7 @@ void main() {
   float u_max = sensor_u_max();
   float v_max = sensor_v_max();
   for (uint r = gl_GlobalInvocationID.x; r < design.total_rays; r += stride) {
-    uint lens_index = lens_of_cell(design, r);
+    uint lens_index = lens_of(design, r);
     Lenslet lens = lenses[lens_index];
     uint in_design = lens_index - design.first_lens;  // hashes by the index within the design
     uint cell = r - lens.first_ray;
@@ -52,8 +40,7 @@ void main() {
     k[1] = trace_corner(from, lens, aperture_corner(i + 1u, j, n, turn));
     k[2] = trace_corner(from, lens, aperture_corner(i, j + 1u, n, turn));
     k[3] = trace_corner(from, lens, aperture_corner(i + 1u, j + 1u, n, turn));
-    // Half the cell's exact aperture area (the concentric map preserves area).
-    float half_area = 0.5f * 3.14159265358979f * lens.radius_mm * lens.radius_mm / float(n * n);
+    float half_area = half_cell_area_mm2(lens.radius_mm, n);
     uint half_offset = 1u + 3u * ((i + j) & 1u);  // checkerboard halves, as ray_half
     float blur_px = DIFFRACTION ? airy_sigma_px(lens) : 0.0f;
     for (uint t = 0u; t < 2u; ++t) {

@@ -13,18 +13,6 @@ void add_tap(uint image_base, ivec2 px, vec4 tap, uint half_offset) {
   deposit(image_base, px.x, px.y, Dual(tap.x, tap.yzw), half_offset);
 }
 
-// The lenslet of design d that ray r belongs to: the last whose first_ray <= r.
-uint lens_of_ray(DesignRange d, uint r) {
-  uint lo = d.first_lens;
-  uint hi = d.first_lens + d.lens_count - 1u;
-  while (lo < hi) {
-    uint mid = (lo + hi + 1u) / 2u;
-    if (lenses[mid].first_ray <= r) lo = mid;
-    else hi = mid - 1u;
-  }
-  return lo;
-}
-
 void main() {
   uint s = gl_GlobalInvocationID.y;
   if (s >= P.source_count) return;
@@ -34,7 +22,7 @@ void main() {
   uint image_base = s * uint(P.grid_w) * uint(P.band_rows) * PIXEL_FLOATS;
   uint stride = gl_NumWorkGroups.x * gl_WorkGroupSize.x;
   for (uint r = gl_GlobalInvocationID.x; r < total; r += stride) {
-    uint lens_index = lens_of_ray(design, r);
+    uint lens_index = lens_of(design, r);
     uint sample_index = r - lenses[lens_index].first_ray;
     // Hash by the lens's index within its design: a design traces the same
     // rays batched with others as alone.

@@ -47,4 +47,16 @@ CommandResult run_prism(const std::string& args, const std::string& env) {
   return {WEXITSTATUS(status), out};
 }
 
+std::vector<double> channel(const PixelImage& v, int c) {
+  std::vector<double> out(size_t(v.width) * size_t(v.height));
+  for (size_t i = 0; i < out.size(); ++i) out[i] = v.data[4 * i + size_t(c)];
+  return out;
+}
+
+std::vector<double> channel(const ref::SparseImage& r, int c) {
+  std::vector<double> out(size_t(r.width) * size_t(r.height), 0.0);
+  for (const auto& [k, px] : r.pixels) out[size_t(k)] = r.value(k)[size_t(c)];
+  return out;
+}
+
 }  // namespace prism::test

@@ -4,7 +4,10 @@
 #include <doctest/doctest.h>
 
 #include <string>
+#include <vector>
 
+#include "engine/forward.h"
+#include "engine/ref/forward_ref.h"
 #include "engine/vk/context.h"
 #include "host/scene/scene.h"
 
@@ -25,5 +28,10 @@ struct CommandResult {
   std::string output;
 };
 CommandResult run_prism(const std::string& args, const std::string& env = "");
+
+// Channel c (0: b; 1..3: its derivatives) of an image, pixel by pixel, as
+// doubles (the reference's derivative: the mean of its two halves).
+std::vector<double> channel(const PixelImage& v, int c);
+std::vector<double> channel(const ref::SparseImage& r, int c);
 
 }  // namespace prism::test

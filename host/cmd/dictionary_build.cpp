@@ -28,10 +28,8 @@ void run_build(const BuildArgs& a) {
             parse_list(a.grid_depth, "--grid-depth-mm")};
   o.base_binning = a.binning;
   o.rays_per_lenslet = a.rays;
-  TraceSettings t;
-  a.splat.apply(t);
-  o.splat = t.splat;
-  o.stratification = t.stratification;
+  o.splat = a.splat.kind();
+  o.stratification = a.splat.stratification;
   vk::Context ctx(vk::ContextOptions{a.device});
   std::printf("# device: %s\n", ctx.describe().c_str());
   Progress progress("prism dictionary build", o.grid.size());

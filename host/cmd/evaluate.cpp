@@ -19,8 +19,8 @@ struct EvaluateArgs {
   std::string precision = "float";
   unsigned binning = 0;  // 0: the dictionary's base binning
   bool quick = false;
-  std::string splat = to_string(TraceSettings{}.splat);
   EvaluationOptions options;
+  SplatOptions splat{.stratification = EvaluationOptions{}.stratification};
 };
 
 std::vector<std::string> split(const std::string& text) {
@@ -46,7 +46,8 @@ void run(EvaluateArgs a) {
   EvaluationOptions& o = a.options;
   o.experiments = split(a.experiments);
   o.quick = a.quick;
-  o.splat = splat_from_string(a.splat);
+  o.splat = a.splat.kind();
+  o.stratification = a.splat.stratification;
   if (a.quick && o.trials == paper_protocol::trials) o.trials = 5;
   const unsigned binning = a.binning ? a.binning : unsigned(m.base_binning);
   o.level = 0;
@@ -111,11 +112,8 @@ void add_evaluate(CLI::App& app) {
   c->add_option("--rays", a->options.rays, "rays per 3 mm lenslet for the event truth and the CRLB (default: the "
                                            "dictionary's)")
       ->check(CLI::Range(1u, 1u << 24));
-  c->add_option("--splat", a->splat, "event truth and CRLB: footprint (box pixels) or point (bilinear rays)")
-      ->capture_default_str()->check(CLI::IsMember({"footprint", "point"}));
-  c->add_option("--stratification", a->options.stratification,
-                "event truth: strata other than the dictionary's (0), so that the estimator never sees its own model")
-      ->capture_default_str();
+  a->splat.add_to(c, "here for the event truth and the CRLB, by default strata other than the dictionary's (0), so "
+                     "that the estimator never sees its own model");
   c->add_option("--seed", a->options.seed, "random seed of the events")->capture_default_str();
   c->add_flag("--quick", a->quick, "a reduced grid (2 points per line, 2 photon counts, 1 double) with 5 trials");
   c->add_option("--backend", a->backend,

@@ -31,19 +31,20 @@ void ForwardOptions::add_to(CLI::App* app, unsigned default_binning) {
   splat.add_to(app);
 }
 
-void SplatOptions::add_to(CLI::App* app) {
+void SplatOptions::add_to(CLI::App* app, const std::string& stratification_use) {
   app->add_option("--splat", splat,
                   "footprint: each aperture cell's image gives box pixels their exact area (the sensor's pixels); "
                   "point: each ray splatted bilinearly to the 4 nearest pixel centres (the paper's way)")
       ->capture_default_str()->check(CLI::IsMember({"footprint", "point"}));
   app->add_option("--stratification", stratification,
                   "0: the default strata; another number: another stratification of the same apertures (other jitter "
-                  "for point rays, cells turned for footprints)")
+                  "for point rays, cells turned for footprints)" +
+                      (stratification_use.empty() ? "" : "; " + stratification_use))
       ->capture_default_str();
 }
 
 void SplatOptions::apply(TraceSettings& t) const {
-  t.splat = splat_from_string(splat);
+  t.splat = kind();
   t.stratification = stratification;
 }
 

@@ -19,7 +19,9 @@ namespace prism::cmd {
 struct SplatOptions {
   std::string splat = to_string(TraceSettings{}.splat);
   unsigned stratification = 0;
-  void add_to(CLI::App* app);
+  // `stratification_use`: what the command does with it, added to its help.
+  void add_to(CLI::App* app, const std::string& stratification_use = "");
+  Splat kind() const { return splat_from_string(splat); }
   void apply(TraceSettings& t) const;  // splat and stratification
 };
 

@@ -84,6 +84,13 @@ const int SPLIT_DEPTH = 3;
 // which a whole split triangle of 64 rasterised pieces can exceed.
 const uint SPLIT_ENTRIES = 1u << (2 * SPLIT_DEPTH);
 
+// The aperture area (mm^2) one of a cell's two triangles carries: half of
+// the cell's, which is an equal share of the disc (the concentric map
+// preserves area).
+PRISM_FN float half_cell_area_mm2(float radius_mm, uint strata) {
+  return 0.5f * 3.14159265358979f * radius_mm * radius_mm / float(strata * strata);
+}
+
 // Signed area of triangle (a, b, c), counter-clockwise (x right, y up) positive.
 PRISM_FN Dual triangle_area(Dual ax, Dual ay, Dual bx, Dual by, Dual cx, Dual cy) {
   return d_scale(d_sub(d_mul(d_sub(bx, ax), d_sub(cy, ay)), d_mul(d_sub(cx, ax), d_sub(by, ay))), 0.5f);

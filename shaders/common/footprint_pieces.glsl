@@ -190,7 +190,7 @@ bool listed_piece(uvec4 entry, out Piece t, out vec3 from, out Lenslet lens, out
   t.a = trace_corner(from, lens, t.pa);
   t.b = trace_corner(from, lens, t.pb);
   t.c = trace_corner(from, lens, t.pc);
-  t.area_mm2 = 0.5f * 3.14159265358979f * lens.radius_mm * lens.radius_mm / float(n * n);
+  t.area_mm2 = half_cell_area_mm2(lens.radius_mm, n);
   for (int depth = 0; is_split(t, depth); ++depth) {
     Corner ab = trace_corner(from, lens, 0.5f * (t.pa + t.pb));
     Corner bc = trace_corner(from, lens, 0.5f * (t.pb + t.pc));

@@ -32,6 +32,19 @@ layout(std430, binding = 4) readonly buffer Designs { DesignRange designs[]; };
 float sensor_u_max() { return 2.0f * P.sensor_half_w_mm / P.pixel_mm; }
 float sensor_v_max() { return 2.0f * P.sensor_half_h_mm / P.pixel_mm; }
 
+// The lenslet of design d that ray (footprint: cell) r belongs to: the last
+// whose first_ray <= r.
+uint lens_of(DesignRange d, uint r) {
+  uint lo = d.first_lens;
+  uint hi = d.first_lens + d.lens_count - 1u;
+  while (lo < hi) {
+    uint mid = (lo + hi + 1u) / 2u;
+    if (lenses[mid].first_ray <= r) lo = mid;
+    else hi = mid - 1u;
+  }
+  return lo;
+}
+
 // Add `value` (with its derivatives) to pixel (col, row) of the band.
 void deposit(uint image_base, int col, int row, Dual value, uint half_offset) {
   if (col < 0 || col >= P.grid_w || row < P.band_row0 || row >= P.band_row0 + P.band_rows || row >= P.grid_h) return;

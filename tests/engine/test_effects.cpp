@@ -36,8 +36,7 @@ double same_input_tolerance(prism::Splat splat) { return splat == prism::Splat::
 void check_images(const prism::PixelImage& expect, const prism::PixelImage& got, double tol, int first = 0,
                   int last = 3) {
   for (int c = first; c <= last; ++c) {
-    std::vector<double> e, g;
-    for (size_t i = size_t(c); i < expect.data.size(); i += 4) e.push_back(expect.data[i]), g.push_back(got.data[i]);
+    auto e = prism::test::channel(expect, c), g = prism::test::channel(got, c);
     auto cmp = prism::test::compare(e, g, {.abs = tol * prism::test::peak_abs(e)});
     CHECK_MESSAGE(cmp.ok(), cmp.report("channel " + std::to_string(c)));
   }
@@ -45,9 +44,7 @@ void check_images(const prism::PixelImage& expect, const prism::PixelImage& got,
 
 // The b channel of a device image against the reference's.
 void check_against_reference(const prism::PixelImage& v, const prism::ref::SparseImage& r, double tol) {
-  std::vector<double> e(size_t(r.width) * size_t(r.height), 0.0), g(e.size());
-  for (const auto& [k, px] : r.pixels) e[size_t(k)] = px[0];
-  for (size_t i = 0; i < g.size(); ++i) g[i] = v.data[4 * i];
+  auto e = prism::test::channel(r, 0), g = prism::test::channel(v, 0);
   auto cmp = prism::test::compare(e, g, {.abs = tol * prism::test::peak_abs(e)});
   CHECK_MESSAGE(cmp.ok(), cmp.report("b (Vulkan vs reference)"));
 }

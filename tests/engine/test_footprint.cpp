@@ -22,6 +22,7 @@
 
 namespace {
 
+using prism::test::channel;
 using prism::test::gpu;
 
 prism::TraceSettings footprint(unsigned rays, unsigned binning) {
@@ -31,18 +32,6 @@ prism::TraceSettings footprint(unsigned rays, unsigned binning) {
   t.splat = prism::Splat::footprint;
   t.estimator = prism::FisherEstimator::naive;
   return t;
-}
-
-// Channel c (0: b; 1..3: its derivatives) of each, pixel by pixel.
-std::vector<double> channel(const prism::ref::SparseImage& r, int c) {
-  std::vector<double> out(size_t(r.width) * size_t(r.height), 0.0);
-  for (const auto& [k, px] : r.pixels) out[size_t(k)] = r.value(k)[size_t(c)];
-  return out;
-}
-std::vector<double> channel(const prism::PixelImage& v, int c) {
-  std::vector<double> out(size_t(v.width) * size_t(v.height));
-  for (size_t i = 0; i < out.size(); ++i) out[i] = v.data[4 * i + size_t(c)];
-  return out;
 }
 
 double crlb_3d(const prism::FisherResult& f) { return prism::crlb_from_fisher(f.poisson, f.photons).r3_mm; }

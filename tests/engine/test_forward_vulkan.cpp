@@ -24,19 +24,8 @@
 
 namespace {
 
+using prism::test::channel;
 using prism::test::gpu;
-
-// Channel c (0: b; 1..3: its derivatives) pixel by pixel, as doubles.
-std::vector<double> channel(const prism::PixelImage& v, int c) {
-  std::vector<double> out(size_t(v.width) * size_t(v.height));
-  for (size_t i = 0; i < out.size(); ++i) out[i] = v.data[4 * i + size_t(c)];
-  return out;
-}
-std::vector<double> channel(const prism::ref::SparseImage& r, int c) {
-  std::vector<double> out(size_t(r.width) * size_t(r.height), 0.0);
-  for (const auto& [k, px] : r.pixels) out[size_t(k)] = r.value(k)[size_t(c)];
-  return out;
-}
 
 // Channel c of the device image against the reference, to `tol` of the reference's peak.
 void check_channel(const prism::PixelImage& v, const prism::ref::SparseImage& r, int c, double tol) {
