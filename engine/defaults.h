@@ -44,11 +44,13 @@ inline constexpr double wavelength_nm = 570.0;       // effect diffraction: the 
 inline constexpr double airy_gaussian_factor = 0.42;
 
 // Analysis defaults, chosen by the convergence study (README, "Convergence";
-// bench/bench_forward). The footprint splat (box pixels, the default) gives a
-// 3D CRLB within 1% of its converged value at 16384 cells per 3 mm lenslet for
-// thin and real lenses at 110, 27.6 and 6.9 um pixels (thin lenses: against
-// the exact box-pixel oracle). The point splat (the paper's bilinear rays)
-// needs 65536 rays at 110 um with the split estimator, and is not converged at
+// bench/bench_forward). The footprint splat (box pixels, the default) gives
+// the prototype's 3D CRLB within 1% of its value at 4x the cells with 16384
+// cells per 3 mm lenslet at 110 um pixels (thin and real lenses), and thin
+// lenses within 1% of the exact box-pixel oracle at 110, 27.6 and 6.9 um; real
+// lenses at finer pixels converge slowly without the diffraction effect (sliver
+// pixels at sharp edges). The point splat (the paper's bilinear rays) needs
+// 65536 rays at 110 um with the split estimator, and is not converged at
 // 262144 rays at 27.6 um or below.
 inline constexpr unsigned rays_per_lenslet = 16384;        // footprint cells: 128 x 128 strata
 inline constexpr unsigned rays_per_lenslet_point = 65536;  // point rays: 256 x 256 strata

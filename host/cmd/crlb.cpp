@@ -57,12 +57,16 @@ void run(const CrlbArgs& a) {
                 format_number(100 * a.converge).c_str(), a.max_rays);
   else
     std::printf("# convergence: %s\n",
-                at_defaults ? ("defaults: the prototype's CRLB within " +
-                               format_number(100 * defaults::crlb_convergence_tol) +
-                               "% of its value at 4x the cells at 110, 27.6 and 6.9 um pixels (README, \"Convergence\"; "
-                               "real lenses at 6.9 um with the diffraction effect); other designs: use --converge")
-                                  .c_str()
-                            : "not the converged defaults; use --converge TOL to measure it");
+                !at_defaults ? "not the converged defaults; use --converge TOL to measure it"
+                : t0.splat == Splat::point
+                    ? "defaults: the prototype's CRLB within 2% of 16x the rays at 110 um pixels (README, "
+                      "\"Convergence\"); not converged at finer pixels (use --splat footprint); other designs: use "
+                      "--converge"
+                    : ("defaults: the prototype's CRLB within " + format_number(100 * defaults::crlb_convergence_tol) +
+                       "% of its value at 4x the cells at 110 um pixels, and thin lenses within 1% of the exact "
+                       "box-pixel value at 110, 27.6 and 6.9 um; real lenses at finer pixels converge slowly where "
+                       "sharp edges leave slivers of light (the diffraction effect smooths them): use --converge")
+                          .c_str());
   if (t0.binning > 1)
     std::printf("# CRLB at %.0f um analysis pixels: an upper bound on the CRLB at the native %.1f um pixels "
                 "(--binning 1)\n",
