@@ -129,6 +129,7 @@ struct ForwardVulkan::Impl {
   vk::Kernel reduce;
   uint32_t band_rows;       // grid rows per band
   uint32_t sources_per_batch;
+  uint64_t list_limit_bytes;  // the footprint's lists: at most the budget and maxStorageBufferRange
 
   // The footprint splat's later passes and their lists (footprint_raster.glsl):
   // the split pass (psf_footprint_split.comp) and the cut pass
@@ -151,6 +152,7 @@ struct ForwardVulkan::Impl {
   struct Footprint {
     vk::Kernel split, split_values, cut, cut_values;
     List splits, cuts;
+    uint32_t chunks = 1;  // the first pass over the cells in this many chunks (record_splat)
     Footprint(vk::Context& c, const OpticalSystem& sys)
         : split(c, "psf_footprint_split", spirv(spv_psf_footprint_split), 7, sizeof(shared::TraceParams),
                 specialisation(sys, true)),
@@ -191,6 +193,8 @@ struct ForwardVulkan::Impl {
     uint32_t zero = 0;
     design_zero.upload(&zero, sizeof(zero));
     params.total_rays = layout.max_rays;
+    params.cell_first = 0;
+    params.cell_count = layout.max_rays;
 
     params.pixel_mm = float(grid.pixel_mm);
     params.sensor_half_w_mm = float(0.5 * s.sensor_width_mm());
@@ -215,6 +219,7 @@ struct ForwardVulkan::Impl {
     if (band_rows == 0) throw vk::Error("one sensor row does not fit in a storage buffer");
     uint64_t image_bytes = row_bytes * band_rows;
     sources_per_batch = uint32_t(std::clamp<uint64_t>(cap / image_bytes, 1, 65535));
+    list_limit_bytes = std::max<uint64_t>(cap, 1u << 20);
     if (t.splat == Splat::footprint) footprint = std::make_unique<Footprint>(c, sys);
   }
 
@@ -227,51 +232,75 @@ struct ForwardVulkan::Impl {
                       const vk::Buffer& source_designs, vk::Buffer& images, const shared::TraceParams& p) {
     vk::Kernel& main = derivatives ? splat : splat_values;
     if (!footprint) {
-      stream.dispatch(main, {&lenses, &sources, &images, &source_designs, &designs}, &p, splat_groups(), p.source_count);
+      stream.dispatch(main, {&lenses, &sources, &images, &source_designs, &designs}, &p, splat_groups(params.total_rays),
+                      p.source_count);
       return 0.0;
     }
     Footprint& f = *footprint;
     auto groups = [](uint32_t entries) { return std::min<uint32_t>((entries + kSplatGroup - 1) / kSplatGroup, 65535u); };
     // Every footprint kernel takes the same seven buffers.
-    auto dispatch = [&](vk::Kernel& k, uint32_t groups_x, uint32_t groups_y) {
+    auto dispatch = [&](vk::Kernel& k, const shared::TraceParams& q, uint32_t groups_x, uint32_t groups_y) {
       stream.dispatch(k, {&lenses, &sources, &images, &source_designs, &designs, f.splits.buffer.get(), f.cuts.buffer.get()},
-                      &p, groups_x, groups_y);
+                      &q, groups_x, groups_y);
     };
+    // The lists of a dispatch can outgrow a storage buffer (many sources, a
+    // real lens's rim cells split 64 ways): then the cells are taken in
+    // chunks, each with lists that fit. An overflow grows the lists (or, at
+    // the limit, doubles the chunks) and starts again from a zeroed image.
+    const uint64_t max_entries = (list_limit_bytes - 16) / 16;
     double ms = 0;
-    uint32_t cut_count = 0;
     for (;;) {
-      stream.fill_zero(*f.splits.buffer, 0, 4);
-      stream.fill_zero(*f.cuts.buffer, 0, 4);
-      stream.barrier();
-      dispatch(main, splat_groups(), p.source_count);
-      ms += stream.submit();
-      const uint32_t split_count = f.splits.count();
-      cut_count = f.cuts.count();
-      if (split_count <= f.splits.capacity && cut_count <= f.cuts.capacity && split_count > 0) {
+      const uint32_t per_chunk = uint32_t((uint64_t(params.total_rays) + f.chunks - 1) / f.chunks);
+      uint64_t need = 0;  // entries a list needed and did not have
+      for (uint32_t first = 0; first < params.total_rays && need == 0; first += per_chunk) {
+        shared::TraceParams q = p;
+        q.cell_first = first;
+        q.cell_count = std::min(per_chunk, params.total_rays - first);
+        if (first > 0) ms += stream.submit();  // the previous chunk's cut pass before the lists are reset
+        stream.fill_zero(*f.splits.buffer, 0, 4);
+        stream.fill_zero(*f.cuts.buffer, 0, 4);
         stream.barrier();
-        dispatch(derivatives ? f.split : f.split_values, groups(split_count), 1);
+        dispatch(main, q, splat_groups(q.cell_count), p.source_count);
         ms += stream.submit();
-        cut_count = f.cuts.count();  // with the split pieces' cuts
+        const uint32_t split_count = f.splits.count();
+        uint32_t cut_count = f.cuts.count();
+        if (split_count <= f.splits.capacity && cut_count <= f.cuts.capacity && split_count > 0) {
+          stream.barrier();
+          dispatch(derivatives ? f.split : f.split_values, q, groups(split_count), 1);
+          ms += stream.submit();
+          cut_count = f.cuts.count();  // with the split pieces' cuts
+        }
+        if (split_count > f.splits.capacity || cut_count > f.cuts.capacity) {
+          need = std::max(split_count, cut_count);
+          break;
+        }
+        if (cut_count > 0) {
+          stream.barrier();
+          dispatch(derivatives ? f.cut : f.cut_values, q, groups(cut_count), 1);
+        }
       }
-      if (split_count <= f.splits.capacity && cut_count <= f.cuts.capacity) break;
-      // More entries than a list holds: bigger lists, and again.
-      if (split_count > f.splits.capacity) f.splits.grow(ctx, split_count + split_count / 2);
-      if (cut_count > f.cuts.capacity) f.cuts.grow(ctx, cut_count + cut_count / 2);
+      if (need == 0) return ms;
+      const uint64_t want = need + need / 2;
+      if (want <= max_entries) {
+        f.splits.grow(ctx, uint32_t(std::max<uint64_t>(want, f.splits.capacity)));
+        f.cuts.grow(ctx, uint32_t(std::max<uint64_t>(want, f.cuts.capacity)));
+      } else {
+        f.splits.grow(ctx, uint32_t(max_entries));
+        f.cuts.grow(ctx, uint32_t(max_entries));
+        f.chunks *= 2;
+        if (f.chunks > params.total_rays)
+          throw vk::Error("footprint splat: one cell's triangles overflow a storage buffer; lower the sources per batch");
+      }
       stream.fill_zero(images);
     }
-    if (cut_count > 0) {
-      stream.barrier();
-      dispatch(derivatives ? f.cut : f.cut_values, groups(cut_count), 1);
-    }
-    return ms;
   }
 
   uint32_t bands() const { return (uint32_t(params.grid_h) + band_rows - 1) / band_rows; }
 
   // Workgroups along x: one per 64 rays (point) or cells (footprint),
   // capped; the kernels loop over the rest.
-  uint32_t splat_groups() const {
-    uint64_t total = params.total_rays;
+  uint32_t splat_groups(uint32_t cells) const {
+    uint64_t total = cells;
     return uint32_t(std::min<uint64_t>((total + kSplatGroup - 1) / kSplatGroup, std::min(ctx.max_group_count_x(), 65535u)));
   }
 };
@@ -291,6 +320,8 @@ ForwardVulkan::ForwardVulkan(vk::Context& ctx, const std::vector<OpticalSystem>&
 ForwardVulkan::~ForwardVulkan() = default;
 
 uint64_t ForwardVulkan::rays_per_source() const { return impl_->layout.ranges.front().total_rays; }
+
+unsigned ForwardVulkan::footprint_cell_chunks() const { return impl_->footprint ? impl_->footprint->chunks : 0; }
 
 std::vector<FisherResult> ForwardVulkan::fisher(std::span<const glm::dvec3> theta) {
   std::vector<uint32_t> design0(theta.size(), 0);

@@ -49,6 +49,9 @@ class ForwardVulkan {
   std::vector<float> psf_values(const glm::dvec3& theta);
 
   double last_kernel_ms() const { return last_kernel_ms_; }  // device time of the last call
+  // Footprint splat: the chunks its first pass takes the cells in (1 while its
+  // lists fit in a storage buffer within the budget; 0 for the point splat).
+  unsigned footprint_cell_chunks() const;
   uint64_t rays_per_source() const;
   const AnalysisGrid& grid() const { return grid_; }
 

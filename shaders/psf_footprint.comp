@@ -25,7 +25,10 @@ void main() {
   uint stride = gl_NumWorkGroups.x * gl_WorkGroupSize.x;
   float u_max = sensor_u_max();
   float v_max = sensor_v_max();
-  for (uint r = gl_GlobalInvocationID.x; r < design.total_rays; r += stride) {
+  // This pass's chunk of the cells (the host splits them when the lists would
+  // outgrow a buffer).
+  uint end = min(design.total_rays, P.cell_first + P.cell_count);
+  for (uint r = P.cell_first + gl_GlobalInvocationID.x; r < end; r += stride) {
     uint lens_index = lens_of(design, r);
     Lenslet lens = lenses[lens_index];
     uint in_design = lens_index - design.first_lens;  // hashes by the index within the design

@@ -41,7 +41,7 @@ struct DesignRange {
   uint pad_;
 };
 
-// Per-dispatch constants (push constants, std430, 76 bytes).
+// Per-dispatch constants (push constants, std430, 84 bytes).
 struct TraceParams {
   float pixel_mm;             // analysis pixel pitch (sensor pixel x binning)
   float sensor_half_w_mm;     // half the physical sensor width (x)
@@ -62,6 +62,8 @@ struct TraceParams {
   float source_sigma_mm;      // effect: Gaussian extent of the source (per axis)
   uint stratification;        // 0: the default strata; another value: other jitter (point) and cells turned (footprint)
   float airy_sigma_mm_times_diameter;  // effect diffraction: sigma of a lenslet's Airy core times its diameter (mm^2)
+  uint cell_first;            // footprint: the cells of this pass, [cell_first, cell_first + cell_count)
+  uint cell_count;
 };
 
 // A ray on its way to the sensor, with the photons it carries.
