@@ -4,8 +4,11 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <map>
 #include <memory>
 #include <sstream>
+#include <string>
+#include <vector>
 
 #include "host/util/image_io.h"
 #include "support.h"
@@ -46,6 +49,39 @@ TEST_CASE("prism crlb writes the documented CSV columns and a plot") {
   for (std::string line; std::getline(in, line);) ++rows;
   CHECK(rows == 4);
   CHECK(std::filesystem::file_size(dir + "/c.png") > 1000);
+  std::filesystem::remove_all(dir);
+}
+
+TEST_CASE("prism crlb checks every row against a quarter of the cells and flags rows still moving") {
+  // single-f15 at depth 0: its blur disc (radius ~34 mm) overfills the sensor,
+  // so almost no information is on it (the thin-lens oracle: 3.9 mm) and the
+  // footprint's discretisation dominates at few cells: far from converged.
+  // The thin-lens prototype at depth 25 is dominated by sharp disc edges and
+  // converged at 4096 cells.
+  std::string dir = temp_dir();
+  auto r = prism::test::run_prism("crlb --scene single-f15 --scene prototype --lens-model thin --depth-mm 0,25 --rays 4096 "
+                                  "--binning 32 --csv " + dir + "/c.csv");
+  INFO(r.output);
+  REQUIRE(r.status == 0);
+  CHECK(r.output.find("flag 'moving'") != std::string::npos);
+  std::ifstream in(dir + "/c.csv");
+  std::string line;
+  std::getline(in, line);
+  std::map<std::string, std::pair<double, std::string>> change_and_flag;  // "scene@depth"
+  while (std::getline(in, line)) {
+    std::vector<std::string> f;
+    std::stringstream ss(line);
+    for (std::string cell; std::getline(ss, cell, ',');) f.push_back(cell);
+    REQUIRE(f.size() == 16);
+    REQUIRE(!f[14].empty());  // change_vs_quarter_rays is always measured
+    change_and_flag[f[0] + "@" + f[3]] = {std::stod(f[14]), f[15]};
+  }
+  REQUIRE(change_and_flag.size() == 4);
+  CHECK(change_and_flag["single-f15@0"].first > 0.1);
+  CHECK(change_and_flag["single-f15@0"].second == "moving");
+  CHECK(change_and_flag["prototype@25"].first <= 0.01);
+  CHECK(change_and_flag["prototype@25"].second == "ok");
+  for (const auto& [key, cf] : change_and_flag) CHECK_MESSAGE((cf.second == "moving") == (cf.first > 0.01), key);
   std::filesystem::remove_all(dir);
 }
 
