@@ -1,6 +1,8 @@
 // The PSF dictionary's costs, in one run: time to synthesise a PSF (Vulkan vs
 // the CPU reference), bytes on disk per PSF for each base resolution, and read
-// throughput for whole levels and for tile fetches around clicks.
+// throughput for whole levels and for tile fetches around clicks; then each
+// tier's ray noise per splat (what the full-resolution tier is worth).
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <random>
@@ -64,5 +66,49 @@ int main(int argc, char** argv) {
   std::printf("\n1210 PSFs: multiply the per-PSF figures by 1210 (e.g. disk and build time of the whole grid).\n");
   std::printf("build = trace on the device + normalise + write the EXR (all levels, ZIP); Vulkan trace and CPU ref\n"
               "trace and splat one PSF (ratio = CPU ref / Vulkan trace). read = decode a whole level 0.\n");
+
+  // 2. Signal to noise of each tier and splat: a PSF rendered twice with
+  // different stratifications (other jitter for point rays, cells turned for
+  // footprints), both normalised to sum 1; their L1 distance is the ray noise
+  // (0 for a noiseless model, 2 for disjoint images). The build time and size
+  // are of a two-PSF dictionary at the same settings.
+  std::printf("\n## 2. Ray noise per tier and splat: L1 distance between two stratifications of one PSF at\n"
+              "(1, 2, 20) mm, each normalised to sum 1; build s/PSF and disk per PSF of the tier\n");
+  std::printf("%-8s %-10s %8s %12s %13s %10s\n", "binning", "splat", "rays", "build s/PSF", "disk MiB/PSF", "L1 noise");
+  struct Row {
+    Splat splat;
+    unsigned rays;
+  };
+  for (int binning : {16, 4, 1})
+    for (Row row : {Row{Splat::point, 4096}, Row{Splat::footprint, 4096}, Row{Splat::footprint, defaults::rays_per_lenslet}}) {
+      std::string dir = root + "-noise";
+      fs::remove_all(dir);
+      DictionaryBuildOptions o;
+      o.grid = {{-5.0, 5.0}, {0.0}, {20.0}};
+      o.base_binning = binning;
+      o.rays_per_lenslet = row.rays;
+      o.splat = row.splat;
+      auto report = build_dictionary(ctx, scene, dir, o);
+      DictionaryReader r(dir);
+      double bytes = 0;
+      for (size_t i = 0; i < r.manifest().grid.size(); ++i) bytes += double(fs::file_size(r.path_of(i)));
+      bytes /= double(r.manifest().grid.size());
+      fs::remove_all(dir);
+      std::vector<std::vector<float>> images;
+      for (unsigned stratification : {0u, 1u}) {
+        TraceSettings t = TraceSettings::defaults_for(row.splat);
+        t.rays_per_lenslet = row.rays;
+        t.binning = unsigned(binning);
+        t.stratification = stratification;
+        ForwardVulkan fw(ctx, scene.optics, t);
+        images.push_back(fw.psf_values({1.0, 2.0, 20.0}));
+      }
+      double sum0 = 0, sum1 = 0, l1 = 0;
+      for (size_t i = 0; i < images[0].size(); ++i) sum0 += images[0][i], sum1 += images[1][i];
+      for (size_t i = 0; i < images[0].size(); ++i) l1 += std::abs(images[0][i] / sum0 - images[1][i] / sum1);
+      std::printf("%-8d %-10s %8u %12.3f %13.2f %10.4f\n", binning, to_string(row.splat), row.rays,
+                  report.seconds_per_psf, bytes / 1048576.0, l1);
+      std::fflush(stdout);
+    }
   return 0;
 }

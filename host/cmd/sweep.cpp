@@ -26,7 +26,8 @@ struct SweepArgs {
   size_t budget = 100;
   uint64_t seed = 1;
   size_t batch = 8;
-  unsigned rays = 4096, binning = 32;
+  unsigned rays = 0;  // 0: the splat's sweep default (defaults.h)
+  unsigned binning = defaults::sweep_binning;
   SplatOptions splat;
   std::vector<std::string> bounds;
   unsigned keep = 3, confirm = 0;
@@ -120,6 +121,9 @@ void run(const SweepArgs& a) {
   s.trace.binning = a.binning;
   s.trace.photons_emitted = space.base.photons_emitted;
   a.splat.apply(s.trace);
+  if (a.rays == 0)
+    s.trace.rays_per_lenslet = s.trace.splat == Splat::point ? defaults::sweep_rays_per_lenslet_point
+                                                             : defaults::sweep_rays_per_lenslet;
   s.trace.estimator = TraceSettings::default_estimator(s.trace.splat);
   s.backend = a.backend == "cpu" ? Backend::cpu : Backend::vulkan;
   s.objective = a.objective;
@@ -228,8 +232,11 @@ void add_sweep(CLI::App& app) {
   c->add_option("--seed", a->seed, "random start and local search; the same seed gives the same sweep")->capture_default_str();
   c->add_option("--batch", a->batch, "candidates generated and scored together, in one dispatch")
       ->capture_default_str()->check(CLI::Range(size_t(1), size_t(4096)));
-  c->add_option("--rays", a->rays, "rays per 3 mm lenslet per source (other sizes: same rays per mm^2)")
-      ->capture_default_str()->check(CLI::Range(1u, 1u << 24));
+  c->add_option("--rays", a->rays,
+                "rays (cells) per 3 mm lenslet per source (other sizes: same per mm^2); default " +
+                    std::to_string(defaults::sweep_rays_per_lenslet) + " footprint cells, " +
+                    std::to_string(defaults::sweep_rays_per_lenslet_point) + " point rays")
+      ->check(CLI::Range(1u, 1u << 24));
   c->add_option("--binning", a->binning, "analyse on B x B binned sensor pixels")
       ->capture_default_str()->check(CLI::Range(1u, 1024u));
   a->splat.add_to(c);
