@@ -16,6 +16,15 @@
 using namespace prism;
 namespace fs = std::filesystem;
 
+namespace {
+// Bytes on disk per PSF file of a dictionary.
+double mean_file_bytes(const DictionaryReader& r) {
+  double bytes = 0;
+  for (size_t i = 0; i < r.manifest().grid.size(); ++i) bytes += double(fs::file_size(r.path_of(i)));
+  return bytes / double(r.manifest().grid.size());
+}
+}  // namespace
+
 int main(int argc, char** argv) {
   std::string device = argc > 1 ? argv[1] : "";
   vk::Context ctx(vk::ContextOptions{device});
@@ -41,9 +50,7 @@ int main(int argc, char** argv) {
     double gpu = bench::median_seconds(3, [&] { fw.psf({1.0, 2.0, 20.0}); });
     double cpu = bench::median_seconds(3, [&] { ref::psf(scene.optics, t, {1.0, 2.0, 20.0}); });
     DictionaryReader r(dir);
-    double bytes = 0;
-    for (size_t i = 0; i < r.manifest().grid.size(); ++i) bytes += double(fs::file_size(r.path_of(i)));
-    bytes /= double(r.manifest().grid.size());
+    double bytes = mean_file_bytes(r);
     double level0_bytes = double(r.manifest().width) * r.manifest().height * sizeof(float);
     double read_s = bench::median_seconds(3, [&] { r.read_level(0, 0); });
     // Tile fetches around random clicks, every fetch a cache miss (budget of one tile).
@@ -90,9 +97,7 @@ int main(int argc, char** argv) {
       o.splat = row.splat;
       auto report = build_dictionary(ctx, scene, dir, o);
       DictionaryReader r(dir);
-      double bytes = 0;
-      for (size_t i = 0; i < r.manifest().grid.size(); ++i) bytes += double(fs::file_size(r.path_of(i)));
-      bytes /= double(r.manifest().grid.size());
+      double bytes = mean_file_bytes(r);
       fs::remove_all(dir);
       std::vector<std::vector<float>> images;
       for (unsigned stratification : {0u, 1u}) {

@@ -5,6 +5,7 @@
 #include <array>
 #include <cstdio>
 #include <memory>
+#include <sstream>
 
 namespace prism::test {
 
@@ -57,6 +58,14 @@ std::vector<double> channel(const ref::SparseImage& r, int c) {
   std::vector<double> out(size_t(r.width) * size_t(r.height), 0.0);
   for (const auto& [k, px] : r.pixels) out[size_t(k)] = r.value(k)[size_t(c)];
   return out;
+}
+
+std::vector<std::string> csv_fields(const std::string& line) {
+  std::vector<std::string> fields;
+  std::stringstream ss(line);
+  for (std::string cell; std::getline(ss, cell, ',');) fields.push_back(cell);
+  if (!line.empty() && line.back() == ',') fields.emplace_back();  // an empty last field
+  return fields;
 }
 
 }  // namespace prism::test

@@ -31,6 +31,9 @@ CommandResult run_prism(const std::string& args, const std::string& env = "");
 
 // Channel c (0: b; 1..3: its derivatives) of an image, pixel by pixel, as
 // doubles (the reference's derivative: the mean of its two halves).
+// The comma-separated fields of one CSV line (no quoting: the project's CSVs have none).
+std::vector<std::string> csv_fields(const std::string& line);
+
 std::vector<double> channel(const PixelImage& v, int c);
 std::vector<double> channel(const ref::SparseImage& r, int c);
 

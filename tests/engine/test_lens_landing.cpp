@@ -5,7 +5,6 @@
 #include <fstream>
 #include <map>
 #include <tuple>
-#include <sstream>
 
 #include "engine/forward.h"
 #include "engine/ref/forward_ref.h"
@@ -32,10 +31,7 @@ std::vector<LandingRow> read_landings() {
   while (std::getline(in, line)) {
     ++n;
     if (line.empty() || line[0] == '#' || line.rfind("f_mm", 0) == 0) continue;
-    std::stringstream ss(line);
-    std::string cell;
-    std::vector<std::string> c;
-    while (std::getline(ss, cell, ',')) c.push_back(cell);
+    std::vector<std::string> c = prism::test::csv_fields(line);
     REQUIRE_MESSAGE(c.size() == 13, path << ":" << n << ": expected 13 columns");
     REQUIRE_MESSAGE((c[2] == "toward_sensor" || c[2] == "toward_source"), path << ":" << n << ": flat_faces?");
     LandingRow r{std::stod(c[0]), std::stod(c[1]), std::stod(c[3]), c[2] == "toward_source", {std::stod(c[4]), std::stod(c[5]), std::stod(c[6])},

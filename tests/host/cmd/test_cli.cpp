@@ -69,9 +69,7 @@ TEST_CASE("prism crlb checks every row against a quarter of the cells and flags 
   std::getline(in, line);
   std::map<std::string, std::pair<double, std::string>> change_and_flag;  // "scene@depth"
   while (std::getline(in, line)) {
-    std::vector<std::string> f;
-    std::stringstream ss(line);
-    for (std::string cell; std::getline(ss, cell, ',');) f.push_back(cell);
+    std::vector<std::string> f = prism::test::csv_fields(line);
     REQUIRE(f.size() == 16);
     REQUIRE(!f[14].empty());  // change_vs_quarter_rays is always measured
     change_and_flag[f[0] + "@" + f[3]] = {std::stod(f[14]), f[15]};

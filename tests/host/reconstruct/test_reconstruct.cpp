@@ -340,9 +340,8 @@ TEST_CASE("prism reconstruct: CSV rows per vertex, summary, and errors that say 
   int rows = 0;
   double err = 0;
   while (std::getline(in, line)) {
-    std::stringstream ss(line);
-    std::string f[9];
-    for (auto& x : f) std::getline(ss, x, ',');
+    std::vector<std::string> f = prism::test::csv_fields(line);
+    REQUIRE(f.size() == 9);
     CHECK(std::stoi(f[0]) == rows);  // events in file order despite two threads
     err += std::hypot(std::stod(f[2]) - 1, std::stod(f[3]) - 1, std::stod(f[4]) - 31);
     ++rows;
