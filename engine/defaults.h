@@ -66,4 +66,14 @@ inline constexpr unsigned sweep_rays_per_lenslet_point = 4096;  // point rays
 inline constexpr unsigned sweep_binning = 32;                   // 221 um analysis pixels
 inline constexpr double crlb_convergence_tol = 0.01;       // relative change of the 3D CRLB over 4x the rays (cells)
 
+// Continuous refinement of reconstructed vertices (host/reconstruct/refine.h):
+// the scene's forward model, footprint splat, at this many cells per lenslet
+// (1% L1 from 16384 cells on the prototype at 110 um; README "Reconstruction").
+inline constexpr unsigned refine_rays_per_lenslet = 1024;
+inline constexpr int refine_iterations = 20;       // Levenberg-Marquardt steps per start, at most
+inline constexpr int refine_search_starts = 3;     // the search's runners-up probed per vertex
+inline constexpr int refine_alias_starts = 2;      // lattice aliases probed per vertex
+inline constexpr int fit_pvalue_draws = 1000;      // Monte Carlo events per goodness-of-fit p-value
+inline constexpr double fit_pvalue_flag = 0.01;    // below it a vertex is flagged poor_fit
+
 }  // namespace prism::defaults

@@ -68,4 +68,19 @@ std::vector<std::string> csv_fields(const std::string& line) {
   return fields;
 }
 
+Event sample_event(EventTruth& truth, const std::vector<EventSource>& sources, uint64_t seed, uint64_t id) {
+  Event e;
+  e.id = id;
+  std::vector<std::shared_ptr<const PsfSampler>> held;
+  std::vector<ClickSource> cs;
+  for (const auto& s : sources) {
+    held.push_back(truth.psf(s.position_mm));
+    cs.push_back({held.back().get(), s.alpha});
+    e.vertices.push_back({s.position_mm.x, s.position_mm.y, s.position_mm.z, s.alpha, held.back()->sensor_fraction()});
+  }
+  auto rng = event_rng(seed, id);
+  sample_clicks(cs, rng, e.clicks);
+  return e;
+}
+
 }  // namespace prism::test

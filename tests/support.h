@@ -9,6 +9,8 @@
 #include "engine/forward.h"
 #include "engine/ref/forward_ref.h"
 #include "engine/vk/context.h"
+#include "host/events/event_file.h"
+#include "host/events/simulate.h"
 #include "host/scene/scene.h"
 
 namespace prism::test {
@@ -35,6 +37,14 @@ CommandResult run_prism(const std::string& args, const std::string& env = "");
 std::vector<std::string> csv_fields(const std::string& line);
 
 std::vector<double> channel(const PixelImage& v, int c);
+
+// One event from `truth`: sources (position, expected photons) sampled with
+// the random stream of (seed, id), the truth recorded per vertex.
+struct EventSource {
+  glm::dvec3 position_mm;
+  double alpha;
+};
+Event sample_event(EventTruth& truth, const std::vector<EventSource>& sources, uint64_t seed, uint64_t id);
 std::vector<double> channel(const ref::SparseImage& r, int c);
 
 }  // namespace prism::test

@@ -13,6 +13,7 @@
 #include "host/cmd/commands.h"
 #include "host/reconstruct/match.h"
 #include "host/reconstruct/pool.h"
+#include "host/reconstruct/refine.h"
 #include "host/util/progress.h"
 
 namespace prism::cmd {
@@ -24,6 +25,8 @@ struct ReconstructArgs {
   std::string backend = "vulkan";
   std::string device;
   std::string precision = "float";
+  std::string model;  // scene | none; "": scene when the dictionary was synthesised from one
+  std::string scene;  // overrides the manifest's scene for --model scene
   size_t batch = 64;
   int level = -1;
   double budget_mib = 1024;
@@ -54,9 +57,25 @@ void run(const ReconstructArgs& a) {
   po.device_half = a.precision == "half";
   ReconstructionPool pool(reader, level, s, po);
 
+  // The continuous refinement's model: the scene's forward model.
+  std::string model = a.model.empty() ? (m.rays_per_lenslet > 0 || !a.scene.empty() ? "scene" : "none") : a.model;
+  std::unique_ptr<SourceModel> source_model;
+  std::unique_ptr<Refiner> refiner;
+  Scene scene = a.scene.empty() ? m.scene : load_scene(a.scene);
+  if (model == "scene") {
+    if (m.rays_per_lenslet == 0 && a.scene.empty())
+      throw std::runtime_error(a.dictionary + " was calibrated, not synthesised: it names no scene to refine with; "
+                               "give --scene, or --model none for the search alone");
+    source_model = make_scene_model(scene, refine_trace_settings(events.header().binning), ctx.get());
+    RefineSettings rs;
+    rs.dark_rate = s.dark_rate;
+    rs.alpha_max = s.alpha_max;
+    refiner = std::make_unique<Refiner>(*source_model, scene, m.level_width(level), m.level_height(level), rs);
+  }
+
   std::ofstream csv(a.out);
   if (!csv) throw std::runtime_error(a.out + ": cannot open for writing; check the directory exists and is writable");
-  csv << "event,vertex,x_mm,y_mm,depth_mm,alpha,nll,clicks,flags\n";
+  csv << "event,vertex,x_mm,y_mm,depth_mm,alpha,nll,clicks,flags,crlb_x_mm,crlb_y_mm,crlb_z_mm,crlb_3d_mm,fit_pvalue\n";
   csv.precision(10);
 
   Progress progress("reconstruct", events.header().event_count);
@@ -69,6 +88,8 @@ void run(const ReconstructArgs& a) {
     size_t n = 0;
     while (n < batch && (more = events.next(in[n]))) ++n;
     auto out = pool.run(std::span<const Event>(in.data(), n));
+    if (refiner)
+      for (size_t i = 0; i < n; ++i) out[i] = refiner->refine(in[i], std::move(out[i]));
     for (size_t i = 0; i < n; ++i) {
       const Event& e = in[i];
       clicks += e.clicks.size();
@@ -76,7 +97,13 @@ void run(const ReconstructArgs& a) {
         const auto& v = out[i][k];
         flagged += v.flags != vertex_ok;
         csv << e.id << ',' << k << ',' << v.x_mm << ',' << v.y_mm << ',' << v.depth_mm << ',' << v.alpha << ','
-            << v.nll << ',' << v.clicks << ',' << flags_to_string(v.flags) << '\n';
+            << v.nll << ',' << v.clicks << ',' << flags_to_string(v.flags);
+        // Without refinement the CRLB and p-value fields stay empty.
+        for (double x : {v.crlb_x_mm, v.crlb_y_mm, v.crlb_z_mm, v.crlb_3d_mm, v.fit_pvalue}) {
+          csv << ',';
+          if (!std::isnan(x)) csv << x;
+        }
+        csv << '\n';
       }
       // Single-vertex truth: the 3D error, for the summary line.
       if (e.vertices.size() == 1 && out[i].size() == 1 && out[i][0].flags == vertex_ok) {
@@ -106,6 +133,15 @@ void run(const ReconstructArgs& a) {
   const auto t = pool.timings();
   std::printf("time: support scans %.2f s, the rest on the host %.2f s%s\n", t.scan_s, t.host_s,
               threads > 1 ? " (summed over threads)" : "");
+  if (refiner)
+    std::printf("refinement (scene model %s, footprint %u cells per lenslet): %.2f s, %.1f starts and %.1f LM steps "
+                "per event, %llu renders\n",
+                scene.name.c_str(), defaults::refine_rays_per_lenslet, refiner->stats().seconds,
+                double(refiner->stats().starts) / double(std::max<uint64_t>(1, done)),
+                double(refiner->stats().iterations) / double(std::max<uint64_t>(1, done)),
+                (unsigned long long)source_model->renders());
+  else
+    std::printf("refinement: none (--model none): positions from the dictionary search alone\n");
   if (scored)
     std::printf("single-vertex truth: mean 3D error %.3f mm over %llu unflagged events\n",
                 error_sum_mm / double(scored), (unsigned long long)scored);
@@ -120,7 +156,12 @@ void add_reconstruct(CLI::App& app) {
   c->add_option("--events", a->events, "event file (host/events/EVENTS.md)")->required();
   c->add_option("--vertices", a->settings.vertices, "K: vertices per event")
       ->capture_default_str()->check(CLI::Range(1, 8));
-  c->add_option("--out", a->out, "CSV: event,vertex,x_mm,y_mm,depth_mm,alpha,nll,clicks,flags")->required();
+  c->add_option("--out", a->out, "CSV: event,vertex,x_mm,y_mm,depth_mm,alpha,nll,clicks,flags,crlb_x_mm,crlb_y_mm,"
+                 "crlb_z_mm,crlb_3d_mm,fit_pvalue (the last five empty without refinement)")->required();
+  c->add_option("--model", a->model, "continuous refinement after the search: scene (the scene's forward model, "
+                 "default for synthesised dictionaries) or none (the search's grid positions alone)")
+      ->check(CLI::IsMember({"scene", "none"}));
+  c->add_option("--scene", a->scene, "scene for --model scene (default: the one the dictionary was built from)");
   c->add_option("--backend", a->backend,
                  "vulkan: sparse scan on the device; dense: the paper's dense correlation on the device (baseline); "
                  "cpu: the double-precision reference")

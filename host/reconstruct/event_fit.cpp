@@ -176,7 +176,8 @@ std::vector<SupportScore> EventFit::scan_cpu() {
 }
 
 void EventFit::add_vertex(std::vector<SupportScore> scored) {
-  vs_.push_back(refine(std::move(scored)));
+  runners_up_.emplace_back();
+  vs_.push_back(refine(std::move(scored), runners_up_.back()));
   fit(vs_);
   descend(vs_);
 }
@@ -233,6 +234,12 @@ std::vector<ReconstructedVertex> EventFit::finish(std::vector<Vertex>& vs) {
       return (i == 0 && value <= axis.front() - slack) || (i == int(axis.size()) - 1 && value >= axis.back() + slack);
     };
     if (z.at_edge || outside(g.x_mm, n.x, xy.x) || outside(g.y_mm, n.y, xy.y)) o.flags |= edge;
+    if (k < runners_up_.size())
+      for (const Vertex& r : runners_up_[k]) {
+        const double d = depth_of(r.psf);
+        const glm::dvec2 rxy = source_xy(r, d);
+        o.runners_up.push_back({rxy.x, rxy.y, d, r.alpha});
+      }
   }
   return out;
 }

@@ -95,7 +95,8 @@ class EventFit {
   double fit_one(const std::vector<double>& p, double s, const std::vector<double>& background, double& alpha) const;
 
   // --- pruning (search.cpp) ---
-  Vertex refine(std::vector<SupportScore> scored);
+  // The best candidate; the others, best first, go to `runners_up`.
+  Vertex refine(std::vector<SupportScore> scored, std::vector<Vertex>& runners_up);
 
   // --- joint descent and depth (descent.cpp) ---
   std::vector<Vertex> moves(const Vertex& v) const;
@@ -119,6 +120,9 @@ class EventFit {
   std::vector<double> dark_;                       // dark rate at each click-level click
   std::map<std::tuple<size_t, int, int>, Column> columns_;
   std::vector<Vertex> vs_;  // the model so far
+  // Per vertex, the pruning's runners-up (click-level NLL order): starting
+  // points for the continuous refinement (host/reconstruct/refine.h).
+  std::vector<std::vector<Vertex>> runners_up_;
 };
 
 // A level of the dictionary seen from this event: values through the

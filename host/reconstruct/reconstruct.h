@@ -20,6 +20,7 @@
 // double-precision host code for all three (event_fit.h says where each step
 // lives), so they differ only where the scan does.
 #pragma once
+#include <cmath>
 #include <cstdint>
 #include <memory>
 #include <span>
@@ -60,8 +61,12 @@ enum VertexFlag : uint32_t {
   few_clicks = 1u << 1,      // fewer than min_clicks clicks
   alpha_zero = 1u << 2,      // weight 0: the vertex explains nothing (fewer sources than K)
   alpha_at_bound = 1u << 3,  // weight reached alpha_max: the likelihood has no finite optimum
-  edge = 1u << 4,            // optimum on the dictionary's outer boundary: the vertex may be outside the field
-  merged = 1u << 5,          // same PSF and shift as another vertex: the two are not separable
+  edge = 1u << 4,            // optimum on the dictionary's outer boundary (refined: within one CRLB of the
+                             // scene's volume): the vertex may be outside the field
+  merged = 1u << 5,          // same PSF and shift as another vertex (refined: closer than either's
+                             // 3D CRLB): the two are not separable
+  poor_fit = 1u << 6,        // refined: fit_pvalue below defaults::fit_pvalue_flag; the event is not
+                             // explained by K vertices in the field (one more, one outside, background)
 };
 std::string flags_to_string(uint32_t flags);  // "a|b", or "" when vertex_ok
 
@@ -73,6 +78,13 @@ struct ReconstructedVertex {
   uint32_t flags = vertex_ok;
   size_t psf = 0;           // dictionary entry of the model used (diagnostic)
   glm::ivec2 shift_px{};    // its whole-pixel shift on the click grid (columns, rows)
+  // Continuous refinement only (host/reconstruct/refine.h); NaN without it.
+  double crlb_x_mm = NAN, crlb_y_mm = NAN, crlb_z_mm = NAN, crlb_3d_mm = NAN;  // binary sensor, at the estimate
+  double fit_pvalue = NAN;  // the event's goodness of fit (the same on every row of the event)
+  bool refined = false;
+  // The search's runners-up for this vertex (x, y, depth on their plane,
+  // alpha), best first: further starts for the refinement.
+  std::vector<glm::dvec4> runners_up;
 };
 
 // The dictionary level the clicks lie on: the event binning must be

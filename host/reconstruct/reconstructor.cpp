@@ -14,7 +14,8 @@ using detail::EventFit;
 std::string flags_to_string(uint32_t flags) {
   static const std::pair<uint32_t, const char*> names[] = {
       {no_clicks, "no_clicks"}, {few_clicks, "few_clicks"}, {alpha_zero, "alpha_zero"},
-      {alpha_at_bound, "alpha_at_bound"}, {edge, "edge"}, {merged, "merged"}};
+      {alpha_at_bound, "alpha_at_bound"}, {edge, "edge"}, {merged, "merged"},
+      {poor_fit, "poor_fit"}};
   std::string out;
   for (auto [bit, name] : names)
     if (flags & bit) {

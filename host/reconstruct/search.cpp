@@ -17,7 +17,7 @@
 
 namespace prism::detail {
 
-Vertex EventFit::refine(std::vector<SupportScore> scored) {
+Vertex EventFit::refine(std::vector<SupportScore> scored, std::vector<Vertex>& runners_up) {
   const int Ls = search_level_, step = std::max(1, s_.scan_step_px);
   size_t keep = std::min(scored.size(), size_t(std::max(1, s_.refine_candidates)));
   std::partial_sort(scored.begin(), scored.begin() + long(keep), scored.end(),
@@ -38,8 +38,7 @@ Vertex EventFit::refine(std::vector<SupportScore> scored) {
     return ref::best_shift(source, psf, clicks_at(level), weights_at(level), center, reach);
   };
   auto background_click = rates(level_, vs_);
-  Vertex best;
-  double best_nll = std::numeric_limits<double>::infinity();
+  std::vector<std::pair<double, Vertex>> tried;
   for (size_t j = 0; j < keep; ++j) {
     size_t m = scored[j].psf;
     Shift sh = scored[j].shift;
@@ -48,9 +47,12 @@ Vertex EventFit::refine(std::vector<SupportScore> scored) {
     const Column& c = column(m, sh);
     double alpha = scored[j].alpha;
     double f = fit_one(c.p, c.s, background_click, alpha);
-    if (f < best_nll) best_nll = f, best = {m, sh, alpha};
+    tried.push_back({f, {m, sh, alpha}});
   }
-  return best;
+  std::stable_sort(tried.begin(), tried.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
+  runners_up.clear();
+  for (size_t j = 1; j < tried.size(); ++j) runners_up.push_back(tried[j].second);
+  return tried.empty() ? Vertex{} : tried.front().second;
 }
 
 }  // namespace prism::detail

@@ -62,24 +62,10 @@ prism::ForwardTruth& forward_truth() {
   return t;
 }
 
-struct Source {
-  glm::dvec3 position_mm;
-  double alpha;
-};
+using Source = prism::test::EventSource;
 
 prism::Event make_event(const std::vector<Source>& sources, uint64_t seed, uint64_t id) {
-  prism::Event e;
-  e.id = id;
-  std::vector<std::shared_ptr<const prism::PsfSampler>> held;
-  std::vector<prism::ClickSource> cs;
-  for (const auto& s : sources) {
-    held.push_back(forward_truth().psf(s.position_mm));
-    cs.push_back({held.back().get(), s.alpha});
-    e.vertices.push_back({s.position_mm.x, s.position_mm.y, s.position_mm.z, s.alpha, held.back()->sensor_fraction()});
-  }
-  auto rng = prism::event_rng(seed, id);
-  prism::sample_clicks(cs, rng, e.clicks);
-  return e;
+  return prism::test::sample_event(forward_truth(), sources, seed, id);
 }
 
 // Coarse scan on level 2 (four times the click pixel), as the CLI's default.
@@ -327,8 +313,10 @@ TEST_CASE("prism reconstruct: CSV rows per vertex, summary, and errors that say 
   auto sim = prism::test::run_prism("simulate --truth dictionary --dictionary " + d.dir +
                                     "/dict --vertex 1,1,31 --alpha 100 --events 20 --out " + events);
   REQUIRE_MESSAGE(sim.status == 0, sim.output);
+  // The search alone here (--model none): the refinement has its own tests
+  // (test_refine.cpp) and its CLI check below.
   auto r = prism::test::run_prism("reconstruct --dictionary " + d.dir + "/dict --events " + events +
-                                  " --vertices 1 --out " + csv + " --backend cpu --threads 2");
+                                  " --vertices 1 --out " + csv + " --backend cpu --threads 2 --model none");
   INFO(r.output);
   REQUIRE(r.status == 0);
   CHECK(r.output.find("CPU reference") != std::string::npos);
@@ -336,12 +324,13 @@ TEST_CASE("prism reconstruct: CSV rows per vertex, summary, and errors that say 
   std::ifstream in(csv);
   std::string line;
   std::getline(in, line);
-  CHECK(line == "event,vertex,x_mm,y_mm,depth_mm,alpha,nll,clicks,flags");
+  CHECK(line == "event,vertex,x_mm,y_mm,depth_mm,alpha,nll,clicks,flags,crlb_x_mm,crlb_y_mm,crlb_z_mm,crlb_3d_mm,fit_pvalue");
   int rows = 0;
   double err = 0;
   while (std::getline(in, line)) {
     std::vector<std::string> f = prism::test::csv_fields(line);
-    REQUIRE(f.size() == 9);
+    REQUIRE(f.size() == 14);
+    for (int i = 9; i < 14; ++i) CHECK(f[size_t(i)].empty());  // no refinement, no CRLB or p-value
     CHECK(std::stoi(f[0]) == rows);  // events in file order despite two threads
     err += std::hypot(std::stod(f[2]) - 1, std::stod(f[3]) - 1, std::stod(f[4]) - 31);
     ++rows;
@@ -354,7 +343,7 @@ TEST_CASE("prism reconstruct: CSV rows per vertex, summary, and errors that say 
   for (std::string backend : {"vulkan", "dense"}) {
     const std::string dev_csv = d.dir + "/v-" + backend + ".csv";
     auto rd = prism::test::run_prism("reconstruct --dictionary " + d.dir + "/dict --events " + events +
-                                     " --vertices 1 --out " + dev_csv + " --backend " + backend + " --batch 7");
+                                     " --vertices 1 --out " + dev_csv + " --backend " + backend + " --batch 7 --model none");
     INFO(rd.output);
     REQUIRE(rd.status == 0);
     CHECK(rd.output.find(backend + " scan") != std::string::npos);
@@ -370,6 +359,36 @@ TEST_CASE("prism reconstruct: CSV rows per vertex, summary, and errors that say 
       for (int i : {2, 3, 4}) CHECK(std::stod(fa[i]) == doctest::Approx(std::stod(fb[i])).epsilon(1e-4));
     }
     CHECK(compared == 21);
+  }
+
+  // --model scene with a thin-lens scene of the same sensor (fast): every row
+  // refined, with its CRLB and p-value, and closer to the truth than the search.
+  {
+    const std::string thin = d.dir + "/thin.json", few = d.dir + "/few.events", refined = d.dir + "/r.csv";
+    std::ofstream(thin) << R"({"name": "thin prototype", "base": "prototype", "lens_model": "thin"})";
+    auto s2 = prism::test::run_prism("simulate --scene " + thin + " --vertex 1.3,0.6,27.2,300 --events 3 --binning 16 "
+                                     "--rays 4096 --stratification 1 --out " + few);
+    REQUIRE_MESSAGE(s2.status == 0, s2.output);
+    auto rr = prism::test::run_prism("reconstruct --dictionary " + d.dir + "/dict --events " + few +
+                                     " --vertices 1 --out " + refined + " --model scene --scene " + thin);
+    INFO(rr.output);
+    REQUIRE(rr.status == 0);
+    CHECK(rr.output.find("refinement (scene model thin prototype") != std::string::npos);
+    std::ifstream rin(refined);
+    std::getline(rin, line);
+    int refined_rows = 0;
+    while (std::getline(rin, line)) {
+      std::vector<std::string> f = prism::test::csv_fields(line);
+      REQUIRE(f.size() == 14);
+      CAPTURE(line);
+      const double e3 = std::hypot(std::stod(f[2]) - 1.3, std::stod(f[3]) - 0.6, std::stod(f[4]) - 27.2);
+      const double crlb = std::stod(f[12]);
+      CHECK(crlb > 0);
+      CHECK(e3 < 5 * crlb);
+      CHECK(std::stod(f[13]) > 0);
+      ++refined_rows;
+    }
+    CHECK(refined_rows == 3);
   }
 
   auto bad_level = prism::test::run_prism("reconstruct --dictionary " + d.dir + "/dict --events " + events +

@@ -1,0 +1,520 @@
+#include "host/reconstruct/refine.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <limits>
+#include <random>
+#include <tuple>
+#include <unordered_map>
+
+#include "engine/ref/forward_ref.h"
+#include "engine/ref/likelihood_ref.h"
+
+namespace prism {
+
+const ModelPixel* SourceImage::find(uint32_t index) const {
+  auto it = std::lower_bound(pixels.begin(), pixels.end(), index,
+                             [](const ModelPixel& m, uint32_t i) { return m.index < i; });
+  return it != pixels.end() && it->index == index ? &*it : nullptr;
+}
+
+namespace {
+
+// b and db at sorted pixels -> P = b / B and dP = (db - P dB) / B.
+SourceImage normalise(std::vector<ModelPixel> raw) {
+  SourceImage out;
+  double total = 0;
+  glm::dvec3 dtotal(0);
+  for (const auto& m : raw) total += m.p, dtotal += m.g;
+  if (!(total > 0)) return out;
+  out.photons = total;
+  for (auto& m : raw) {
+    m.p /= total;
+    m.g = (m.g - m.p * dtotal) / total;
+  }
+  out.pixels = std::move(raw);
+  return out;
+}
+
+class SceneModelVulkan : public SourceModel {
+ public:
+  SceneModelVulkan(vk::Context& ctx, const Scene& scene, const TraceSettings& t) : fw_(ctx, scene.optics, t) {}
+
+ protected:
+  std::vector<ModelPixel> render_raw(const glm::dvec3& theta) override {
+    PixelImage im = fw_.psf(theta);
+    std::vector<ModelPixel> raw;
+    const size_t n = size_t(im.width) * size_t(im.height);
+    for (size_t i = 0; i < n; ++i) {
+      const float* v = &im.data[4 * i];
+      if (v[0] != 0 || v[1] != 0 || v[2] != 0 || v[3] != 0)
+        raw.push_back({uint32_t(i), double(v[0]), glm::dvec3(v[1], v[2], v[3])});
+    }
+    return raw;
+  }
+
+ private:
+  ForwardVulkan fw_;
+};
+
+class SceneModelCpu : public SourceModel {
+ public:
+  SceneModelCpu(const Scene& scene, const TraceSettings& t) : sys_(scene.optics), t_(t) {}
+
+ protected:
+  std::vector<ModelPixel> render_raw(const glm::dvec3& theta) override {
+    ref::SparseImage im = ref::psf(sys_, t_, theta);
+    std::vector<ModelPixel> raw;
+    raw.reserve(im.pixels.size());
+    for (const auto& [key, unused] : im.pixels) {
+      auto v = im.value(key);
+      raw.push_back({uint32_t(key), v[0], glm::dvec3(v[1], v[2], v[3])});
+    }
+    std::sort(raw.begin(), raw.end(), [](const ModelPixel& a, const ModelPixel& b) { return a.index < b.index; });
+    return raw;
+  }
+
+ private:
+  OpticalSystem sys_;
+  TraceSettings t_;
+};
+
+}  // namespace
+
+std::vector<SourceImage> SourceModel::render(std::span<const glm::dvec3> theta) {
+  std::vector<SourceImage> out;
+  for (const auto& th : theta) {
+    out.push_back(normalise(render_raw(th)));
+    ++renders_;
+  }
+  return out;
+}
+
+std::unique_ptr<SourceModel> make_scene_model(const Scene& scene, const TraceSettings& settings, vk::Context* ctx) {
+  if (ctx) return std::make_unique<SceneModelVulkan>(*ctx, scene, settings);
+  return std::make_unique<SceneModelCpu>(scene, settings);
+}
+
+TraceSettings refine_trace_settings(unsigned binning) {
+  TraceSettings t = TraceSettings::defaults_for(Splat::footprint);
+  t.rays_per_lenslet = defaults::refine_rays_per_lenslet;
+  t.binning = binning;
+  return t;
+}
+
+RefineBounds RefineBounds::of(const Scene& scene) {
+  const Volume& v = scene.volume;
+  return {{v.x_min_mm, v.y_min_mm, v.depth_min_mm}, {v.x_max_mm, v.y_max_mm, v.depth_max_mm}};
+}
+
+std::vector<glm::dvec2> lattice_vectors(const OpticalSystem& sys) {
+  const auto& ls = sys.lenslets;
+  double nearest = std::numeric_limits<double>::infinity();
+  for (size_t i = 0; i < ls.size(); ++i)
+    for (size_t j = i + 1; j < ls.size(); ++j)
+      nearest = std::min(nearest, std::hypot(ls[j].x_mm - ls[i].x_mm, ls[j].y_mm - ls[i].y_mm));
+  std::vector<glm::dvec2> out;
+  for (size_t i = 0; i < ls.size(); ++i)
+    for (size_t j = 0; j < ls.size(); ++j) {
+      glm::dvec2 d(ls[j].x_mm - ls[i].x_mm, ls[j].y_mm - ls[i].y_mm);
+      if (i == j || glm::length(d) > nearest * 1.01) continue;
+      bool seen = false;
+      for (const auto& o : out) seen = seen || glm::length(o - d) < 1e-6 * nearest;
+      if (!seen) out.push_back(d);
+    }
+  return out;
+}
+
+// ---------------------------------------------------------------------------
+// One event's fit. Parameters: per vertex k, (x, y, depth, alpha) at 4k..4k+3.
+
+struct Refiner::Fit {
+  const Refiner* r;
+  std::vector<uint32_t> clicks;
+  size_t K;
+  std::vector<glm::dvec3> theta;
+  std::vector<double> alpha;
+  std::vector<SourceImage> img;
+  double nll = std::numeric_limits<double>::infinity();
+
+  size_t n() const { return 4 * K; }
+  double param(size_t i) const { return i % 4 == 3 ? alpha[i / 4] : theta[i / 4][int(i % 4)]; }
+  void set(size_t i, double v) {
+    if (i % 4 == 3) alpha[i / 4] = v;
+    else theta[i / 4][int(i % 4)] = v;
+  }
+  double lo(size_t i) const { return i % 4 == 3 ? 0.0 : r->bounds_.lo[int(i % 4)]; }
+  double hi(size_t i) const { return i % 4 == 3 ? r->s_.alpha_max : r->bounds_.hi[int(i % 4)]; }
+
+  // lambda at each click (dark included).
+  std::vector<double> click_rates() const {
+    std::vector<double> lam(clicks.size(), r->s_.dark_rate);
+    for (size_t k = 0; k < K; ++k)
+      for (size_t c = 0; c < clicks.size(); ++c)
+        if (const ModelPixel* m = img[k].find(clicks[c])) lam[c] += alpha[k] * m->p;
+    return lam;
+  }
+  double nll_now() const {
+    double f = 0;
+    for (size_t k = 0; k < K; ++k) f += img[k].photons > 0 ? alpha[k] : 0.0;
+    for (double l : click_rates()) f -= l + ref::log_click(l);
+    return f;
+  }
+  void render() {
+    img = r->model_.render(theta);
+    nll = nll_now();
+  }
+
+  // Gradient of the NLL and the binary sensor's Fisher information (n x n,
+  // row-major) over every pixel any vertex reaches.
+  void derivatives(std::vector<double>& grad, std::vector<double>& fisher) const {
+    const size_t N = n();
+    grad.assign(N, 0.0);
+    fisher.assign(N * N, 0.0);
+    auto lam = click_rates();
+    for (size_t k = 0; k < K; ++k) {
+      if (img[k].photons > 0) grad[4 * k + 3] = 1.0;
+      for (size_t c = 0; c < clicks.size(); ++c)
+        if (const ModelPixel* m = img[k].find(clicks[c])) {
+          const double w = ref::click_weight(lam[c]);
+          grad[4 * k + 3] -= m->p * w;
+          for (int j = 0; j < 3; ++j) grad[4 * k + size_t(j)] -= alpha[k] * m->g[j] * w;
+        }
+    }
+    // The union of the images' pixels: lambda and J per pixel.
+    std::unordered_map<uint32_t, size_t> row;
+    std::vector<double> lam_px, J;
+    for (size_t k = 0; k < K; ++k)
+      for (const auto& m : img[k].pixels) {
+        auto [it, fresh] = row.try_emplace(m.index, lam_px.size());
+        if (fresh) {
+          lam_px.push_back(r->s_.dark_rate);
+          J.resize(J.size() + N, 0.0);
+        }
+        const size_t at = it->second;
+        lam_px[at] += alpha[k] * m.p;
+        double* j = &J[at * N + 4 * k];
+        j[0] = alpha[k] * m.g.x;
+        j[1] = alpha[k] * m.g.y;
+        j[2] = alpha[k] * m.g.z;
+        j[3] = m.p;
+      }
+    for (size_t at = 0; at < lam_px.size(); ++at) {
+      const double w = 1.0 / std::expm1(lam_px[at]);
+      const double* j = &J[at * N];
+      for (size_t a = 0; a < N; ++a) {
+        if (j[a] == 0) continue;
+        for (size_t b = a; b < N; ++b) fisher[a * N + b] += w * j[a] * j[b];
+      }
+    }
+    for (size_t a = 0; a < N; ++a)
+      for (size_t b = 0; b < a; ++b) fisher[a * N + b] = fisher[b * N + a];
+  }
+};
+
+namespace {
+
+// Cholesky solve of the n x n SPD system A x = b in place (b becomes x);
+// false when A is not positive definite.
+bool solve_spd(std::vector<double> A, std::vector<double>& b, size_t n) {
+  for (size_t j = 0; j < n; ++j) {
+    double d = A[j * n + j];
+    for (size_t k = 0; k < j; ++k) d -= A[j * n + k] * A[j * n + k];
+    if (!(d > 0)) return false;
+    d = std::sqrt(d);
+    A[j * n + j] = d;
+    for (size_t i = j + 1; i < n; ++i) {
+      double s = A[i * n + j];
+      for (size_t k = 0; k < j; ++k) s -= A[i * n + k] * A[j * n + k];
+      A[i * n + j] = s / d;
+    }
+  }
+  for (size_t i = 0; i < n; ++i) {
+    double s = b[i];
+    for (size_t k = 0; k < i; ++k) s -= A[i * n + k] * b[k];
+    b[i] = s / A[i * n + i];
+  }
+  for (size_t i = n; i-- > 0;) {
+    double s = b[i];
+    for (size_t k = i + 1; k < n; ++k) s -= A[k * n + i] * b[k];
+    b[i] = s / A[i * n + i];
+  }
+  return true;
+}
+
+// The diagonal of the inverse of SPD `A` (n x n); +inf where A is singular
+// (smallest pivot below 1e-12 of the largest diagonal).
+std::vector<double> inverse_diagonal(const std::vector<double>& A, size_t n) {
+  double scale = 0;
+  for (size_t i = 0; i < n; ++i) scale = std::max(scale, A[i * n + i]);
+  std::vector<double> out(n, std::numeric_limits<double>::infinity());
+  if (!(scale > 0)) return out;
+  // Jacobi-scaled so that a pivot test is relative.
+  std::vector<double> d(n), S(n * n);
+  for (size_t i = 0; i < n; ++i) d[i] = A[i * n + i] > 0 ? 1.0 / std::sqrt(A[i * n + i]) : 0.0;
+  for (size_t i = 0; i < n; ++i)
+    for (size_t j = 0; j < n; ++j) S[i * n + j] = A[i * n + j] * d[i] * d[j];
+  for (size_t i = 0; i < n; ++i) {
+    if (d[i] == 0) return out;
+    std::vector<double> e(n, 0.0);
+    e[i] = 1.0;
+    if (!solve_spd(S, e, n) || !(e[i] > 0) || e[i] > 1e12) return std::vector<double>(n, std::numeric_limits<double>::infinity());
+    out[i] = e[i] * d[i] * d[i];
+  }
+  return out;
+}
+
+}  // namespace
+
+Refiner::Refiner(SourceModel& model, const Scene& scene, int grid_width, int grid_height, RefineSettings settings)
+    : model_(model),
+      s_(settings),
+      bounds_(RefineBounds::of(scene)),
+      width_(grid_width),
+      height_(grid_height),
+      lattice_mm_(lattice_vectors(scene.optics)),
+      lens_to_sensor_mm_(scene.optics.lens_to_sensor_mm),
+      working_distance_mm_(scene.optics.working_distance_mm) {
+  if (s_.iterations < 1 || s_.alias_starts < 0 || s_.search_starts < 0 || s_.pvalue_draws < 1)
+    throw std::invalid_argument("refinement: iterations and p-value draws must be >= 1, search and alias starts >= 0");
+}
+
+namespace {
+
+// Levenberg-Marquardt on the Fisher information from `f` (rendered), holding
+// parameters on a bound that the gradient pushes outward. The damping scales
+// the diagonal (mu = 1 halves a step along an uncorrelated axis); a rejected
+// step raises it at once to at least kRejectedMu, because the binary
+// likelihood of sharp-edged PSFs is far from quadratic beyond a fraction of
+// a pixel (a click left outside a disc edge costs -log(dark)). Stops when a
+// step gains less than kGainNll: NLL differences that small mean nothing
+// next to the 0.5 of one standard error. Returns the steps taken.
+template <class Fit>
+int levenberg_marquardt(Fit& f, int max_steps) {
+  constexpr double kRejectedMu = 0.1, kGainNll = 1e-3, kMaxMu = 1e4;
+  const size_t N = f.n();
+  double mu = 1e-3;
+  int steps = 0;
+  std::vector<double> grad, fisher;
+  for (; steps < max_steps; ++steps) {
+    f.derivatives(grad, fisher);
+    std::vector<size_t> act;
+    for (size_t i = 0; i < N; ++i) {
+      const double v = f.param(i);
+      const bool held = (v <= f.lo(i) && grad[i] > 0) || (v >= f.hi(i) && grad[i] < 0);
+      if (!held && fisher[i * N + i] > 0) act.push_back(i);
+    }
+    if (act.empty()) break;
+    const size_t m = act.size();
+    bool accepted = false;
+    while (!accepted && mu <= kMaxMu) {
+      std::vector<double> A(m * m), step(m);
+      for (size_t a = 0; a < m; ++a) {
+        for (size_t b = 0; b < m; ++b) A[a * m + b] = fisher[act[a] * N + act[b]];
+        A[a * m + a] *= 1.0 + mu;
+        step[a] = -grad[act[a]];
+      }
+      if (!solve_spd(A, step, m)) {
+        mu = std::max(mu * 4, kRejectedMu);
+        continue;
+      }
+      Fit trial = f;
+      bool moved = false;
+      for (size_t a = 0; a < m; ++a) {
+        const size_t i = act[a];
+        const double v = std::clamp(f.param(i) + step[a], f.lo(i), f.hi(i));
+        moved = moved || v != f.param(i);
+        trial.set(i, v);
+      }
+      if (!moved) return steps;
+      trial.render();
+      if (trial.nll < f.nll) {
+        const double gain = f.nll - trial.nll;
+        f = std::move(trial);
+        accepted = true;
+        mu = std::max(mu / 4, 1e-6);
+        if (gain < kGainNll) return steps + 1;
+      } else {
+        mu = std::max(mu * 4, kRejectedMu);
+      }
+    }
+    if (!accepted) break;
+  }
+  return steps;
+}
+
+}  // namespace
+
+std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector<ReconstructedVertex> rows) {
+  constexpr int kProbeSteps = 4;            // LM steps before a start is judged
+  constexpr double kDistinctStartMm = 1.0;  // starts closer than this to one tried are skipped
+  const auto start_time = std::chrono::steady_clock::now();
+  ++stats_.events;
+  // Vertices worth refining: those the search gave light to.
+  std::vector<size_t> live;
+  for (size_t k = 0; k < rows.size(); ++k)
+    if (!(rows[k].flags & (no_clicks | alpha_zero)) && rows[k].alpha > 0) live.push_back(k);
+  if (live.empty() || event.clicks.empty()) return rows;
+
+  Fit f{this, event.clicks, live.size(), {}, {}, {}, 0};
+  for (size_t k : live) {
+    const auto& v = rows[k];
+    glm::dvec3 th(v.x_mm, v.y_mm, v.depth_mm);
+    f.theta.push_back(glm::clamp(th, bounds_.lo, bounds_.hi));
+    f.alpha.push_back(std::min(v.alpha, s_.alpha_max));
+  }
+  f.render();
+  ++stats_.starts;
+  stats_.iterations += uint64_t(levenberg_marquardt(f, s_.iterations));
+
+  // Further starts per vertex, the others held where they are: the search's
+  // runners-up (other planes and nodes) and the lattice aliases of the
+  // current estimate. Each is probed for a few steps; one that has overtaken
+  // the best is followed to convergence.
+  auto try_start = [&](size_t k, glm::dvec3 at, double alpha) {
+    Fit g = f;
+    g.theta[k] = glm::clamp(at, bounds_.lo, bounds_.hi);
+    g.alpha[k] = std::min(alpha, s_.alpha_max);
+    g.render();
+    ++stats_.starts;
+    int taken = levenberg_marquardt(g, std::min(s_.iterations, kProbeSteps));
+    if (g.nll < f.nll && taken == kProbeSteps) taken += levenberg_marquardt(g, s_.iterations - taken);
+    stats_.iterations += uint64_t(taken);
+    if (g.nll < f.nll) f = std::move(g);
+  };
+  for (size_t k = 0; k < f.K; ++k) {
+    std::vector<glm::dvec3> tried{f.theta[k]};
+    auto is_new = [&](glm::dvec3 p) {
+      for (const auto& t : tried)
+        if (glm::length(p - t) < kDistinctStartMm) return false;
+      return true;
+    };
+    int taken = 0;
+    for (const glm::dvec4& r : rows[live[k]].runners_up) {
+      if (taken >= s_.search_starts) break;
+      const glm::dvec3 p(r);
+      if (!is_new(p)) continue;
+      tried.push_back(p);
+      ++taken;
+      try_start(k, p, r.w);
+    }
+    if (!s_.aliases || lattice_mm_.empty() || s_.alias_starts == 0) continue;
+    // Lattice aliases: the source moved by a lattice vector times (D + L) / L
+    // (D: source to lens plane, L: lens to sensor) puts every lenslet image
+    // where its neighbour's was. Scored with the weight refitted; the best few
+    // are probed.
+    std::vector<glm::dvec3> cand;
+    const double D = f.theta[k].z + working_distance_mm_;
+    for (const auto& v : lattice_mm_) {
+      glm::dvec3 a = f.theta[k] + glm::dvec3(v * ((D + lens_to_sensor_mm_) / lens_to_sensor_mm_), 0.0);
+      if (a.x >= bounds_.lo.x && a.x <= bounds_.hi.x && a.y >= bounds_.lo.y && a.y <= bounds_.hi.y && is_new(a))
+        cand.push_back(a);
+    }
+    if (cand.empty()) continue;
+    auto imgs = model_.render(cand);
+    Fit others = f;
+    others.alpha[k] = 0;
+    const auto background = others.click_rates();
+    std::vector<std::tuple<double, size_t, double>> scored;  // NLL, candidate, alpha
+    for (size_t j = 0; j < cand.size(); ++j) {
+      if (!(imgs[j].photons > 0)) continue;
+      std::vector<double> p(f.clicks.size(), 0.0);
+      for (size_t c = 0; c < f.clicks.size(); ++c)
+        if (const ModelPixel* m = imgs[j].find(f.clicks[c])) p[c] = m->p;
+      std::vector<double> a{f.alpha[k]};
+      const std::vector<double>* cols[] = {&p};
+      const double one = 1.0;
+      const double nll = ref::fit_weights(cols, std::span<const double>(&one, 1), background, a, 60, s_.alpha_max);
+      scored.push_back({nll, j, a[0]});
+    }
+    std::sort(scored.begin(), scored.end());
+    for (size_t t = 0; t < scored.size() && t < size_t(s_.alias_starts); ++t)
+      try_start(k, cand[std::get<1>(scored[t])], std::get<2>(scored[t]));
+  }
+
+  // CRLB at the estimate: the inverse of the full Fisher information (all
+  // vertices' positions and weights), diagonal.
+  std::vector<double> grad, fisher;
+  f.derivatives(grad, fisher);
+  const auto inv = inverse_diagonal(fisher, f.n());
+
+  // Goodness of fit: T = sum over pixels of the binary NLL, observed against
+  // draws from the fitted model. T = const + sum over clicked pixels of
+  // (-log p - lambda), so only the clicks' terms vary.
+  std::unordered_map<uint32_t, double> lam;
+  for (size_t k = 0; k < f.K; ++k)
+    for (const auto& m : f.img[k].pixels) lam.try_emplace(m.index, s_.dark_rate).first->second += f.alpha[k] * m.p;
+  auto click_term = [](double l) { return -ref::log_click(l) - l; };
+  double t_obs = 0;
+  size_t dark_clicks_obs = 0;
+  for (uint32_t c : f.clicks) {
+    auto it = lam.find(c);
+    if (it != lam.end()) t_obs += click_term(it->second);
+    else ++dark_clicks_obs;
+  }
+  const double dark_term = click_term(s_.dark_rate);
+  t_obs += double(dark_clicks_obs) * dark_term;
+  std::vector<double> p_click, term;
+  for (const auto& [idx, l] : lam) {
+    p_click.push_back(-std::expm1(-l));
+    term.push_back(click_term(l));
+  }
+  const double dark_pixels = std::max(0.0, double(width_) * double(height_) - double(lam.size()));
+  std::mt19937_64 rng(0x9e3779b97f4a7c15ull ^ event.id);
+  std::uniform_real_distribution<double> U(0.0, 1.0);
+  std::poisson_distribution<int> dark_draw(dark_pixels * -std::expm1(-s_.dark_rate));
+  int at_least = 0;
+  for (int d = 0; d < s_.pvalue_draws; ++d) {
+    double t = double(dark_draw(rng)) * dark_term;
+    for (size_t i = 0; i < p_click.size(); ++i)
+      if (U(rng) < p_click[i]) t += term[i];
+    at_least += t >= t_obs;
+  }
+  const double pvalue = (1.0 + at_least) / (1.0 + s_.pvalue_draws);
+
+  // Rows: refined positions, weights, CRLB; flags redone where the
+  // refinement decides them (edge, merged, poor_fit, alpha_*).
+  std::vector<uint32_t> owned(f.K, 0);
+  for (uint32_t c : f.clicks) {
+    double top = s_.dark_rate;
+    int who = -1;
+    for (size_t k = 0; k < f.K; ++k)
+      if (const ModelPixel* m = f.img[k].find(c))
+        if (f.alpha[k] * m->p > top) top = f.alpha[k] * m->p, who = int(k);
+    if (who >= 0) ++owned[size_t(who)];
+  }
+  for (size_t j = 0; j < f.K; ++j) {
+    ReconstructedVertex& o = rows[live[j]];
+    o.x_mm = f.theta[j].x;
+    o.y_mm = f.theta[j].y;
+    o.depth_mm = f.theta[j].z;
+    o.alpha = f.alpha[j];
+    o.nll = f.nll;
+    o.clicks = owned[j];
+    o.refined = true;
+    o.crlb_x_mm = std::sqrt(inv[4 * j]);
+    o.crlb_y_mm = std::sqrt(inv[4 * j + 1]);
+    o.crlb_z_mm = std::sqrt(inv[4 * j + 2]);
+    o.crlb_3d_mm = std::sqrt(inv[4 * j] + inv[4 * j + 1] + inv[4 * j + 2]);
+    o.fit_pvalue = pvalue;
+    o.flags &= ~uint32_t(edge | merged | poor_fit | alpha_zero | alpha_at_bound);
+    // On the field's boundary within one CRLB: the source may lie beyond it.
+    bool on_bound = false;
+    for (int a = 0; a < 3; ++a) {
+      const double sigma = std::sqrt(inv[4 * j + size_t(a)]);
+      on_bound = on_bound || f.theta[j][a] - bounds_.lo[a] <= sigma || bounds_.hi[a] - f.theta[j][a] <= sigma;
+    }
+    if (on_bound) o.flags |= edge;
+    if (f.alpha[j] <= 0 || f.img[j].photons <= 0) o.flags |= alpha_zero;
+    if (f.alpha[j] >= s_.alpha_max * (1 - 1e-12)) o.flags |= alpha_at_bound;
+    if (pvalue < defaults::fit_pvalue_flag) o.flags |= poor_fit;
+    for (size_t i = 0; i < f.K; ++i)
+      if (i != j && glm::length(f.theta[i] - f.theta[j]) < std::max(o.crlb_3d_mm, std::sqrt(inv[4 * i] + inv[4 * i + 1] + inv[4 * i + 2])))
+        o.flags |= merged;
+  }
+  stats_.seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - start_time).count();
+  return rows;
+}
+
+}  // namespace prism

@@ -1,0 +1,127 @@
+// Continuous maximum-likelihood refinement of an event's vertices (issue 10):
+// after the support search has put each vertex near a dictionary node, all K
+// vertices, (x, y, depth, alpha) each, are fitted jointly on the binary
+// sensor's sparse likelihood with the scene's own forward model, which gives
+// the PSF and its derivatives at any position. The search's 5 mm planes and
+// lateral nodes stop mattering; what is left is the likelihood's own
+// ambiguity, which the refinement meets by starting from the search's answer,
+// its runners-up and the lenslet-lattice aliases, and keeping the best.
+//
+// The model of one vertex: P(theta) = b(theta) / sum(b(theta)), b the forward
+// model's expected photons on the click grid, so P sums to 1 on the sensor
+// (S = 1) and alpha is the expected photons detected, as in the search and in
+// ForwardTruth (host/events/simulate.h). With rates
+//   lambda_c = dark + sum_k alpha_k P_k(c),
+// the NLL is sum_k alpha_k - sum_c [lambda_c + log(1 - exp(-lambda_c))] (sums
+// over the clicks; reconstruct.h's convention, the dark sum left out). Steps
+// are Levenberg-Marquardt on the expected (Fisher) information of the binary
+// sensor, sum_pixels J J^T / (exp(lambda) - 1), whose inverse at the optimum
+// is also each vertex's CRLB; parameters that sit on a bound with the
+// gradient pushing outward are held there (projected LM).
+//
+// Goodness of fit: T = the NLL over every pixel at the estimate, against T
+// of events drawn from the fitted model itself (Monte Carlo, seeded by the
+// event id); fit_pvalue is the share of draws with T at least the event's.
+// T at a fitted estimate is a little lower than at the truth, so the p-value
+// is conservative for events the model explains.
+#pragma once
+#include <cstdint>
+#include <memory>
+#include <span>
+#include <vector>
+
+#include <glm/glm.hpp>
+
+#include "engine/forward.h"
+#include "host/events/event_file.h"
+#include "host/reconstruct/reconstruct.h"
+#include "host/scene/scene.h"
+
+namespace prism {
+
+// One source's P = b / sum(b) on the click grid and dP/d(x, y, depth), at
+// the pixels where b or a derivative is nonzero, sorted by pixel index
+// (row * width + col).
+struct ModelPixel {
+  uint32_t index;
+  double p;
+  glm::dvec3 g;
+};
+struct SourceImage {
+  std::vector<ModelPixel> pixels;
+  double photons = 0;  // sum(b) at the scene's emitted photons (0: nothing lands on the sensor)
+  // P and its gradient at `index` (zero where the image holds nothing).
+  const ModelPixel* find(uint32_t index) const;
+};
+
+// The continuous model: the scene's forward model on the click grid, on the
+// device or the double CPU reference.
+class SourceModel {
+ public:
+  virtual ~SourceModel() = default;
+  std::vector<SourceImage> render(std::span<const glm::dvec3> theta);
+  uint64_t renders() const { return renders_; }  // sources rendered so far
+
+ protected:
+  // b and db/d(x, y, depth) of one source at the pixels where any is nonzero, sorted.
+  virtual std::vector<ModelPixel> render_raw(const glm::dvec3& theta) = 0;
+
+ private:
+  uint64_t renders_ = 0;
+};
+
+// The device's forward model (ForwardVulkan) or the reference (ref::psf),
+// at `settings` (binning: the clicks'; footprint splat by default).
+std::unique_ptr<SourceModel> make_scene_model(const Scene& scene, const TraceSettings& settings,
+                                              vk::Context* ctx /* nullptr: CPU reference */);
+
+// The refinement's trace settings: footprint cells per lenslet from
+// defaults::refine_rays_per_lenslet at the clicks' binning.
+TraceSettings refine_trace_settings(unsigned binning);
+
+struct RefineSettings {
+  int iterations = defaults::refine_iterations;  // LM steps per start
+  bool aliases = true;                           // also start from the best vertex's lattice aliases
+  int search_starts = defaults::refine_search_starts;  // the search's runners-up probed per vertex
+  int alias_starts = defaults::refine_alias_starts;    // lattice aliases probed per vertex (best by first NLL)
+  int pvalue_draws = defaults::fit_pvalue_draws; // Monte Carlo events per goodness-of-fit p-value
+  double dark_rate = ReconstructionSettings{}.dark_rate;
+  double alpha_max = ReconstructionSettings{}.alpha_max;
+};
+
+// The field the vertices are held in: the scene's volume.
+struct RefineBounds {
+  glm::dvec3 lo, hi;  // x, y, depth, mm
+  static RefineBounds of(const Scene& scene);
+};
+
+struct RefineStats {
+  uint64_t events = 0, starts = 0, iterations = 0;
+  double seconds = 0;
+};
+
+class Refiner {
+ public:
+  Refiner(SourceModel& model, const Scene& scene, int grid_width, int grid_height, RefineSettings settings);
+  // The search's vertices of `event` refined; rows keep their order. Rows
+  // flagged no_clicks or alpha_zero are left as the search gave them (the
+  // latter get no CRLB).
+  std::vector<ReconstructedVertex> refine(const Event& event, std::vector<ReconstructedVertex> start);
+  const RefineStats& stats() const { return stats_; }
+
+ private:
+  struct Fit;
+  SourceModel& model_;
+  RefineSettings s_;
+  RefineBounds bounds_;
+  int width_, height_;
+  std::vector<glm::dvec2> lattice_mm_;  // lenslet-lattice vectors (nearest neighbours)
+  double lens_to_sensor_mm_, working_distance_mm_;
+  RefineStats stats_;
+};
+
+// The lenslet lattice's nearest-neighbour vectors (each direction once and
+// its negative): for the prototype's hex array, six vectors of the 4 mm pitch.
+std::vector<glm::dvec2> lattice_vectors(const OpticalSystem& sys);
+
+}  // namespace prism

@@ -1,0 +1,179 @@
+// The continuous refinement (host/reconstruct/refine.h) on the thin-lens
+// seven-lenslet row (fast on lavapipe): events are rendered apart from the
+// model that fits them (footprint at 4x the cells, other stratification), the
+// refinement starts off the truth, and the Vulkan model must agree with the
+// double CPU reference. Hard cases: a start on the depth bound, a source
+// outside the field, a start on a lattice alias, two vertices, and the
+// goodness of fit on events the model does and does not explain.
+#include <cmath>
+
+#include "host/events/simulate.h"
+#include "host/reconstruct/refine.h"
+#include "support.h"
+
+namespace {
+
+constexpr int binning = 16;  // 419 x 298 click grid, 0.11 mm pixels
+
+prism::Scene small_scene() {
+  prism::Scene s;
+  s.name = "thin row";
+  s.optics = prism::test::small_system(prism::LensModel::thin);
+  return s;
+}
+
+// Truth: footprint at 4x the refinement's cells, stratification 1.
+prism::ForwardTruth& truth() {
+  static prism::ForwardTruth t = [] {
+    prism::TraceSettings s = prism::refine_trace_settings(binning);
+    s.rays_per_lenslet *= 4;
+    s.stratification = 1;
+    return prism::ForwardTruth(prism::test::gpu(), small_scene(), s, 64);
+  }();
+  return t;
+}
+
+using Source = prism::test::EventSource;
+
+prism::Event make_event(const std::vector<Source>& sources, uint64_t id) {
+  return prism::test::sample_event(truth(), sources, 77, id);
+}
+
+prism::ReconstructedVertex row(glm::dvec3 at, double alpha) {
+  prism::ReconstructedVertex v;
+  v.x_mm = at.x, v.y_mm = at.y, v.depth_mm = at.z, v.alpha = alpha;
+  return v;
+}
+
+const prism::AnalysisGrid& grid() {
+  static prism::AnalysisGrid g = prism::AnalysisGrid::of(small_scene().optics, binning);
+  return g;
+}
+
+// The refinement with the Vulkan model or the CPU reference.
+std::vector<prism::ReconstructedVertex> refine(const prism::Event& e, std::vector<prism::ReconstructedVertex> start,
+                                               bool on_device, prism::RefineSettings rs = {}) {
+  // One model per backend for the whole file (a device model builds its pipelines once).
+  static auto device_model = prism::make_scene_model(small_scene(), prism::refine_trace_settings(binning), &prism::test::gpu());
+  static auto cpu_model = prism::make_scene_model(small_scene(), prism::refine_trace_settings(binning), nullptr);
+  prism::Refiner r(on_device ? *device_model : *cpu_model, small_scene(), grid().width, grid().height, rs);
+  return r.refine(e, std::move(start));
+}
+
+// Per-axis error in units of the vertex's own CRLB.
+glm::dvec3 z_scores(const prism::ReconstructedVertex& v, glm::dvec3 truth) {
+  return glm::abs(glm::dvec3(v.x_mm, v.y_mm, v.depth_mm) - truth) / glm::dvec3(v.crlb_x_mm, v.crlb_y_mm, v.crlb_z_mm);
+}
+
+}  // namespace
+
+TEST_CASE("refinement: lattice vectors are the lenslets' nearest neighbours") {
+  auto hex = prism::lattice_vectors(prism::builtin_scene("prototype").optics);
+  CHECK(hex.size() == 6);
+  for (auto v : hex) CHECK(glm::length(v) == doctest::Approx(prism::defaults::lenslet_pitch_mm));
+  auto row = prism::lattice_vectors(small_scene().optics);  // one row: +-x only
+  REQUIRE(row.size() == 2);
+  CHECK(std::abs(row[0].y) < 1e-12);
+  CHECK(row[0].x == doctest::Approx(-row[1].x));
+}
+
+TEST_CASE("refinement: from 0.5 mm off to the truth within the CRLB's scale; Vulkan = CPU reference") {
+  const glm::dvec3 at(1.3, -0.7, 22.4);  // off every grid a dictionary would have
+  auto e = make_event({{at, 2000}}, 1);
+  REQUIRE(e.clicks.size() > 500);
+  const auto start = std::vector{row(at + glm::dvec3(0.5, -0.4, 0.5), 1500)};
+  auto dev = refine(e, start, true);
+  auto cpu = refine(e, start, false);
+  for (const auto* v : {&dev[0], &cpu[0]}) {
+    CAPTURE(v->x_mm);
+    CAPTURE(v->y_mm);
+    CAPTURE(v->depth_mm);
+    CAPTURE(v->crlb_3d_mm);
+    REQUIRE(v->refined);
+    REQUIRE(std::isfinite(v->crlb_3d_mm));
+    CHECK(v->crlb_3d_mm < 0.05);  // 2000 photons
+    glm::dvec3 z = z_scores(*v, at);
+    CHECK(std::max({z.x, z.y, z.z}) < 4.0);  // one event: within 4 sigma on every axis
+    CHECK(v->alpha == doctest::Approx(2000).epsilon(0.1));
+    CHECK(v->flags == prism::vertex_ok);
+    CHECK(v->fit_pvalue > prism::defaults::fit_pvalue_flag);
+  }
+  // Device (float) and reference (double) models: the same optimum to a
+  // small fraction of the CRLB.
+  CHECK(std::abs(dev[0].x_mm - cpu[0].x_mm) < 0.1 * dev[0].crlb_x_mm);
+  CHECK(std::abs(dev[0].y_mm - cpu[0].y_mm) < 0.1 * dev[0].crlb_y_mm);
+  CHECK(std::abs(dev[0].depth_mm - cpu[0].depth_mm) < 0.1 * dev[0].crlb_z_mm);
+  CHECK(dev[0].crlb_3d_mm == doctest::Approx(cpu[0].crlb_3d_mm).epsilon(0.02));
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("refinement hazards: a start on the depth bound, a source outside the field, 10 and 10^4 photons") {
+  const auto lo = prism::RefineBounds::of(small_scene()).lo, hi = prism::RefineBounds::of(small_scene()).hi;
+  SUBCASE("start on the far depth bound, truth inside: the bound lets go") {
+    const glm::dvec3 at(0.5, 0.5, 44);
+    auto v = refine(make_event({{at, 1000}}, 2), {row({0.5, 0.5, hi.z}, 800)}, true);
+    CHECK(std::abs(v[0].depth_mm - at.z) < 4 * v[0].crlb_z_mm);
+    CHECK((v[0].flags & prism::edge) == 0);
+  }
+  SUBCASE("a source beyond x_max: the estimate stops on the bound, flagged edge") {
+    const glm::dvec3 at(hi.x + 2, 0, 30);
+    auto e = make_event({{at, 1000}}, 3);
+    REQUIRE(e.clicks.size() > 100);
+    auto v = refine(e, {row({hi.x - 1, 0, 30}, 800)}, true, {.aliases = false});
+    CHECK(v[0].x_mm > hi.x - 0.05);
+    CHECK((v[0].flags & prism::edge) != 0);
+  }
+  SUBCASE("10 photons: finite, bounded, a CRLB that says how little is known") {
+    const glm::dvec3 at(-2, 1, 30);
+    auto v = refine(make_event({{at, 10}}, 4), {row(at + glm::dvec3(0.3), 12)}, true);
+    CHECK(std::isfinite(v[0].x_mm));
+    CHECK(v[0].depth_mm >= lo.z);
+    CHECK(v[0].depth_mm <= hi.z);
+    CHECK(v[0].crlb_3d_mm > 0.1);
+  }
+  SUBCASE("10^4 photons: saturated clicks do not break the steps") {
+    const glm::dvec3 at(-2, 1, 30);
+    auto v = refine(make_event({{at, 1e4}}, 5), {row(at + glm::dvec3(0.3, -0.3, 0.6), 5e3)}, true);
+    CHECK(glm::length(glm::dvec3(v[0].x_mm, v[0].y_mm, v[0].depth_mm) - at) < 0.1);
+    CHECK(v[0].alpha == doctest::Approx(1e4).epsilon(0.1));
+  }
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("refinement: a start on a lattice alias comes back to the truth") {
+  // The source moved by one lenslet pitch times (D + L) / L puts every image
+  // where its neighbour's was; only the neighbours' focal lengths differ.
+  const glm::dvec3 at(-1.2, 0.4, 12.5);
+  const auto& o = small_scene().optics;
+  const double scale = (at.z + o.working_distance_mm + o.lens_to_sensor_mm) / o.lens_to_sensor_mm;
+  const glm::dvec3 alias = at + glm::dvec3(prism::defaults::lenslet_pitch_mm * scale, 0, 0);
+  auto e = make_event({{at, 300}}, 6);
+  auto without = refine(e, {row(alias, 300)}, true, {.aliases = false});
+  auto with = refine(e, {row(alias, 300)}, true);
+  CAPTURE(without[0].x_mm);
+  CAPTURE(with[0].x_mm);
+  CHECK(glm::length(glm::dvec3(with[0].x_mm, with[0].y_mm, with[0].depth_mm) - at) < 0.5);
+  CHECK(with[0].nll < without[0].nll);
+}
+
+TEST_CASE("refinement: two vertices jointly, and the goodness of fit") {
+  const glm::dvec3 a(-4, 0.5, 20), b(5, -0.5, 36);
+  auto e = make_event({{a, 400}, {b, 400}}, 7);
+  auto two = refine(e, {row(a + glm::dvec3(0.4), 300), row(b - glm::dvec3(0.4), 300)}, true);
+  CHECK(glm::length(glm::dvec3(two[0].x_mm, two[0].y_mm, two[0].depth_mm) - a) < 5 * two[0].crlb_3d_mm);
+  CHECK(glm::length(glm::dvec3(two[1].x_mm, two[1].y_mm, two[1].depth_mm) - b) < 5 * two[1].crlb_3d_mm);
+  CHECK(two[0].fit_pvalue > prism::defaults::fit_pvalue_flag);
+  // One vertex for two sources: the second source's clicks are not explained.
+  auto one = refine(e, {row(a, 400)}, true, {.aliases = false});
+  CHECK(one[0].fit_pvalue < prism::defaults::fit_pvalue_flag);
+  CHECK((one[0].flags & prism::poor_fit) != 0);
+  // Ordinary events: p-values spread over (0, 1]; at most one of 20 below 0.01.
+  int flagged = 0;
+  for (uint64_t id = 100; id < 120; ++id) {
+    const glm::dvec3 at(0.3 * double(id - 110), 0.2, 15 + double(id - 100));
+    auto v = refine(make_event({{at, 200}}, id), {row(at + glm::dvec3(0.2), 200)}, true, {.aliases = false});
+    flagged += v[0].fit_pvalue < prism::defaults::fit_pvalue_flag;
+  }
+  CHECK(flagged <= 1);
+  prism::test::check_validation_clean();
+}
