@@ -1,8 +1,9 @@
 // What reconstruction accuracy costs in time, in one run (issue 4): events per
 // second and 3D error together for the CPU reference, the dense baseline (the
 // paper's way) and the sparse Vulkan path on the same events; then, on the
-// sparse path, the scan tier, the shift step, half vs float dictionary, and
-// K = 1 vs 2. Memory on the device and the host for each. Writes a CSV and a
+// sparse path, the scan tier, the shift step, half vs float dictionary,
+// K = 1 vs 2, and the continuous refinement (refine.h) after the search, with
+// one start or all (runners-up and lattice aliases). Memory on the device and the host for each. Writes a CSV and a
 // plot of error against time per event.
 //
 //   bench_reconstruct [--device D] [--dictionary DIR] [--out DIR] [--events-per-position N]
@@ -27,6 +28,7 @@
 #include "host/events/simulate.h"
 #include "host/reconstruct/match.h"
 #include "host/reconstruct/reconstruct.h"
+#include "host/reconstruct/refine.h"
 #include "host/util/plot.h"
 
 using namespace prism;
@@ -73,6 +75,9 @@ struct Config {
   bool half = false;
   int vertices = 1;
   int repeats = 3;
+  // Continuous refinement with the scene's model on the device (refine.h):
+  // 0 none; 1 from the search's answer only; 2 with the runners-up and aliases.
+  int refine = 0;
 };
 
 Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, const std::vector<Event>& events,
@@ -88,10 +93,18 @@ Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, c
   r.name = c.name;
   r.events = events.size();
   std::vector<double> per_event, share;
+  std::unique_ptr<SourceModel> model;
+  if (c.refine) model = make_scene_model(reader.manifest().scene, refine_trace_settings(unsigned(reader.manifest().base_binning)), &ctx);
   for (int k = 0; k < c.repeats; ++k) {
     Reconstructor rec(service, 0, s, c.backend, &ctx);
     auto start = std::chrono::steady_clock::now();
     r.out = rec.run(events);
+    if (model) {
+      RefineSettings rs;
+      if (c.refine == 1) rs.aliases = false, rs.search_starts = 0;
+      Refiner refiner(*model, reader.manifest().scene, reader.manifest().level_width(0), reader.manifest().level_height(0), rs);
+      for (size_t i = 0; i < events.size(); ++i) r.out[i] = refiner.refine(events[i], std::move(r.out[i]));
+    }
     double t = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
     per_event.push_back(t / double(events.size()));
     share.push_back(rec.timings().scan_s / t);
@@ -225,11 +238,46 @@ int main(int argc, char** argv) {
   run({"precision", "level 2, half dictionary", B::vulkan, 2, 1, true, 1, 3}, single, single_truth);
   run({"K", "K = 1 on two-vertex events", B::vulkan, 2, 1, false, 1, 3}, pairs, pair_truth);
   run({"K", "K = 2 on two-vertex events", B::vulkan, 2, 1, false, 2, 3}, pairs, pair_truth);
+  // 3. The continuous refinement (scene model, footprint, on the device): one
+  // repeat, on the slow backends' six events (seconds per event on a CPU device).
+  const Row refined_one = run({"refine", "sparse + refine, one start", B::vulkan, 2, 1, false, 1, 1, 1}, few, few_truth);
+  const Row refined = run({"refine", "sparse + refine, all starts", B::vulkan, 2, 1, false, 1, 1, 2}, few, few_truth);
+  std::vector<Event> few_pairs;
+  std::vector<Truth> few_pair_truth;
+  for (size_t i = 0; i < pairs.size(); i += size_t(std::max(1, per_position / 2)))
+    few_pairs.push_back(pairs[i]), few_pair_truth.push_back(pair_truth[i]);
+  run({"K", "K = 2 + refine, all starts", B::vulkan, 2, 1, false, 2, 1, 2}, few_pairs, few_pair_truth);
+  // The refinement's model per source: device against the double reference.
+  double device_s = 0, reference_s = 0;
+  {
+    auto t = refine_trace_settings(unsigned(m.base_binning));
+    auto dev = make_scene_model(m.scene, t, &ctx), ref_model = make_scene_model(m.scene, t, nullptr);
+    std::vector<double> d, c;
+    for (const auto& p : positions) {
+      auto a = std::chrono::steady_clock::now();
+      dev->render(std::span(&p, 1));
+      auto b = std::chrono::steady_clock::now();
+      ref_model->render(std::span(&p, 1));
+      auto e = std::chrono::steady_clock::now();
+      d.push_back(std::chrono::duration<double>(b - a).count());
+      c.push_back(std::chrono::duration<double>(e - b).count());
+    }
+    device_s = bench::median(d);
+    reference_s = bench::median(c);
+  }
 
   std::printf("\nratios (same %zu events, same vertices chosen: cpu %s, dense %s):\n", few.size(),
               same_vertices(cpu, sparse) ? "yes" : "NO", same_vertices(dense, sparse) ? "yes" : "NO");
   std::printf("  sparse vulkan vs cpu reference:  %.1fx faster\n", cpu.seconds_per_event / sparse.seconds_per_event);
   std::printf("  sparse vulkan vs dense baseline: %.1fx faster\n", dense.seconds_per_event / sparse.seconds_per_event);
+  std::printf("  refinement (one start) vs search alone: %.1fx the time, mean error %.2f -> %.2f mm, median %.2f -> %.2f mm\n",
+              refined_one.seconds_per_event / sparse.seconds_per_event, sparse.err_mean_mm, refined_one.err_mean_mm,
+              sparse.err_median_mm, refined_one.err_median_mm);
+  std::printf("  refinement (all starts) vs one start: %.1fx the time, mean error %.2f -> %.2f mm\n",
+              refined.seconds_per_event / refined_one.seconds_per_event, refined_one.err_mean_mm, refined.err_mean_mm);
+  std::printf("  refinement model per source (footprint, %u cells per lenslet, median of %zu positions): device %.3f s, "
+              "double reference %.3f s (%.1fx)\n",
+              defaults::refine_rays_per_lenslet, positions.size(), device_s, reference_s, reference_s / device_s);
   std::printf("scan = share of the time in the support scans (the rest: refinement from disk tiles, weights, "
               "descent, depth, on the host). device MiB: resident scan level + event/result buffers; host MiB: "
               "peak of summed-area tables and tile cache.\n");

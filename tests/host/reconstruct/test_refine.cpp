@@ -177,3 +177,45 @@ TEST_CASE("refinement: two vertices jointly, and the goodness of fit") {
   CHECK(flagged <= 1);
   prism::test::check_validation_clean();
 }
+
+TEST_CASE("refinement hazards with several vertices: 0.5 mm apart, a lattice alias apart, K = 4") {
+  auto pos = [](const prism::ReconstructedVertex& v) { return glm::dvec3(v.x_mm, v.y_mm, v.depth_mm); };
+  SUBCASE("0.5 mm apart: finite, the light shared, both near the pair") {
+    const glm::dvec3 a(0.5, 0.2, 25), b(1.0, 0.2, 25);
+    auto e = make_event({{a, 300}, {b, 300}}, 8);
+    auto v = refine(e, {row(a + glm::dvec3(-0.3, 0, 0.4), 300), row(b + glm::dvec3(0.3, 0, -0.4), 300)}, true);
+    for (const auto& x : v) {
+      CHECK(std::isfinite(x.crlb_3d_mm));
+      CHECK(glm::length(pos(x) - 0.5 * (a + b)) < 1.5);
+    }
+    CHECK(v[0].alpha + v[1].alpha == doctest::Approx(600).epsilon(0.15));
+  }
+  SUBCASE("a lattice alias apart: both found, each where it is") {
+    const auto& o = small_scene().optics;
+    const glm::dvec3 a(-3, 0.3, 15);
+    const double scale = (a.z + o.working_distance_mm + o.lens_to_sensor_mm) / o.lens_to_sensor_mm;
+    const glm::dvec3 b = a + glm::dvec3(prism::defaults::lenslet_pitch_mm * scale, 0, 0);
+    auto e = make_event({{a, 400}, {b, 400}}, 9);
+    auto v = refine(e, {row(a + glm::dvec3(0.3, -0.2, 0.5), 300), row(b + glm::dvec3(-0.3, 0.2, -0.5), 300)}, true);
+    CHECK(glm::length(pos(v[0]) - a) < 5 * v[0].crlb_3d_mm);
+    CHECK(glm::length(pos(v[1]) - b) < 5 * v[1].crlb_3d_mm);
+    CHECK((v[0].flags & prism::merged) == 0);
+  }
+  SUBCASE("K = 4 jointly") {
+    const std::vector<glm::dvec3> at{{-8, 0.5, 12}, {-2, -0.5, 22}, {3, 0.4, 32}, {8, -0.2, 42}};
+    std::vector<Source> src;
+    std::vector<prism::ReconstructedVertex> start;
+    for (size_t k = 0; k < at.size(); ++k) {
+      src.push_back({at[k], 300});
+      start.push_back(row(at[k] + glm::dvec3(0.3, -0.3, k % 2 ? 0.6 : -0.6), 250));
+    }
+    auto v = refine(make_event(src, 10), start, true);
+    REQUIRE(v.size() == 4);
+    for (size_t k = 0; k < at.size(); ++k) {
+      CAPTURE(k);
+      CHECK(glm::length(pos(v[k]) - at[k]) < 5 * v[k].crlb_3d_mm);
+      CHECK(v[k].fit_pvalue > prism::defaults::fit_pvalue_flag);
+    }
+  }
+  prism::test::check_validation_clean();
+}
