@@ -77,7 +77,7 @@ TEST_CASE("refinement: lattice vectors are the lenslets' nearest neighbours") {
   CHECK(row[0].x == doctest::Approx(-row[1].x));
 }
 
-TEST_CASE("refinement: from 0.5 mm off to the truth within the CRLB's scale; Vulkan = CPU reference") {
+TEST_CASE("refinement: from 0.5 mm off to the truth within the CRLB's scale, Vulkan = CPU reference") {
   const glm::dvec3 at(1.3, -0.7, 22.4);  // off every grid a dictionary would have
   auto e = make_event({{at, 2000}}, 1);
   REQUIRE(e.clicks.size() > 500);
