@@ -55,10 +55,11 @@ void plot_lines(const std::string& path, const PlotSpec& spec, const std::vector
     // Plot area on the left, legend outside it on the right: curves that fill
     // the whole range are never hidden.
     pls->adv(0);
-    pls->vpor(0.09, 0.64, 0.11, 0.90);
+    // Left margin: the y label sits beyond tick labels like 10^-2.
+    pls->vpor(0.12, 0.64, 0.11, 0.90);
     pls->wind(xmin, xmax, ymin, ymax);
     pls->box(spec.log_x ? "bcnstl" : "bcnst", 0.0, 0, spec.log_y ? "bcnstlv" : "bcnstv", 0.0, 0);
-    pls->lab(spec.x_label.c_str(), spec.y_label.c_str(), spec.title.c_str());
+    pls->lab(spec.x_label.c_str(), spec.y_label.c_str(), "");
     const int colours[][3] = {{0, 0, 0},     {228, 26, 28},  {55, 126, 184}, {77, 175, 74},  {152, 78, 163},
                               {255, 127, 0}, {166, 86, 40},  {247, 129, 191}, {100, 100, 100}, {23, 190, 207}};
     std::vector<int> opt, line_colors, line_styles;
@@ -98,6 +99,11 @@ void plot_lines(const std::string& path, const PlotSpec& spec, const std::vector
                 0.1, 0, 15, 1, 0, 0, int(series.size()), opt.data(), 1.0, 0.8, 2.0, 0.0, text_colors.data(),
                 texts.data(), nullptr, nullptr, nullptr, nullptr, line_colors.data(), line_styles.data(),
                 widths.data(), line_colors.data(), symbol_scales.data(), symbol_numbers.data(), symbols.data());
+    // The title centred on the page, not on the plot area: a long one would
+    // run off the left edge.
+    pls->vpor(0.0, 1.0, 0.0, 1.0);
+    pls->wind(0.0, 1.0, 0.0, 1.0);
+    pls->mtex("t", -1.5, 0.5, 0.5, spec.title.c_str());
   });
 }
 
