@@ -131,7 +131,7 @@ std::vector<glm::dvec2> lattice_vectors(const OpticalSystem& sys) {
 
 struct Refiner::Fit {
   const Refiner* r;
-  std::vector<uint32_t> clicks;
+  std::span<const uint32_t> clicks;  // the event's (it outlives the fit)
   size_t K;
   std::vector<glm::dvec3> theta;
   std::vector<double> alpha;
@@ -165,6 +165,9 @@ struct Refiner::Fit {
     img = r->model_.render(theta);
     nll = nll_now();
   }
+  // The same parameters, not yet rendered (a trial: its images would be
+  // replaced anyway).
+  Fit unrendered() const { return {r, clicks, K, theta, alpha, {}, std::numeric_limits<double>::infinity()}; }
 
   // Gradient of the NLL and the binary sensor's Fisher information (n x n,
   // row-major) over every pixel any vertex reaches.
@@ -319,7 +322,7 @@ int levenberg_marquardt(Fit& f, int max_steps) {
         mu = std::max(mu * 4, kRejectedMu);
         continue;
       }
-      Fit trial = f;
+      Fit trial = f.unrendered();
       bool moved = false;
       for (size_t a = 0; a < m; ++a) {
         const size_t i = act[a];
@@ -345,6 +348,42 @@ int levenberg_marquardt(Fit& f, int max_steps) {
 }
 
 }  // namespace
+
+// Goodness of fit: T = sum over pixels of the binary NLL, observed against
+// draws from the fitted model (seeded by the event id). T = const + sum over
+// clicked pixels of (-log p - lambda), so only the clicks' terms vary.
+double Refiner::fit_pvalue(const Fit& f, uint64_t event_id) const {
+  std::unordered_map<uint32_t, double> lam;
+  for (size_t k = 0; k < f.K; ++k)
+    for (const auto& m : f.img[k].pixels) lam.try_emplace(m.index, s_.dark_rate).first->second += f.alpha[k] * m.p;
+  auto click_term = [](double l) { return -ref::log_click(l) - l; };
+  double t_obs = 0;
+  size_t dark_clicks_obs = 0;
+  for (uint32_t c : f.clicks) {
+    auto it = lam.find(c);
+    if (it != lam.end()) t_obs += click_term(it->second);
+    else ++dark_clicks_obs;
+  }
+  const double dark_term = click_term(s_.dark_rate);
+  t_obs += double(dark_clicks_obs) * dark_term;
+  std::vector<double> p_click, term;
+  for (const auto& [idx, l] : lam) {
+    p_click.push_back(-std::expm1(-l));
+    term.push_back(click_term(l));
+  }
+  const double dark_pixels = std::max(0.0, double(width_) * double(height_) - double(lam.size()));
+  std::mt19937_64 rng(0x9e3779b97f4a7c15ull ^ event_id);
+  std::uniform_real_distribution<double> U(0.0, 1.0);
+  std::poisson_distribution<int> dark_draw(dark_pixels * -std::expm1(-s_.dark_rate));
+  int at_least = 0;
+  for (int d = 0; d < s_.pvalue_draws; ++d) {
+    double t = double(dark_draw(rng)) * dark_term;
+    for (size_t i = 0; i < p_click.size(); ++i)
+      if (U(rng) < p_click[i]) t += term[i];
+    at_least += t >= t_obs;
+  }
+  return (1.0 + at_least) / (1.0 + s_.pvalue_draws);
+}
 
 std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector<ReconstructedVertex> rows) {
   constexpr int kProbeSteps = 4;            // LM steps before a start is judged
@@ -373,7 +412,7 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
   // current estimate. Each is probed for a few steps; one that has overtaken
   // the best is followed to convergence.
   auto try_start = [&](size_t k, glm::dvec3 at, double alpha) {
-    Fit g = f;
+    Fit g = f.unrendered();
     g.theta[k] = glm::clamp(at, bounds_.lo, bounds_.hi);
     g.alpha[k] = std::min(alpha, s_.alpha_max);
     g.render();
@@ -438,40 +477,9 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
   std::vector<double> grad, fisher;
   f.derivatives(grad, fisher);
   const auto inv = inverse_diagonal(fisher, f.n());
+  auto variance_3d = [&](size_t k) { return inv[4 * k] + inv[4 * k + 1] + inv[4 * k + 2]; };
 
-  // Goodness of fit: T = sum over pixels of the binary NLL, observed against
-  // draws from the fitted model. T = const + sum over clicked pixels of
-  // (-log p - lambda), so only the clicks' terms vary.
-  std::unordered_map<uint32_t, double> lam;
-  for (size_t k = 0; k < f.K; ++k)
-    for (const auto& m : f.img[k].pixels) lam.try_emplace(m.index, s_.dark_rate).first->second += f.alpha[k] * m.p;
-  auto click_term = [](double l) { return -ref::log_click(l) - l; };
-  double t_obs = 0;
-  size_t dark_clicks_obs = 0;
-  for (uint32_t c : f.clicks) {
-    auto it = lam.find(c);
-    if (it != lam.end()) t_obs += click_term(it->second);
-    else ++dark_clicks_obs;
-  }
-  const double dark_term = click_term(s_.dark_rate);
-  t_obs += double(dark_clicks_obs) * dark_term;
-  std::vector<double> p_click, term;
-  for (const auto& [idx, l] : lam) {
-    p_click.push_back(-std::expm1(-l));
-    term.push_back(click_term(l));
-  }
-  const double dark_pixels = std::max(0.0, double(width_) * double(height_) - double(lam.size()));
-  std::mt19937_64 rng(0x9e3779b97f4a7c15ull ^ event.id);
-  std::uniform_real_distribution<double> U(0.0, 1.0);
-  std::poisson_distribution<int> dark_draw(dark_pixels * -std::expm1(-s_.dark_rate));
-  int at_least = 0;
-  for (int d = 0; d < s_.pvalue_draws; ++d) {
-    double t = double(dark_draw(rng)) * dark_term;
-    for (size_t i = 0; i < p_click.size(); ++i)
-      if (U(rng) < p_click[i]) t += term[i];
-    at_least += t >= t_obs;
-  }
-  const double pvalue = (1.0 + at_least) / (1.0 + s_.pvalue_draws);
+  const double pvalue = fit_pvalue(f, event.id);
 
   // Rows: refined positions, weights, CRLB; flags redone where the
   // refinement decides them (edge, merged, poor_fit, alpha_*).
@@ -496,7 +504,7 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
     o.crlb_x_mm = std::sqrt(inv[4 * j]);
     o.crlb_y_mm = std::sqrt(inv[4 * j + 1]);
     o.crlb_z_mm = std::sqrt(inv[4 * j + 2]);
-    o.crlb_3d_mm = std::sqrt(inv[4 * j] + inv[4 * j + 1] + inv[4 * j + 2]);
+    o.crlb_3d_mm = std::sqrt(variance_3d(j));
     o.fit_pvalue = pvalue;
     o.flags &= ~uint32_t(edge | merged | poor_fit | alpha_zero | alpha_at_bound);
     // On the field's boundary within one CRLB: the source may lie beyond it.
@@ -510,7 +518,7 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
     if (f.alpha[j] >= s_.alpha_max * (1 - 1e-12)) o.flags |= alpha_at_bound;
     if (pvalue < defaults::fit_pvalue_flag) o.flags |= poor_fit;
     for (size_t i = 0; i < f.K; ++i)
-      if (i != j && glm::length(f.theta[i] - f.theta[j]) < std::max(o.crlb_3d_mm, std::sqrt(inv[4 * i] + inv[4 * i + 1] + inv[4 * i + 2])))
+      if (i != j && glm::length(f.theta[i] - f.theta[j]) < std::sqrt(std::max(variance_3d(i), variance_3d(j))))
         o.flags |= merged;
   }
   stats_.seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - start_time).count();

@@ -111,6 +111,7 @@ class Refiner {
 
  private:
   struct Fit;
+  double fit_pvalue(const Fit& f, uint64_t event_id) const;
   SourceModel& model_;
   RefineSettings s_;
   RefineBounds bounds_;
