@@ -44,22 +44,23 @@ fi
 
 # The main job on the built-in prototype scene: reconstruct events. Build (or
 # reuse) the 1210-PSF dictionary, simulate 1000 single-vertex events from the
-# ray-traced model at an off-grid point, reconstruct them on the device
-# (accuracy and events per second), refine 20 events at random positions with
-# the scene's model, run the paper's evaluation protocol with
-# the CRLB beside each error, and draw the CRLB against depth of the paper's
-# Fig. 3 designs. Results go to out/.
+# ray-traced model at an off-grid point, reconstruct them on the device with
+# the search alone (accuracy and events per second), evaluate 20 events at
+# random positions over the volume with the continuous refinement (the
+# scene's model; errors against the truth and the CRLB by depth band), run
+# the paper's evaluation protocol with the CRLB beside each error (search
+# alone), and draw the CRLB against depth of the paper's Fig. 3 designs.
+# Results go to out/.
 mkdir -p out
 prism=./build/host/prism
 $prism dictionary build --scene prototype --out out/dictionary --binning 16 --rays 4096 --splat point
 $prism simulate --scene prototype --vertex 1,1,31,100 --events 1000 --binning 16 --seed 1 --out out/events.events
 $prism reconstruct --dictionary out/dictionary --events out/events.events --vertices 1 --out out/vertices.csv --model none
-# Continuous refinement with the scene's forward model costs ~10-40 s per event
-# on a CPU device (README "Reconstruction"): 20 events at random positions.
-$prism simulate --scene prototype --vertex 0,0,25,100 --jitter-mm 20 --events 20 --binning 16 --seed 7 \
-  --stratification 1 --out out/volume.events
-$prism reconstruct --dictionary out/dictionary --events out/volume.events --vertices 1 --out out/volume-refined.csv
-$prism evaluate --dictionary out/dictionary --out out/evaluation
+# Continuous refinement with the scene's forward model costs ~30 s per event
+# on a CPU device (README "Reconstruction"): 20 events.
+$prism evaluate --dictionary out/dictionary --experiments volume --volume-events 20 --volume-x-mm -15,15 \
+  --volume-y-mm -15,15 --volume-depth-mm 2,48 --model scene --out out/volume
+$prism evaluate --dictionary out/dictionary --model none --out out/evaluation
 $prism crlb --scene prototype --scene unifocal-f3 --scene unifocal-f9 --scene unifocal-f15 \
   --scene single-f3 --scene single-f9 --scene single-f15 --depth-mm 0:50:5 --csv out/crlb.csv --plot out/crlb.png
-echo "setup: results in out/ (vertices.csv, volume-refined.csv; evaluation/: single-lines, photons, double .csv/.png; crlb.csv, crlb.png)"
+echo "setup: results in out/ (vertices.csv; volume/: volume.csv, volume-events.csv, .png; evaluation/: single-lines, photons, double .csv/.png; crlb.csv, crlb.png)"

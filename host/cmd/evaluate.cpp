@@ -1,10 +1,12 @@
-// prism evaluate: the paper's evaluation protocol (host/reconstruct/evaluate.h) on
-// forward-model events with a reconstruction backend; a CSV and a PNG per
-// experiment, a table and the reconstruction rate on stdout.
+// prism evaluate: the paper's evaluation protocol and the whole-volume
+// experiment (host/reconstruct/evaluate.h) on forward-model events with a
+// reconstruction backend and, by default, the continuous refinement; a CSV
+// and a PNG per experiment, a table and the reconstruction rate on stdout.
 #include <cstdio>
 #include <memory>
 
 #include "host/cmd/commands.h"
+#include "engine/defaults.h"
 #include "host/cmd/options.h"
 #include "host/reconstruct/evaluate.h"
 #include "host/util/progress.h"
@@ -17,6 +19,8 @@ struct EvaluateArgs {
   std::string dictionary, scene, out = "evaluation", backend = "vulkan", experiments = "single-lines,photons,double";
   std::string device;
   std::string precision = "float";
+  std::string model;  // scene | none; "": scene when the dictionary was synthesised from one (or --scene given)
+  std::vector<double> volume_x, volume_y, volume_depth;
   unsigned binning = 0;  // 0: the dictionary's base binning
   bool quick = false;
   EvaluationOptions options;
@@ -30,6 +34,13 @@ std::vector<std::string> split(const std::string& text) {
     v.push_back(text.substr(start, comma - start));
   v.push_back(text.substr(start));
   return v;
+}
+
+glm::dvec2 range_of(const std::vector<double>& v, const char* option) {
+  if (v.empty()) return {NAN, NAN};
+  if (v.size() != 2 || !(v[0] < v[1]))
+    throw std::runtime_error(std::string(option) + ": give lo,hi in mm with lo < hi");
+  return {v[0], v[1]};
 }
 
 void run(EvaluateArgs a) {
@@ -56,6 +67,16 @@ void run(EvaluateArgs a) {
     throw std::runtime_error("--binning " + std::to_string(binning) + ": the dictionary stores binnings " +
                              std::to_string(m.base_binning) + " x 2^k only; choose one of those");
 
+  o.volume_x_mm = range_of(a.volume_x, "--volume-x-mm");
+  o.volume_y_mm = range_of(a.volume_y, "--volume-y-mm");
+  o.volume_depth_mm = range_of(a.volume_depth, "--volume-depth-mm");
+  const std::string model =
+      a.model.empty() ? (m.rays_per_lenslet > 0 || !a.scene.empty() ? "scene" : "none") : a.model;
+  if (model == "scene" && m.rays_per_lenslet == 0 && a.scene.empty())
+    throw std::runtime_error(a.dictionary + " was calibrated, not synthesised: it names no scene to refine with; "
+                             "give --scene, or --model none for the search alone");
+  o.model = model == "scene" ? RefineModel::scene : RefineModel::none;
+
   o.backend = backend_from_string(a.backend);
   o.device_half = a.precision == "half";
   vk::Context ctx(vk::ContextOptions{a.device});
@@ -67,50 +88,88 @@ void run(EvaluateArgs a) {
                 a.precision.c_str(), ctx.describe().c_str());
   std::printf("# scene %s, dictionary %s, clicks on %u x %u binned pixels, %d trials per point, seed %llu\n",
               scene.name.c_str(), a.dictionary.c_str(), binning, binning, o.trials, (unsigned long long)o.seed);
+  if (o.model == RefineModel::scene)
+    std::printf("# refinement: the scene's forward model, footprint splat, %u cells per lenslet\n",
+                defaults::refine_rays_per_lenslet);
+  else
+    std::printf("# refinement: none (--model none): positions from the dictionary search alone\n");
   std::printf("# best and worst trial (3D error) dropped; alpha error = |alpha - true photons|; CRLB: Poisson, "
-              "Fisher information scaled to the point's detected photons\n");
+              "Fisher information scaled to the point's detected photons; catastrophic: 3D error > %g mm, left "
+              "out of RMSE and efficiency\n",
+              defaults::catastrophic_error_mm);
   std::unique_ptr<Progress> progress;
-  EvaluationCost cost;
-  auto rows = evaluate(
-      ctx, scene, *reader, o,
-      [&](size_t done, size_t total) {
-        if (!progress) progress = std::make_unique<Progress>("evaluate", total);
-        progress->update(done);
-      },
-      &cost);
+  auto result = evaluate(ctx, scene, *reader, o, [&](size_t done, size_t total) {
+    if (!progress) progress = std::make_unique<Progress>("evaluate", total);
+    progress->update(done);
+  });
   if (progress) progress->finish();
 
-  std::printf("%-20s %7s %7s %7s %8s %5s %10s %10s %10s %10s %10s %7s\n", "experiment", "x_mm", "y_mm", "depth",
-              "photons", "used", "err3d_mm", "std_mm", "alpha_err", "std", "crlb_3d", "flagged");
-  for (const auto& r : rows)
-    std::printf("%-20s %7.2f %7.2f %7.2f %8.1f %5d %10.4f %10.4f %10.3f %10.3f %10.4f %7d\n",
-                (r.experiment + (r.series.empty() ? "" : ":" + r.series)).c_str(), r.position_mm.x, r.position_mm.y,
-                r.position_mm.z, r.photons, r.stats.trials_used, r.stats.err3d_mean, r.stats.err3d_std,
-                r.stats.alpha_err_mean, r.stats.alpha_err_std, r.crlb_3d_mm, r.flagged);
-  std::printf("reconstruction: %llu events in %.2f s, %.1f events/s (support scans %.2f s of it; %s backend)\n",
+  std::printf("%-20s %7s %7s %7s %8s %5s %9s %9s %9s %9s %8s %6s %6s %6s %7s\n", "experiment", "x_mm", "y_mm",
+              "depth", "photons", "used", "err3d_mm", "std_mm", "alpha_err", "crlb_3d", "cat_%", "eff_x", "eff_y",
+              "eff_z", "flagged");
+  for (const auto& r : result.rows) {
+    std::string name = r.experiment + (r.series.empty() ? "" : ":" + r.series);
+    if (r.experiment == "volume")
+      std::printf("%-20s %7s %7s %3.0f-%-3.0f %8.1f", name.c_str(), "", "", r.depth_lo_mm, r.depth_hi_mm, r.photons);
+    else
+      std::printf("%-20s %7.2f %7.2f %7.2f %8.1f", name.c_str(), r.position_mm.x, r.position_mm.y, r.position_mm.z,
+                  r.photons);
+    std::printf(" %5d %9.4f %9.4f %9.3f %9.4f %8.1f %6.2f %6.2f %6.2f %7d\n", r.stats.trials_used,
+                r.stats.err3d_mean, r.stats.err3d_std, r.stats.alpha_err_mean, r.crlb_3d_mm,
+                100 * r.axes.catastrophic_rate, r.axes.efficiency.x, r.axes.efficiency.y, r.axes.efficiency.z,
+                r.flagged);
+  }
+  for (const auto& r : result.rows)
+    if (r.experiment == "volume" && r.series == "all")
+      std::printf("volume: %d events, %.1f%% catastrophic (> %g mm); median |err| / CRLB x %.2f, y %.2f, depth %.2f "
+                  "(0.67 when efficient)\n",
+                  r.axes.events, 100 * r.axes.catastrophic_rate, defaults::catastrophic_error_mm,
+                  r.axes.median_ratio.x, r.axes.median_ratio.y, r.axes.median_ratio.z);
+  const auto& cost = result.cost;
+  std::printf("reconstruction: %llu events in %.2f s, %.2f events/s, %.2f s per event (support scans %.2f s, "
+              "refinement %.2f s of it; %s backend)\n",
               (unsigned long long)cost.events, cost.reconstruct_s,
-              cost.reconstruct_s > 0 ? double(cost.events) / cost.reconstruct_s : 0.0, cost.scan_s, a.backend.c_str());
-  for (const auto& path : write_evaluation(a.out, rows)) std::fprintf(stderr, "prism evaluate: wrote %s\n", path.c_str());
+              cost.reconstruct_s > 0 ? double(cost.events) / cost.reconstruct_s : 0.0,
+              cost.events ? cost.reconstruct_s / double(cost.events) : 0.0, cost.scan_s, cost.refine_s,
+              a.backend.c_str());
+  for (const auto& path : write_evaluation(a.out, result))
+    std::fprintf(stderr, "prism evaluate: wrote %s\n", path.c_str());
 }
 
 }  // namespace
 
 void add_evaluate(CLI::App& app) {
   auto a = std::make_shared<EvaluateArgs>();
-  CLI::App* c = app.add_subcommand("evaluate", "the paper's accuracy protocol: 3D and photon-count errors beside the CRLB");
+  CLI::App* c = app.add_subcommand(
+      "evaluate", "accuracy against the truth and the CRLB: the paper's protocol and events over the whole volume");
   c->add_option("--dictionary", a->dictionary, "PSF dictionary directory")->required();
   c->add_option("--scene", a->scene, "built-in scene or JSON file (default: the dictionary's own)");
   c->add_option("--experiments", a->experiments,
                 "comma-separated: single-lines (x, y, depth lines through (1,1,31) mm at 100 photons), photons "
-                "(50, 100, 200, 400 at (1,1,31)), double ((1,1,depth) and (1,1,7.5), 250 photons split 50/50)")
+                "(50, 100, 200, 400 at (1,1,31)), double ((1,1,depth) and (1,1,7.5), 250 photons split 50/50), volume "
+                "(--volume-events single vertices of 100 photons uniform over the field, by depth band)")
       ->capture_default_str();
+  c->add_option("--model", a->model,
+                "continuous refinement after the search: scene (the scene's forward model; the default when the "
+                "dictionary was synthesised from a scene or --scene is given) or none (the search alone)")
+      ->check(CLI::IsMember({"scene", "none"}));
+  c->add_option("--volume-events", a->options.volume_events, "volume: events, each at its own position")
+      ->capture_default_str()->check(CLI::Range(1, 10000000));
+  c->add_option("--volume-x-mm", a->volume_x, "volume: x range lo,hi (default: the dictionary grid's)")
+      ->delimiter(',')->expected(2);
+  c->add_option("--volume-y-mm", a->volume_y, "volume: y range lo,hi (default: the dictionary grid's)")
+      ->delimiter(',')->expected(2);
+  c->add_option("--volume-depth-mm", a->volume_depth, "volume: depth range lo,hi (default: the dictionary grid's)")
+      ->delimiter(',')->expected(2);
+  c->add_option("--band-mm", a->options.band_mm, "volume: width of the depth bands reported")
+      ->capture_default_str()->check(CLI::PositiveNumber);
   c->add_option("--trials", a->options.trials, "events per point (best and worst dropped); --quick: 5")
       ->capture_default_str()->check(CLI::Range(3, 100000));
   c->add_option("--out", a->out, "directory for <experiment>.csv and <experiment>.png")->capture_default_str();
   c->add_option("--binning", a->binning, "click binning: the dictionary's base binning x 2^k (default: base)")
       ->check(CLI::Range(1u, 1024u));
   c->add_option("--rays", a->options.rays, "rays per 3 mm lenslet for the event truth and the CRLB (default: the "
-                                           "dictionary's)")
+                                           "dictionary's, and at least 4x the refinement model's)")
       ->check(CLI::Range(1u, 1u << 24));
   a->splat.add_to(c, "here for the event truth and the CRLB, by default strata other than the dictionary's (0), so "
                      "that the estimator never sees its own model");

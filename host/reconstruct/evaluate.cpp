@@ -11,6 +11,7 @@
 #include <numeric>
 #include <stdexcept>
 
+#include "engine/defaults.h"
 #include "host/dictionary/service.h"
 #include "host/events/simulate.h"
 #include "host/reconstruct/match.h"
@@ -72,13 +73,15 @@ std::vector<Point> plan(const DictionaryGrid& g, const EvaluationOptions& o) {
   auto [y0, y1] = range(g.y_mm);
   auto [z0, z1] = range(g.depth_mm);
   const glm::dvec3 c = centre_mm;
-  if (c.x < x0 || c.x > x1 || c.y < y0 || c.y > y1 || c.z < z0 || c.z > z1)
-    throw std::runtime_error("the dictionary's grid does not contain the protocol's centre (1, 1, 31) mm");
+  const bool centre_inside = c.x >= x0 && c.x <= x1 && c.y >= y0 && c.y <= y1 && c.z >= z0 && c.z <= z1;
   auto pick = [&](double lo, double hi, double through, double step) {
     return o.quick ? quick_line(lo, hi, through) : line(lo, hi, through, step);
   };
   std::vector<Point> points;
   for (const auto& e : o.experiments) {
+    if (e != "volume" && !centre_inside)
+      throw std::runtime_error(e + ": the dictionary's grid does not contain the protocol's centre (1, 1, 31) mm; "
+                               "use a dictionary that does, or the volume experiment alone");
     if (e == "single-lines") {
       for (double x : pick(x0, x1, c.x, 2.5)) points.push_back({e, {{{x, c.y, c.z}, line_photons, "x", x}}});
       for (double y : pick(y0, y1, c.y, 2.5)) points.push_back({e, {{{c.x, y, c.z}, line_photons, "y", y}}});
@@ -98,14 +101,82 @@ std::vector<Point> plan(const DictionaryGrid& g, const EvaluationOptions& o) {
         points.push_back({e,
                           {{{c.x, c.y, z}, half, "moving", z},
                            {{c.x, c.y, double_fixed_depth_mm}, half, "fixed", z}}});
-    } else {
-      throw std::runtime_error("unknown experiment '" + e + "': choose from single-lines, photons, double");
+    } else if (e != "volume") {
+      throw std::runtime_error("unknown experiment '" + e + "': choose from single-lines, photons, double, volume");
     }
   }
   return points;
 }
 
+// A uniform double in [0, 1) from the event's own stream.
+double uniform01(EventRng& rng) { return double(rng() >> 11) * 0x1.0p-53; }
+
+// The volume experiment's field: the options' bounds, NaN ones from the grid.
+struct Field {
+  glm::dvec2 x, y, depth;
+};
+Field volume_field(const DictionaryGrid& g, const EvaluationOptions& o) {
+  auto extent = [](const std::vector<double>& a, glm::dvec2 chosen, const char* name) {
+    glm::dvec2 e{*std::min_element(a.begin(), a.end()), *std::max_element(a.begin(), a.end())};
+    if (!std::isnan(chosen.x)) e = chosen;
+    if (!(e.x < e.y))
+      throw std::runtime_error(std::string("volume: the ") + name + " range " + format_number(e.x) + ".." +
+                               format_number(e.y) + " mm is empty; give lo < hi");
+    return e;
+  };
+  return {extent(g.x_mm, o.volume_x_mm, "x"), extent(g.y_mm, o.volume_y_mm, "y"),
+          extent(g.depth_mm, o.volume_depth_mm, "depth")};
+}
+
+// Depth bands: edges at multiples of band_mm, clipped to [lo, hi].
+std::vector<glm::dvec2> depth_bands(glm::dvec2 depth, double band_mm) {
+  if (!(band_mm > 0)) throw std::runtime_error("--band-mm must be > 0");
+  std::vector<glm::dvec2> bands;
+  for (double lo = depth.x; lo < depth.y - 1e-9;) {
+    double hi = std::min(depth.y, (std::floor(lo / band_mm + 1e-9) + 1) * band_mm);
+    bands.push_back({lo, hi});
+    lo = hi;
+  }
+  return bands;
+}
+
+glm::dvec3 error_mm(const ReconstructedVertex& v, const glm::dvec3& truth) {
+  return glm::dvec3(v.x_mm, v.y_mm, v.depth_mm) - truth;
+}
+
 }  // namespace
+
+AxisStats axis_stats(const std::vector<glm::dvec3>& err_mm, const std::vector<glm::dvec3>& crlb_mm) {
+  if (err_mm.size() != crlb_mm.size()) throw std::invalid_argument("axis_stats: one CRLB per error");
+  AxisStats a;
+  a.events = int(err_mm.size());
+  std::vector<glm::dvec3> e, c;
+  for (size_t i = 0; i < err_mm.size(); ++i)
+    if (glm::length(err_mm[i]) <= defaults::catastrophic_error_mm) {
+      e.push_back(err_mm[i]);
+      c.push_back(crlb_mm[i]);
+    }
+  if (a.events) a.catastrophic_rate = 1.0 - double(e.size()) / double(a.events);
+  if (e.empty()) return a;
+  const double n = double(e.size());
+  for (int k = 0; k < 3; ++k) {
+    double se = 0, sc = 0, sr = 0;
+    std::vector<double> ratio;
+    for (size_t i = 0; i < e.size(); ++i) {
+      se += e[i][k] * e[i][k];
+      sc += c[i][k] * c[i][k];
+      sr += (e[i][k] / c[i][k]) * (e[i][k] / c[i][k]);
+      ratio.push_back(std::abs(e[i][k]) / c[i][k]);
+    }
+    a.rmse_mm[k] = std::sqrt(se / n);
+    a.crlb_mm[k] = std::sqrt(sc / n);
+    a.efficiency[k] = std::sqrt(sr / n);
+    std::sort(ratio.begin(), ratio.end());
+    const size_t m = ratio.size() / 2;
+    a.median_ratio[k] = ratio.size() % 2 ? ratio[m] : 0.5 * (ratio[m - 1] + ratio[m]);
+  }
+  return a;
+}
 
 TrimmedStats trimmed_stats(const std::vector<double>& err3d_mm, const std::vector<double>& alpha_err) {
   if (err3d_mm.size() < 3 || alpha_err.size() != err3d_mm.size())
@@ -129,32 +200,59 @@ TrimmedStats trimmed_stats(const std::vector<double>& err3d_mm, const std::vecto
 }
 
 const std::vector<std::string>& evaluation_experiments() {
-  static const std::vector<std::string> names{"single-lines", "photons", "double"};
+  static const std::vector<std::string> names{"single-lines", "photons", "double", "volume"};
   return names;
 }
 
-std::vector<EvaluationRow> evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader& dictionary,
-                                    const EvaluationOptions& o, const std::function<void(size_t, size_t)>& progress,
-                                    EvaluationCost* cost) {
+Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader& dictionary,
+                    const EvaluationOptions& o, const std::function<void(size_t, size_t)>& progress) {
   if (o.trials < 3) throw std::invalid_argument("--trials: at least 3 (the best and the worst are dropped)");
   const auto& m = dictionary.manifest();
   if (o.level < 0 || o.level >= m.levels)
     throw std::invalid_argument("click level " + std::to_string(o.level) + " is not stored in the dictionary");
   const auto points = plan(m.grid, o);
+  const bool volume = std::find(o.experiments.begin(), o.experiments.end(), "volume") != o.experiments.end();
+  if (volume && o.volume_events < 1) throw std::invalid_argument("--volume-events: at least 1");
 
+  const unsigned binning = unsigned(m.base_binning << o.level);
+  const TraceSettings model_settings = refine_trace_settings(binning);
+  const bool refining = o.model == RefineModel::scene;
   TraceSettings t;
-  t.binning = unsigned(m.base_binning << o.level);
+  t.binning = binning;
   t.rays_per_lenslet = o.rays ? o.rays : (m.rays_per_lenslet ? m.rays_per_lenslet : TraceSettings::default_rays(o.splat));
+  if (!o.rays && refining) t.rays_per_lenslet = std::max(t.rays_per_lenslet, 4 * model_settings.rays_per_lenslet);
   t.photons_emitted = scene.photons_emitted;
   t.splat = o.splat;
   t.estimator = TraceSettings::default_estimator(o.splat);
   t.stratification = o.stratification;
 
+  // The volume's events: positions from each event's own random stream.
+  Field field{};
+  std::vector<glm::dvec3> volume_positions;
+  const uint64_t volume_first_id = uint64_t(1) << 40;  // ids apart from the paper's points'
+  if (volume) {
+    field = volume_field(m.grid, o);
+    for (int i = 0; i < o.volume_events; ++i) {
+      auto rng = event_rng(o.seed, volume_first_id + uint64_t(i));
+      glm::dvec3 p;
+      p.x = field.x.x + (field.x.y - field.x.x) * uniform01(rng);
+      p.y = field.y.x + (field.y.y - field.y.x) * uniform01(rng);
+      p.z = field.depth.x + (field.depth.y - field.depth.x) * uniform01(rng);
+      volume_positions.push_back(p);
+    }
+  }
+
   // CRLB of every vertex position in one study, scaled to its photon count.
   std::vector<glm::dvec3> positions;
   for (const auto& p : points)
     for (const auto& v : p.vertices) positions.push_back(v.position);
+  positions.insert(positions.end(), volume_positions.begin(), volume_positions.end());
   auto bounds = crlb_study(scene, positions, t, Backend::vulkan, SensorModel::poisson, &ctx);
+  auto crlb_at = [&](size_t i, double photons) {
+    const auto& b = bounds.at(i);
+    const double scale = b.photons > 0 ? std::sqrt(b.photons / photons) : INFINITY;
+    return std::pair(glm::dvec3(b.crlb.x_mm, b.crlb.y_mm, b.crlb.depth_mm) * scale, b.crlb.r3_mm * scale);
+  };
 
   ForwardTruth truth(ctx, scene, t, 64);
   ReconstructionSettings s = o.settings;
@@ -162,15 +260,45 @@ std::vector<EvaluationRow> evaluate(vk::Context& ctx, const Scene& scene, const 
   const bool on_device = o.backend != ReconstructionBackend::cpu;
   DictionaryService service(dictionary, on_device ? &ctx : nullptr, s.search_level, {}, o.device_half);
   std::map<int, std::unique_ptr<Reconstructor>> reconstructors;  // per K
-  EvaluationCost spent;
+  std::unique_ptr<SourceModel> source_model;
+  std::unique_ptr<Refiner> refiner;
+  if (refining) {
+    source_model = make_scene_model(scene, model_settings, &ctx);
+    RefineSettings rs = o.refine;
+    rs.dark_rate = s.dark_rate;
+    rs.alpha_max = s.alpha_max;
+    refiner = std::make_unique<Refiner>(*source_model, scene, m.level_width(o.level), m.level_height(o.level), rs);
+  }
 
-  std::vector<EvaluationRow> rows;
-  const size_t total = points.size() * size_t(o.trials);
-  size_t done = 0, bound = 0;
+  Evaluation result;
+  EvaluationCost& spent = result.cost;
+  const size_t total = points.size() * size_t(o.trials) + volume_positions.size();
+  size_t done = 0;
+  // The search, then the refinement, of a batch of K-vertex events.
+  auto reconstruct = [&](const std::vector<Event>& events, int k) {
+    ReconstructionSettings ks = s;
+    ks.vertices = k;
+    auto& r = reconstructors[k];
+    if (!r) r = std::make_unique<Reconstructor>(service, o.level, ks, o.backend, &ctx);
+    const auto before = r->timings();
+    auto start = std::chrono::steady_clock::now();
+    auto estimates = r->run(events);
+    spent.scan_s += r->timings().scan_s - before.scan_s;
+    const auto searched = std::chrono::steady_clock::now();
+    for (size_t i = 0; i < events.size(); ++i) {
+      if (refiner) estimates[i] = refiner->refine(events[i], std::move(estimates[i]));
+      if (progress) progress(++done, total);
+    }
+    const auto end = std::chrono::steady_clock::now();
+    spent.reconstruct_s += std::chrono::duration<double>(end - start).count();
+    spent.refine_s += std::chrono::duration<double>(end - searched).count();
+    spent.events += events.size();
+    return estimates;
+  };
+
+  size_t bound = 0;
   uint64_t event_id = 0;
   for (const auto& p : points) {
-    ReconstructionSettings ps = s;
-    ps.vertices = int(p.vertices.size());
     std::vector<std::shared_ptr<const PsfSampler>> held;
     std::vector<ClickSource> sources;
     for (const auto& v : p.vertices) {
@@ -179,6 +307,7 @@ std::vector<EvaluationRow> evaluate(vk::Context& ctx, const Scene& scene, const 
     }
     const size_t n = p.vertices.size();
     std::vector<std::vector<double>> err(n), alpha_err(n);
+    std::vector<std::vector<glm::dvec3>> axis_err(n);
     std::vector<int> flagged(n, 0);
     std::vector<Event> events(size_t(o.trials));
     for (auto& e : events) {
@@ -186,14 +315,7 @@ std::vector<EvaluationRow> evaluate(vk::Context& ctx, const Scene& scene, const 
       auto rng = event_rng(o.seed, e.id);
       sample_clicks(sources, rng, e.clicks);
     }
-    auto& r = reconstructors[ps.vertices];
-    if (!r) r = std::make_unique<Reconstructor>(service, o.level, ps, o.backend, &ctx);
-    const auto before = r->timings();
-    auto start = std::chrono::steady_clock::now();
-    auto estimates = r->run(events);
-    spent.reconstruct_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-    spent.scan_s += r->timings().scan_s - before.scan_s;
-    spent.events += events.size();
+    auto estimates = reconstruct(events, int(n));
     std::vector<glm::dvec3> truth_mm;
     for (const auto& v : p.vertices) truth_mm.push_back(v.position);
     for (const auto& est : estimates) {
@@ -201,13 +323,12 @@ std::vector<EvaluationRow> evaluate(vk::Context& ctx, const Scene& scene, const 
       for (size_t k = 0; k < n; ++k) {
         const auto& v = est.at(which[k]);
         err[k].push_back(error_3d_mm(v, p.vertices[k].position));
+        axis_err[k].push_back(error_mm(v, p.vertices[k].position));
         alpha_err[k].push_back(std::abs(v.alpha - p.vertices[k].photons));
         flagged[k] += v.flags != vertex_ok;
       }
-      if (progress) progress(++done, total);
     }
     for (size_t k = 0; k < n; ++k, ++bound) {
-      const auto& b = bounds.at(bound);
       EvaluationRow r;
       r.experiment = p.experiment;
       r.series = p.vertices[k].series;
@@ -216,34 +337,197 @@ std::vector<EvaluationRow> evaluate(vk::Context& ctx, const Scene& scene, const 
       r.photons = p.vertices[k].photons;
       r.stats = trimmed_stats(err[k], alpha_err[k]);
       r.flagged = flagged[k];
-      r.crlb_3d_mm = b.photons > 0 ? b.crlb.r3_mm * std::sqrt(b.photons / r.photons) : INFINITY;
-      rows.push_back(r);
+      auto [crlb, crlb_3d] = crlb_at(bound, r.photons);
+      r.crlb_3d_mm = crlb_3d;
+      r.axes = axis_stats(axis_err[k], std::vector<glm::dvec3>(axis_err[k].size(), crlb));
+      result.rows.push_back(r);
     }
   }
-  if (cost) *cost = spent;
-  return rows;
+
+  if (volume) {
+    const size_t batch = 32;
+    for (size_t first = 0; first < volume_positions.size(); first += batch) {
+      const size_t n = std::min(batch, volume_positions.size() - first);
+      std::vector<Event> events(n);
+      for (size_t i = 0; i < n; ++i) {
+        const glm::dvec3& at = volume_positions[first + i];
+        auto& e = events[i];
+        e.id = volume_first_id + first + i;
+        auto rng = event_rng(o.seed, e.id);
+        for (int skip = 0; skip < 3; ++skip) uniform01(rng);  // the position's draws
+        auto psf = truth.psf(at);
+        const ClickSource source{psf.get(), volume_protocol::photons};
+        sample_clicks(std::span(&source, 1), rng, e.clicks);
+      }
+      auto estimates = reconstruct(events, 1);
+      for (size_t i = 0; i < n; ++i) {
+        VolumeEvent v;
+        v.index = first + i;
+        v.truth_mm = volume_positions[first + i];
+        v.estimate = estimates[i].at(0);
+        v.crlb_mm = crlb_at(bound + first + i, volume_protocol::photons).first;
+        result.volume.push_back(v);
+      }
+    }
+    // By depth band, then the whole field.
+    auto bands = depth_bands(field.depth, o.band_mm);
+    bands.push_back(field.depth);
+    for (size_t b = 0; b < bands.size(); ++b) {
+      const bool whole = b + 1 == bands.size();
+      std::vector<double> err, alpha_err;
+      std::vector<glm::dvec3> axis_err, crlb;
+      EvaluationRow r;
+      double crlb3_sq = 0;
+      for (const auto& v : result.volume) {
+        const double z = v.truth_mm.z;
+        const bool last = bands[b].y == field.depth.y;
+        if (!whole && !(z >= bands[b].x && (z < bands[b].y || (last && z <= bands[b].y)))) continue;
+        err.push_back(error_3d_mm(v.estimate, v.truth_mm));
+        axis_err.push_back(error_mm(v.estimate, v.truth_mm));
+        alpha_err.push_back(std::abs(v.estimate.alpha - volume_protocol::photons));
+        crlb.push_back(v.crlb_mm);
+        crlb3_sq += glm::dot(v.crlb_mm, v.crlb_mm);
+        r.flagged += v.estimate.flags != vertex_ok;
+      }
+      r.experiment = "volume";
+      r.series = whole ? "all" : "";
+      r.depth_lo_mm = bands[b].x;
+      r.depth_hi_mm = bands[b].y;
+      r.varied = 0.5 * (bands[b].x + bands[b].y);
+      r.position_mm = glm::dvec3(NAN);
+      r.photons = volume_protocol::photons;
+      r.stats.trials_used = int(err.size());
+      auto me = mean_std(err), ma = mean_std(alpha_err);
+      r.stats.err3d_mean = err.empty() ? NAN : me.mean;
+      r.stats.err3d_std = err.empty() ? NAN : me.std;
+      r.stats.alpha_err_mean = err.empty() ? NAN : ma.mean;
+      r.stats.alpha_err_std = err.empty() ? NAN : ma.std;
+      r.axes = axis_stats(axis_err, crlb);
+      r.crlb_3d_mm = err.empty() ? NAN : std::sqrt(crlb3_sq / double(err.size()));
+      result.rows.push_back(r);
+    }
+  }
+  return result;
 }
 
-std::vector<std::string> write_evaluation(const std::string& dir, const std::vector<EvaluationRow>& rows) {
+namespace {
+
+std::string csv_number(double x) { return std::isnan(x) ? "" : format_number(x); }
+
+// The columns every experiment shares, after its own.
+const char* kStatsHeader =
+    "trials_used,err3d_mean_mm,err3d_std_mm,alpha_err_mean,alpha_err_std,flagged,catastrophic_rate,rmse_x_mm,"
+    "rmse_y_mm,rmse_z_mm,crlb_x_mm,crlb_y_mm,crlb_z_mm,crlb_3d_mm,efficiency_x,efficiency_y,efficiency_z,"
+    "median_ratio_x,median_ratio_y,median_ratio_z";
+void write_stats(std::ostream& out, const EvaluationRow& r) {
+  out << r.stats.trials_used;
+  for (double x : {r.stats.err3d_mean, r.stats.err3d_std, r.stats.alpha_err_mean, r.stats.alpha_err_std})
+    out << ',' << csv_number(x);
+  out << ',' << r.flagged << ',' << csv_number(r.axes.catastrophic_rate);
+  for (const glm::dvec3* v : {&r.axes.rmse_mm, &r.axes.crlb_mm})
+    for (int k = 0; k < 3; ++k) out << ',' << csv_number((*v)[k]);
+  out << ',' << csv_number(r.crlb_3d_mm);
+  for (const glm::dvec3* v : {&r.axes.efficiency, &r.axes.median_ratio})
+    for (int k = 0; k < 3; ++k) out << ',' << csv_number((*v)[k]);
+  out << '\n';
+}
+
+void write_csv(const std::string& path, const std::function<void(std::ostream&)>& body) {
+  write_atomically(path, [&](const std::string& tmp) {
+    std::ofstream out(tmp);
+    body(out);
+    if (!out) throw std::runtime_error("cannot write " + path);
+  });
+}
+
+// volume-events.csv: one row per event, truth beside estimate.
+void write_volume_events(const std::string& path, const std::vector<VolumeEvent>& events) {
+  write_csv(path, [&](std::ostream& out) {
+    out << "event,x_mm,y_mm,depth_mm,est_x_mm,est_y_mm,est_depth_mm,alpha,err3d_mm,crlb_x_mm,crlb_y_mm,crlb_z_mm,"
+           "flags,fit_pvalue\n";
+    for (const auto& v : events) {
+      const auto& e = v.estimate;
+      out << v.index << ',' << format_number(v.truth_mm.x) << ',' << format_number(v.truth_mm.y) << ','
+          << format_number(v.truth_mm.z) << ',' << format_number(e.x_mm) << ',' << format_number(e.y_mm) << ','
+          << format_number(e.depth_mm) << ',' << format_number(e.alpha) << ','
+          << format_number(error_3d_mm(e, v.truth_mm)) << ',' << format_number(v.crlb_mm.x) << ','
+          << format_number(v.crlb_mm.y) << ',' << format_number(v.crlb_mm.z) << ',' << flags_to_string(e.flags) << ','
+          << csv_number(e.fit_pvalue) << '\n';
+    }
+  });
+}
+
+// volume.png (errors and CRLB per axis by depth band) and volume-catastrophic.png.
+void plot_volume(const std::string& dir, const std::vector<const EvaluationRow*>& rows) {
+  const char* axis[] = {"x", "y", "depth"};
+  std::vector<Series> errors;
+  Series mean{"3D error (mean)", {}, {}, false, true}, catastrophic{"events > 3 mm", {}, {}, false, true};
+  std::vector<Series> rmse(3), crlb(3);
+  for (int k = 0; k < 3; ++k) {
+    rmse[k] = {std::string("RMSE ") + axis[k], {}, {}, false, true};
+    crlb[k] = {std::string("CRLB ") + axis[k], {}, {}, true, false};
+  }
+  for (const auto* r : rows) {
+    if (r->series == "all" || r->axes.events == 0) continue;
+    mean.x.push_back(r->varied);
+    mean.y.push_back(r->stats.err3d_mean);
+    catastrophic.x.push_back(r->varied);
+    catastrophic.y.push_back(100 * r->axes.catastrophic_rate);
+    for (int k = 0; k < 3; ++k)
+      if (!std::isnan(r->axes.rmse_mm[k])) {
+        rmse[k].x.push_back(r->varied);
+        rmse[k].y.push_back(r->axes.rmse_mm[k]);
+        crlb[k].x.push_back(r->varied);
+        crlb[k].y.push_back(r->axes.crlb_mm[k]);
+      }
+  }
+  errors.push_back(mean);
+  for (int k = 0; k < 3; ++k) errors.push_back(rmse[k]);
+  for (int k = 0; k < 3; ++k) errors.push_back(crlb[k]);
+  plot_lines(dir + "/volume.png",
+             {"volume: errors by depth band (RMSE without events > 3 mm) and CRLB", "depth (mm, band centre)",
+              "error (mm)", true},
+             errors);
+  plot_lines(dir + "/volume-catastrophic.png",
+             {"volume: catastrophic estimates (3D error > 3 mm) by depth band", "depth (mm, band centre)",
+              "events > 3 mm (%)", false},
+             {catastrophic});
+}
+
+}  // namespace
+
+std::vector<std::string> write_evaluation(const std::string& dir, const Evaluation& evaluation) {
   std::filesystem::create_directories(dir);
   std::vector<std::string> written;
   for (const auto& name : evaluation_experiments()) {
     std::vector<const EvaluationRow*> mine;
-    for (const auto& r : rows)
+    for (const auto& r : evaluation.rows)
       if (r.experiment == name) mine.push_back(&r);
     if (mine.empty()) continue;
     const std::string csv = dir + "/" + name + ".csv", png = dir + "/" + name + ".png";
-    write_atomically(csv, [&](const std::string& tmp) {
-      std::ofstream out(tmp);
-      out << "experiment,x_mm,y_mm,depth_mm,photons,trials_used,err3d_mean_mm,err3d_std_mm,alpha_err_mean,"
-             "alpha_err_std,crlb_3d_mm\n";
-      for (const auto* r : mine)
-        out << r->experiment << (r->series.empty() ? "" : ":" + r->series) << ',' << format_number(r->position_mm.x) << ','
-            << format_number(r->position_mm.y) << ',' << format_number(r->position_mm.z) << ',' << format_number(r->photons) << ','
-            << r->stats.trials_used << ',' << format_number(r->stats.err3d_mean) << ',' << format_number(r->stats.err3d_std) << ','
-            << format_number(r->stats.alpha_err_mean) << ',' << format_number(r->stats.alpha_err_std) << ',' << format_number(r->crlb_3d_mm)
-            << '\n';
-      if (!out) throw std::runtime_error("cannot write " + csv);
+    if (name == "volume") {
+      write_csv(csv, [&](std::ostream& out) {
+        out << "experiment,series,depth_lo_mm,depth_hi_mm,photons," << kStatsHeader << '\n';
+        for (const auto* r : mine) {
+          out << r->experiment << ',' << r->series << ',' << format_number(r->depth_lo_mm) << ','
+              << format_number(r->depth_hi_mm) << ',' << format_number(r->photons) << ',';
+          write_stats(out, *r);
+        }
+      });
+      write_volume_events(dir + "/volume-events.csv", evaluation.volume);
+      plot_volume(dir, mine);
+      for (const char* f : {"volume.csv", "volume-events.csv", "volume.png", "volume-catastrophic.png"})
+        written.push_back(dir + "/" + f);
+      continue;
+    }
+    write_csv(csv, [&](std::ostream& out) {
+      out << "experiment,series,varied,x_mm,y_mm,depth_mm,photons," << kStatsHeader << '\n';
+      for (const auto* r : mine) {
+        out << r->experiment << ',' << r->series << ',' << format_number(r->varied) << ','
+            << format_number(r->position_mm.x) << ',' << format_number(r->position_mm.y) << ','
+            << format_number(r->position_mm.z) << ',' << format_number(r->photons) << ',';
+        write_stats(out, *r);
+      }
     });
     // Per curve: the trimmed mean, mean + 1 std, and the CRLB dashed.
     std::vector<std::string> order;

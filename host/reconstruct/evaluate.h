@@ -1,23 +1,39 @@
-// `prism evaluate`: the paper's evaluation protocol (issue 4, point 5) with a
-// reconstruction backend of host/reconstruct/reconstruct.h (the trials of a point go
-// through it as one batch) on forward-model events (host/events/simulate.h,
-// ForwardTruth at the dictionary's click binning).
+// `prism evaluate`: the paper's evaluation protocol (issue 4, point 5) and a
+// whole-volume experiment (issue 10) with a reconstruction backend of
+// host/reconstruct/reconstruct.h (the trials of a point go through it as one
+// batch), optionally followed by the continuous refinement
+// (host/reconstruct/refine.h), on forward-model events (host/events/simulate.h,
+// ForwardTruth at the dictionary's click binning). The truth is traced with
+// other strata and at least 4x the rays of the refinement's model, so the
+// estimator never sees its own model.
 //
-// Per point: `trials` events, each reconstructed; the best and the worst trial
-// by 3D error are dropped and the mean and sample standard deviation of the
-// rest are reported, for the 3D error and for the photon-count error
-// |alpha - alpha_true| (alpha: expected detected photons; ForwardTruth has
-// S = 1). Flagged vertices are kept (the protocol drops only best and worst);
-// their count is reported beside the statistics.
+// Per point of the paper's experiments: `trials` events, each reconstructed;
+// the best and the worst trial by 3D error are dropped and the mean and sample
+// standard deviation of the rest are reported, for the 3D error and for the
+// photon-count error |alpha - alpha_true| (alpha: expected detected photons;
+// ForwardTruth has S = 1). Flagged vertices are kept (the protocol drops only
+// best and worst); their count is reported beside the statistics. Beside them,
+// over all trials: the catastrophic rate (3D error above
+// defaults::catastrophic_error_mm) and, over the other trials, the RMSE per
+// axis, the CRLB per axis and the efficiency RMSE / CRLB.
+//
+// The volume experiment: `volume_events` events, one vertex each at a position
+// drawn uniformly from the field (x, y, depth), reported by depth band. Every
+// event has its own CRLB, so a band's efficiency per axis is the RMS of
+// err / CRLB over its non-catastrophic events (1 for an efficient estimator),
+// its CRLB the RMS of the events' bounds; the median over events of
+// |err| / CRLB is reported too (0.674 for an efficient, Gaussian estimator).
 //
 // CRLB beside each error: crlb_study (the scene, Poisson sensor, the point,
-// the same binning and rays) gives the bound at the scene's emitted photons,
-// i.e. at row.photons expected detected photons; the Fisher information is
-// linear in the photon count, so the bound at the target detected count N is
-// crlb_3d * sqrt(row.photons / N). For the double experiment each vertex gets
-// its own single-source bound at its own 125 photons (the interaction of the
-// two sources is not in it: a lower bound on the two-source bound).
+// the truth's binning, rays and splat) gives the bound at the scene's emitted
+// photons, i.e. at row.photons expected detected photons; the Fisher
+// information is linear in the photon count, so the bound at the target
+// detected count N is crlb * sqrt(photons / N). For the double experiment each
+// vertex gets its own single-source bound at its own 125 photons (the
+// interaction of the two sources is not in it: a lower bound on the two-source
+// bound).
 #pragma once
+#include <cmath>
 #include <cstdint>
 #include <functional>
 #include <string>
@@ -28,6 +44,7 @@
 #include "engine/vk/context.h"
 #include "host/dictionary/store.h"
 #include "host/reconstruct/reconstruct.h"
+#include "host/reconstruct/refine.h"
 #include "host/scene/scene.h"
 
 namespace prism {
@@ -42,6 +59,13 @@ inline constexpr double double_fixed_depth_mm = 7.5;
 inline constexpr int trials = 25;
 }  // namespace paper_protocol
 
+// The volume experiment's defaults (issue 10's acceptance run).
+namespace volume_protocol {
+inline constexpr int events = 500;
+inline constexpr double photons = 100;
+inline constexpr double band_mm = 5;  // depth bands [0, 5), [5, 10), ... clipped to the field
+}  // namespace volume_protocol
+
 // Mean and sample standard deviation after dropping the best and the worst
 // trial by 3D error (alpha errors of the same trials). Needs >= 3 trials.
 struct TrimmedStats {
@@ -50,11 +74,34 @@ struct TrimmedStats {
 };
 TrimmedStats trimmed_stats(const std::vector<double>& err3d_mm, const std::vector<double>& alpha_err);
 
+// Per-axis accuracy of a set of estimates (x, y, depth errors) against their
+// CRLBs (one per estimate; equal within a point of the paper's protocol).
+// Catastrophic estimates (3D error above defaults::catastrophic_error_mm) are
+// counted and left out of everything else.
+struct AxisStats {
+  int events = 0;
+  double catastrophic_rate = 0;  // share of events
+  glm::dvec3 rmse_mm{NAN};        // over the other events
+  glm::dvec3 crlb_mm{NAN};        // RMS of their CRLBs
+  glm::dvec3 efficiency{NAN};     // sqrt(mean((err / crlb)^2)): RMSE / CRLB, 1 when efficient
+  glm::dvec3 median_ratio{NAN};   // median |err| / crlb
+};
+AxisStats axis_stats(const std::vector<glm::dvec3>& err_mm, const std::vector<glm::dvec3>& crlb_mm);
+
+// Which continuous model refines the search's answer (refine.h).
+enum class RefineModel { none, scene };
+
 struct EvaluationOptions {
   std::vector<std::string> experiments{"single-lines", "photons", "double"};
   int trials = paper_protocol::trials;
+  int volume_events = volume_protocol::events;
+  // The volume's field: NaN bounds take the dictionary grid's extent.
+  glm::dvec2 volume_x_mm{NAN, NAN}, volume_y_mm{NAN, NAN}, volume_depth_mm{NAN, NAN};
+  double band_mm = volume_protocol::band_mm;
   int level = 0;               // click level: binning = base_binning * 2^level
-  unsigned rays = 0;           // forward truth and CRLB; 0: the dictionary's own (or the default)
+  // Forward truth and CRLB; 0: the dictionary's own (or the default), and at
+  // least 4x the refinement model's.
+  unsigned rays = 0;
   Splat splat = TraceSettings{}.splat;  // forward truth and CRLB
   unsigned stratification = 1;  // forward truth: other strata than the dictionary's (0) by default
   uint64_t seed = 1;
@@ -62,6 +109,8 @@ struct EvaluationOptions {
   ReconstructionSettings settings;  // search_level -1: level + 2, capped at the coarsest
   ReconstructionBackend backend = ReconstructionBackend::vulkan;
   bool device_half = false;    // device backends: the scan level as half floats
+  RefineModel model = RefineModel::scene;
+  RefineSettings refine;       // dark_rate and alpha_max: from `settings`
 };
 
 // What the reconstructions of an evaluation cost.
@@ -69,30 +118,46 @@ struct EvaluationCost {
   uint64_t events = 0;
   double reconstruct_s = 0;  // wall time inside the reconstructions
   double scan_s = 0;         // of which the support scans
+  double refine_s = 0;       // the refinement, after the search
 };
 
 struct EvaluationRow {
-  std::string experiment;  // single-lines, photons or double: the file the row goes to
-  std::string series;      // the curve within it: x, y, depth (lines), moving, fixed (double); "" (photons)
-  double varied = 0;       // the plot's x value
-  glm::dvec3 position_mm{};
+  std::string experiment;  // single-lines, photons, double or volume: the file the row goes to
+  std::string series;      // the curve within it: x, y, depth (lines), moving, fixed (double); "" (photons, volume)
+  double varied = 0;       // the plot's x value (volume: the band's centre depth)
+  glm::dvec3 position_mm{};  // volume: NaN
+  double depth_lo_mm = NAN, depth_hi_mm = NAN;  // volume: the depth band
   double photons = 0;      // expected detected photons of this vertex
-  TrimmedStats stats;
+  TrimmedStats stats;      // volume: untrimmed
+  AxisStats axes;
   int flagged = 0;         // trials whose vertex carried a flag
-  double crlb_3d_mm = 0;
+  double crlb_3d_mm = 0;   // volume: RMS over the band's events
+};
+
+// One event of the volume experiment.
+struct VolumeEvent {
+  uint64_t index = 0;  // 0..volume_events-1
+  glm::dvec3 truth_mm{};
+  ReconstructedVertex estimate;
+  glm::dvec3 crlb_mm{};  // Poisson CRLB at the truth (x, y, depth)
+};
+
+struct Evaluation {
+  std::vector<EvaluationRow> rows;
+  std::vector<VolumeEvent> volume;  // every event of the volume experiment
+  EvaluationCost cost;
 };
 
 // Valid experiment names, in the order they run.
 const std::vector<std::string>& evaluation_experiments();
 
-// Runs the chosen experiments; progress(done, total) after each trial.
-std::vector<EvaluationRow> evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader& dictionary,
-                                    const EvaluationOptions& options,
-                                    const std::function<void(size_t, size_t)>& progress = {},
-                                    EvaluationCost* cost = nullptr);
+// Runs the chosen experiments; progress(done, total) after each event.
+Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader& dictionary,
+                    const EvaluationOptions& options, const std::function<void(size_t, size_t)>& progress = {});
 
-// <dir>/<experiment>.csv and .png for every experiment present in rows.
-// Returns the paths written.
-std::vector<std::string> write_evaluation(const std::string& dir, const std::vector<EvaluationRow>& rows);
+// <dir>/<experiment>.csv and .png for every experiment present, and for the
+// volume experiment volume-events.csv (one row per event) and
+// volume-catastrophic.png. Returns the paths written.
+std::vector<std::string> write_evaluation(const std::string& dir, const Evaluation& evaluation);
 
 }  // namespace prism

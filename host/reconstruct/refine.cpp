@@ -268,6 +268,33 @@ std::vector<double> inverse_diagonal(const std::vector<double>& A, size_t n) {
   return out;
 }
 
+// The position block (rows and columns 4k..4k+2) of the inverse of SPD `A`
+// (n x n): vertex k's position covariance with every other parameter as a
+// nuisance. Zero when A is singular.
+glm::dmat3 inverse_position_block(const std::vector<double>& A, size_t n, size_t k) {
+  glm::dmat3 c(0.0);
+  for (int i = 0; i < 3; ++i) {
+    std::vector<double> e(n, 0.0);
+    e[4 * k + size_t(i)] = 1.0;
+    if (!solve_spd(A, e, n)) return glm::dmat3(0.0);
+    for (int j = 0; j < 3; ++j) c[i][j] = e[4 * k + size_t(j)];
+  }
+  return c;
+}
+
+// The unit eigenvector of the largest eigenvalue of symmetric `c` (power
+// iteration from the depth axis, where the prototype's weakest direction lies).
+glm::dvec3 largest_eigenvector(const glm::dmat3& c) {
+  glm::dvec3 u(0, 0, 1);
+  for (int i = 0; i < 100; ++i) {
+    const glm::dvec3 v = c * u;
+    const double len = glm::length(v);
+    if (!(len > 0)) return glm::dvec3(0, 0, 1);
+    u = v / len;
+  }
+  return u;
+}
+
 }  // namespace
 
 Refiner::Refiner(SourceModel& model, const Scene& scene, int grid_width, int grid_height, RefineSettings settings)
@@ -279,8 +306,9 @@ Refiner::Refiner(SourceModel& model, const Scene& scene, int grid_width, int gri
       lattice_mm_(lattice_vectors(scene.optics)),
       lens_to_sensor_mm_(scene.optics.lens_to_sensor_mm),
       working_distance_mm_(scene.optics.working_distance_mm) {
-  if (s_.iterations < 1 || s_.alias_starts < 0 || s_.search_starts < 0 || s_.pvalue_draws < 1)
-    throw std::invalid_argument("refinement: iterations and p-value draws must be >= 1, search and alias starts >= 0");
+  if (s_.iterations < 1 || s_.alias_starts < 0 || s_.search_starts < 0 || s_.ladder_starts < 0 || s_.pvalue_draws < 1)
+    throw std::invalid_argument(
+        "refinement: iterations and p-value draws must be >= 1, search, alias and ladder starts >= 0");
 }
 
 namespace {
@@ -408,8 +436,8 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
   stats_.iterations += uint64_t(levenberg_marquardt(f, s_.iterations));
 
   // Further starts per vertex, the others held where they are: the search's
-  // runners-up (other planes and nodes) and the lattice aliases of the
-  // current estimate. Each is probed for a few steps; one that has overtaken
+  // runners-up (other planes and nodes), the lattice aliases of the current
+  // estimate and its ladder. Each is probed for a few steps; one that has overtaken
   // the best is followed to convergence.
   auto try_start = [&](size_t k, glm::dvec3 at, double alpha) {
     Fit g = f.unrendered();
@@ -438,38 +466,62 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
       ++taken;
       try_start(k, p, r.w);
     }
-    if (!s_.aliases || lattice_mm_.empty() || s_.alias_starts == 0) continue;
-    // Lattice aliases: the source moved by a lattice vector times (D + L) / L
-    // (D: source to lens plane, L: lens to sensor) puts every lenslet image
-    // where its neighbour's was. Scored with the weight refitted; the best few
-    // are probed.
-    std::vector<glm::dvec3> cand;
-    const double D = f.theta[k].z + working_distance_mm_;
-    for (const auto& v : lattice_mm_) {
-      glm::dvec3 a = f.theta[k] + glm::dvec3(v * ((D + lens_to_sensor_mm_) / lens_to_sensor_mm_), 0.0);
-      if (a.x >= bounds_.lo.x && a.x <= bounds_.hi.x && a.y >= bounds_.lo.y && a.y <= bounds_.hi.y && is_new(a))
-        cand.push_back(a);
+    // Candidates scored with the weight refitted (one render each, the
+    // position held); the best `n` are probed.
+    auto probe_best = [&](const std::vector<glm::dvec3>& cand, int n) {
+      if (cand.empty() || n <= 0) return;
+      auto imgs = model_.render(cand);
+      Fit others = f;
+      others.alpha[k] = 0;
+      const auto background = others.click_rates();
+      std::vector<std::tuple<double, size_t, double>> scored;  // NLL, candidate, alpha
+      for (size_t j = 0; j < cand.size(); ++j) {
+        if (!(imgs[j].photons > 0)) continue;
+        std::vector<double> p(f.clicks.size(), 0.0);
+        for (size_t c = 0; c < f.clicks.size(); ++c)
+          if (const ModelPixel* m = imgs[j].find(f.clicks[c])) p[c] = m->p;
+        std::vector<double> a{f.alpha[k]};
+        const std::vector<double>* cols[] = {&p};
+        const double one = 1.0;
+        const double nll = ref::fit_weights(cols, std::span<const double>(&one, 1), background, a, 60, s_.alpha_max);
+        scored.push_back({nll, j, a[0]});
+      }
+      std::sort(scored.begin(), scored.end());
+      for (size_t t = 0; t < scored.size() && t < size_t(n); ++t)
+        try_start(k, cand[std::get<1>(scored[t])], std::get<2>(scored[t]));
+    };
+    auto inside = [&](glm::dvec3 a) {
+      return glm::all(glm::greaterThanEqual(a, bounds_.lo)) && glm::all(glm::lessThanEqual(a, bounds_.hi));
+    };
+    if (s_.aliases && !lattice_mm_.empty() && s_.alias_starts > 0) {
+      // Lattice aliases: the source moved by a lattice vector times (D + L) / L
+      // (D: source to lens plane, L: lens to sensor) puts every lenslet image
+      // where its neighbour's was.
+      std::vector<glm::dvec3> cand;
+      const double D = f.theta[k].z + working_distance_mm_;
+      for (const auto& v : lattice_mm_) {
+        glm::dvec3 a = f.theta[k] + glm::dvec3(v * ((D + lens_to_sensor_mm_) / lens_to_sensor_mm_), 0.0);
+        if (inside(a) && is_new(a)) cand.push_back(a);
+      }
+      probe_best(cand, s_.alias_starts);
     }
-    if (cand.empty()) continue;
-    auto imgs = model_.render(cand);
-    Fit others = f;
-    others.alpha[k] = 0;
-    const auto background = others.click_rates();
-    std::vector<std::tuple<double, size_t, double>> scored;  // NLL, candidate, alpha
-    for (size_t j = 0; j < cand.size(); ++j) {
-      if (!(imgs[j].photons > 0)) continue;
-      std::vector<double> p(f.clicks.size(), 0.0);
-      for (size_t c = 0; c < f.clicks.size(); ++c)
-        if (const ModelPixel* m = imgs[j].find(f.clicks[c])) p[c] = m->p;
-      std::vector<double> a{f.alpha[k]};
-      const std::vector<double>* cols[] = {&p};
-      const double one = 1.0;
-      const double nll = ref::fit_weights(cols, std::span<const double>(&one, 1), background, a, 60, s_.alpha_max);
-      scored.push_back({nll, j, a[0]});
+    if (s_.ladder_starts > 0) {
+      // The ladder: the converged estimate moved along its weakest direction
+      // (the position covariance's principal axis, mostly depth) and along
+      // depth itself, where the likelihood's other optima lie a millimetre or
+      // two away (README "Reconstruction").
+      std::vector<double> grad, fisher;
+      f.derivatives(grad, fisher);
+      glm::dvec3 weakest = largest_eigenvector(inverse_position_block(fisher, f.n(), k));
+      std::vector<glm::dvec3> cand;
+      for (const glm::dvec3& u : {weakest, glm::dvec3(0, 0, 1)})
+        for (int j = 1; j <= defaults::refine_ladder_rungs; ++j)
+          for (double sign : {-1.0, 1.0}) {
+            const glm::dvec3 a = f.theta[k] + u * (sign * j * defaults::refine_ladder_step_mm);
+            if (inside(a)) cand.push_back(a);
+          }
+      probe_best(cand, s_.ladder_starts);
     }
-    std::sort(scored.begin(), scored.end());
-    for (size_t t = 0; t < scored.size() && t < size_t(s_.alias_starts); ++t)
-      try_start(k, cand[std::get<1>(scored[t])], std::get<2>(scored[t]));
   }
 
   // CRLB at the estimate: the inverse of the full Fisher information (all

@@ -84,6 +84,7 @@ struct RefineSettings {
   bool aliases = true;                           // also start from the best vertex's lattice aliases
   int search_starts = defaults::refine_search_starts;  // the search's runners-up probed per vertex
   int alias_starts = defaults::refine_alias_starts;    // lattice aliases probed per vertex (best by first NLL)
+  int ladder_starts = defaults::refine_ladder_starts;  // ladder points probed per vertex (0: no ladder)
   int pvalue_draws = defaults::fit_pvalue_draws; // Monte Carlo events per goodness-of-fit p-value
   double dark_rate = ReconstructionSettings{}.dark_rate;
   double alpha_max = ReconstructionSettings{}.alpha_max;

@@ -1,5 +1,7 @@
-// prism evaluate (host/reconstruct/evaluate.h): the protocol's trimming, a reduced run of
-// every experiment on a small dictionary, and the CLI end to end.
+// prism evaluate (host/reconstruct/evaluate.h): the protocol's trimming and
+// per-axis statistics, a reduced run of every experiment on a small
+// dictionary, the volume experiment with the refinement, and the CLI end to
+// end.
 #include <unistd.h>
 
 #include <cmath>
@@ -62,15 +64,40 @@ TEST_CASE("evaluation protocol: best and worst trial by 3D error dropped, mean a
   CHECK_THROWS(prism::trimmed_stats({1, 2}, {1, 2}));
 }
 
+TEST_CASE("evaluation statistics per axis: catastrophic events counted and left out, efficiency against each CRLB") {
+  // Errors (mm) with their CRLBs: the third is 4 mm off in 3D, catastrophic.
+  std::vector<glm::dvec3> err{{0.1, -0.2, 0.3}, {-0.3, 0.2, -0.1}, {0, 0, 4}, {0.2, 0, 0.6}};
+  std::vector<glm::dvec3> crlb{{0.1, 0.1, 0.3}, {0.1, 0.2, 0.1}, {1, 1, 1}, {0.2, 0.1, 0.3}};
+  auto a = prism::axis_stats(err, crlb);
+  CHECK(a.events == 4);
+  CHECK(a.catastrophic_rate == doctest::Approx(0.25));
+  CHECK(a.rmse_mm.x == doctest::Approx(std::sqrt((0.01 + 0.09 + 0.04) / 3)));
+  CHECK(a.rmse_mm.z == doctest::Approx(std::sqrt((0.09 + 0.01 + 0.36) / 3)));
+  CHECK(a.crlb_mm.y == doctest::Approx(std::sqrt((0.01 + 0.04 + 0.01) / 3)));
+  // err / crlb on depth: 1, -1, 2 -> RMS sqrt(2), median 1.
+  CHECK(a.efficiency.z == doctest::Approx(std::sqrt(2.0)));
+  CHECK(a.median_ratio.z == doctest::Approx(1.0));
+  // x: 1, -3, 1 -> median 1; y: -2, 1, 0 -> median 1.
+  CHECK(a.median_ratio.x == doctest::Approx(1.0));
+  CHECK(a.efficiency.y == doctest::Approx(std::sqrt(5.0 / 3)));
+  // Nothing but catastrophes: a rate and no per-axis figures.
+  auto bad = prism::axis_stats({{5, 0, 0}}, {{1, 1, 1}});
+  CHECK(bad.catastrophic_rate == 1.0);
+  CHECK(std::isnan(bad.rmse_mm.x));
+  CHECK_THROWS(prism::axis_stats(err, {{1, 1, 1}}));
+}
+
 TEST_CASE("evaluation: every experiment on a reduced grid, CSV and PNG per experiment") {
   auto& d = dictionary();
   prism::EvaluationOptions o;
+  o.model = prism::RefineModel::none;  // the search alone (refinement: the thin-lens case below)
   o.quick = true;
   o.trials = 4;
   o.rays = 1024;
   o.splat = prism::Splat::point;
   o.seed = 3;
-  auto rows = prism::evaluate(prism::test::gpu(), d.reader->manifest().scene, *d.reader, o);
+  auto result = prism::evaluate(prism::test::gpu(), d.reader->manifest().scene, *d.reader, o);
+  const auto& rows = result.rows;
   // Lines: 2 points each (centre +- 2 mm); photons: 50 and 400; double: one
   // depth, two vertices.
   REQUIRE(rows.size() == 6 + 2 + 2);
@@ -85,6 +112,8 @@ TEST_CASE("evaluation: every experiment on a reduced grid, CSV and PNG per exper
     CHECK(std::isfinite(r.stats.err3d_mean));
     CHECK(r.stats.err3d_std > 0);  // two different events never give the very same error
     if (r.experiment != "double") CHECK(r.stats.err3d_mean < 2.5);  // half the plane spacing
+    CHECK(r.axes.events == o.trials);
+    if (r.axes.catastrophic_rate < 1) CHECK(r.axes.efficiency.x == doctest::Approx(r.axes.rmse_mm.x / r.axes.crlb_mm.x));
   }
   // The CRLB beside each error is the bound at that row's detected photons:
   // an independent study with the emitted photons scaled so that the point
@@ -109,12 +138,13 @@ TEST_CASE("evaluation: every experiment on a reduced grid, CSV and PNG per exper
                                     &prism::test::gpu());
     CHECK(scaled[0].photons == doctest::Approx(rows[i].photons).epsilon(1e-5));
     CHECK(rows[i].crlb_3d_mm == doctest::Approx(scaled[0].crlb.r3_mm).epsilon(1e-4));
+    CHECK(rows[i].axes.crlb_mm.z == doctest::Approx(scaled[0].crlb.depth_mm).epsilon(1e-4));
   }
   CHECK(rows[8].series == "moving");
   CHECK(rows[9].position_mm.z == 7.5);
 
   const std::string out = d.dir + "/eval";
-  auto written = prism::write_evaluation(out, rows);
+  auto written = prism::write_evaluation(out, result);
   CHECK(written.size() == 6);
   for (const auto& name : {"single-lines", "photons", "double"}) {
     CAPTURE(name);
@@ -122,11 +152,14 @@ TEST_CASE("evaluation: every experiment on a reduced grid, CSV and PNG per exper
     auto csv = lines_of(out + "/" + name + ".csv");
     REQUIRE(!csv.empty());
     CHECK(csv[0] ==
-          "experiment,x_mm,y_mm,depth_mm,photons,trials_used,err3d_mean_mm,err3d_std_mm,alpha_err_mean,"
-          "alpha_err_std,crlb_3d_mm");
+          "experiment,series,varied,x_mm,y_mm,depth_mm,photons,trials_used,err3d_mean_mm,err3d_std_mm,"
+          "alpha_err_mean,alpha_err_std,flagged,catastrophic_rate,rmse_x_mm,rmse_y_mm,rmse_z_mm,crlb_x_mm,crlb_y_mm,"
+          "crlb_z_mm,crlb_3d_mm,efficiency_x,efficiency_y,efficiency_z,median_ratio_x,median_ratio_y,"
+          "median_ratio_z");
     CHECK(csv.size() == (std::string(name) == "single-lines" ? 7u : 3u));
   }
-  CHECK(lines_of(out + "/double.csv")[2].rfind("double:fixed,1,1,7.5,125,2,", 0) == 0);
+  // The fixed vertex's rows name the moving vertex's depth they belong to.
+  CHECK(lines_of(out + "/double.csv")[2].rfind("double,fixed,31,1,1,7.5,125,2,", 0) == 0);
   prism::test::check_validation_clean();
 }
 
@@ -134,7 +167,7 @@ TEST_CASE("prism evaluate: --quick from the CLI, and errors that say what to do"
   auto& d = dictionary();
   const std::string out = d.dir + "/cli";
   auto r = prism::test::run_prism("evaluate --dictionary " + d.dir + "/dict --experiments photons --quick --trials 3 "
-                                  "--rays 1024 --splat point --seed 5 --out " + out);
+                                  "--rays 1024 --splat point --seed 5 --model none --out " + out);
   INFO(r.output);
   REQUIRE(r.status == 0);
   CHECK(r.output.find("vulkan scan") != std::string::npos);  // the default backend
@@ -142,7 +175,7 @@ TEST_CASE("prism evaluate: --quick from the CLI, and errors that say what to do"
   CHECK(r.output.find("photons.csv") != std::string::npos);
   auto csv = lines_of(out + "/photons.csv");
   REQUIRE(csv.size() == 3);
-  CHECK(csv[1].rfind("photons,1,1,31,50,1,", 0) == 0);
+  CHECK(csv[1].rfind("photons,,50,1,1,31,50,1,", 0) == 0);
   CHECK(fs::exists(out + "/photons.png"));
   CHECK(!fs::exists(out + "/double.csv"));
 
@@ -150,8 +183,122 @@ TEST_CASE("prism evaluate: --quick from the CLI, and errors that say what to do"
   CHECK(help.output.find("dense") != std::string::npos);
   auto bad = prism::test::run_prism("evaluate --dictionary " + d.dir + "/dict --experiments lines --out " + out);
   CHECK(bad.status != 0);
-  CHECK(bad.output.find("single-lines, photons, double") != std::string::npos);
+  CHECK(bad.output.find("single-lines, photons, double, volume") != std::string::npos);
+  auto empty = prism::test::run_prism("evaluate --dictionary " + d.dir + "/dict --experiments volume "
+                                      "--volume-depth-mm 20,10 --out " + out);
+  CHECK(empty.status != 0);
+  CHECK(empty.output.find("--volume-depth-mm: give lo,hi") != std::string::npos);
   auto binning = prism::test::run_prism("evaluate --dictionary " + d.dir + "/dict --binning 24 --out " + out);
   CHECK(binning.status != 0);
   CHECK(binning.output.find("--binning 24") != std::string::npos);
+}
+
+TEST_CASE("evaluation volume: events uniform over the field, by depth band, every event's own CRLB") {
+  auto& d = dictionary();
+  prism::EvaluationOptions o;
+  o.experiments = {"volume"};
+  o.model = prism::RefineModel::none;
+  o.volume_events = 8;
+  o.volume_x_mm = {-4, 4};
+  o.volume_y_mm = {-3, 3};  // depth: the grid's 5..35 mm
+  o.rays = 1024;
+  o.splat = prism::Splat::point;
+  o.seed = 11;
+  const auto& scene = d.reader->manifest().scene;
+  auto result = prism::evaluate(prism::test::gpu(), scene, *d.reader, o);
+  REQUIRE(result.volume.size() == 8);
+  for (const auto& v : result.volume) {
+    CAPTURE(v.index);
+    CHECK(std::abs(v.truth_mm.x) <= 4);
+    CHECK(std::abs(v.truth_mm.y) <= 3);
+    CHECK(v.truth_mm.z >= 5);
+    CHECK(v.truth_mm.z <= 35);
+    CHECK(v.estimate.clicks > 0);
+  }
+  CHECK(result.volume[0].truth_mm != result.volume[1].truth_mm);
+  // Bands 5-10 .. 30-35 and the whole field; every event in exactly one band.
+  REQUIRE(result.rows.size() == 7);
+  int in_bands = 0;
+  for (size_t b = 0; b < 6; ++b) {
+    CHECK(result.rows[b].depth_lo_mm == 5.0 + 5.0 * double(b));
+    in_bands += result.rows[b].axes.events;
+  }
+  CHECK(in_bands == 8);
+  const auto& all = result.rows.back();
+  CHECK(all.series == "all");
+  // The whole field's figures are axis_stats over the events' own errors and bounds.
+  std::vector<glm::dvec3> err, crlb;
+  for (const auto& v : result.volume) {
+    err.push_back(glm::dvec3(v.estimate.x_mm, v.estimate.y_mm, v.estimate.depth_mm) - v.truth_mm);
+    crlb.push_back(v.crlb_mm);
+  }
+  auto expect = prism::axis_stats(err, crlb);
+  CHECK(all.axes.catastrophic_rate == expect.catastrophic_rate);
+  if (expect.catastrophic_rate < 1) CHECK(all.axes.efficiency.z == doctest::Approx(expect.efficiency.z));
+  // An event's CRLB is the study's at its truth, at 100 detected photons.
+  prism::TraceSettings t;
+  t.binning = 16;
+  t.rays_per_lenslet = 1024;
+  t.splat = prism::Splat::point;
+  t.estimator = prism::TraceSettings::default_estimator(t.splat);
+  t.stratification = o.stratification;
+  t.photons_emitted = scene.photons_emitted;
+  const auto& v = result.volume[3];
+  auto at = prism::crlb_study(scene, {v.truth_mm}, t, prism::Backend::vulkan, prism::SensorModel::poisson,
+                              &prism::test::gpu());
+  CHECK(v.crlb_mm.z == doctest::Approx(at[0].crlb.depth_mm * std::sqrt(at[0].photons / 100)).epsilon(1e-6));
+
+  const std::string out = d.dir + "/volume";
+  prism::write_evaluation(out, result);
+  CHECK(lines_of(out + "/volume.csv").size() == 8);
+  CHECK(lines_of(out + "/volume.csv")[7].rfind("volume,all,5,35,100,8,", 0) == 0);
+  auto events = lines_of(out + "/volume-events.csv");
+  REQUIRE(events.size() == 9);
+  CHECK(events[1].rfind("0,", 0) == 0);
+  CHECK(fs::file_size(out + "/volume.png") > 1000);
+  CHECK(fs::file_size(out + "/volume-catastrophic.png") > 1000);
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("evaluation volume with the refinement: thin-lens row, truth at 4x the model's cells and other strata") {
+  // A 7-lenslet thin-lens row (test_refine.cpp's scene) and a 15-PSF
+  // dictionary of it; the refinement's model: its forward model.
+  prism::Scene scene;
+  scene.name = "thin row";
+  scene.optics = prism::test::small_system(prism::LensModel::thin);
+  const std::string dir = (fs::temp_directory_path() / ("prism-eval-thin-" + std::to_string(::getpid()))).string();
+  prism::DictionaryBuildOptions b;
+  b.grid = {{-2.0, 0.0, 2.0}, {0.0}, {10.0, 15.0, 20.0, 25.0, 30.0}};
+  b.base_binning = 16;
+  b.rays_per_lenslet = 1024;
+  b.splat = prism::Splat::point;
+  prism::build_dictionary(prism::test::gpu(), scene, dir + "/dict", b);
+  prism::DictionaryReader reader(dir + "/dict");
+
+  prism::EvaluationOptions o;
+  o.experiments = {"volume"};
+  o.volume_events = 4;
+  o.volume_x_mm = {-1.5, 1.5};
+  o.volume_y_mm = {-0.5, 0.5};
+  o.volume_depth_mm = {12, 28};
+  o.seed = 2;
+  auto result = prism::evaluate(prism::test::gpu(), scene, reader, o);
+  REQUIRE(result.volume.size() == 4);
+  CHECK(result.cost.refine_s > 0);
+  for (const auto& v : result.volume) {
+    auto text = [](glm::dvec3 p) {
+      return "(" + std::to_string(p.x) + ", " + std::to_string(p.y) + ", " + std::to_string(p.z) + ")";
+    };
+    const glm::dvec3 estimate(v.estimate.x_mm, v.estimate.y_mm, v.estimate.depth_mm);
+    INFO("event ", v.index, ": truth ", text(v.truth_mm), " estimate ", text(estimate), " CRLB ", text(v.crlb_mm),
+         " p-value ", v.estimate.fit_pvalue);
+    CHECK(v.estimate.refined);
+    CHECK(std::isfinite(v.estimate.fit_pvalue));
+    CHECK(std::isfinite(v.estimate.crlb_3d_mm));
+    const glm::dvec3 z = (estimate - v.truth_mm) / v.crlb_mm;
+    CHECK(std::max({std::abs(z.x), std::abs(z.y), std::abs(z.z)}) < 4.0);  // within 4 sigma on every axis
+  }
+  CHECK(result.rows.back().axes.catastrophic_rate == 0);
+  fs::remove_all(dir);
+  prism::test::check_validation_clean();
 }
