@@ -71,11 +71,11 @@ void run(EvaluateArgs a) {
   o.volume_y_mm = range_of(a.volume_y, "--volume-y-mm");
   o.volume_depth_mm = range_of(a.volume_depth, "--volume-depth-mm");
   const std::string model =
-      a.model.empty() ? (m.rays_per_lenslet > 0 || !a.scene.empty() ? "scene" : "none") : a.model;
+      a.model.empty() ? (m.rays_per_lenslet > 0 || !a.scene.empty() ? "scene" : "dictionary") : a.model;
   if (model == "scene" && m.rays_per_lenslet == 0 && a.scene.empty())
     throw std::runtime_error(a.dictionary + " was calibrated, not synthesised: it names no scene to refine with; "
-                             "give --scene, or --model none for the search alone");
-  o.model = model == "scene" ? RefineModel::scene : RefineModel::none;
+                             "give --scene, or --model dictionary, or --model none for the search alone");
+  o.model = model == "scene" ? RefineModel::scene : model == "dictionary" ? RefineModel::dictionary : RefineModel::none;
 
   o.backend = backend_from_string(a.backend);
   o.device_half = a.precision == "half";
@@ -91,6 +91,8 @@ void run(EvaluateArgs a) {
   if (o.model == RefineModel::scene)
     std::printf("# refinement: the scene's forward model, footprint splat, %u cells per lenslet\n",
                 defaults::refine_rays_per_lenslet);
+  else if (o.model == RefineModel::dictionary)
+    std::printf("# refinement: the dictionary's PSFs interpolated (8 around each position, cubic shifts, blended)\n");
   else
     std::printf("# refinement: none (--model none): positions from the dictionary search alone\n");
   std::printf("# best and worst trial (3D error) dropped; alpha error = |alpha - true photons|; CRLB: Poisson, "
@@ -151,8 +153,9 @@ void add_evaluate(CLI::App& app) {
       ->capture_default_str();
   c->add_option("--model", a->model,
                 "continuous refinement after the search: scene (the scene's forward model; the default when the "
-                "dictionary was synthesised from a scene or --scene is given) or none (the search alone)")
-      ->check(CLI::IsMember({"scene", "none"}));
+                "dictionary was synthesised from a scene or --scene is given), dictionary (its PSFs interpolated; "
+                "the default for calibrated ones) or none (the search alone)")
+      ->check(CLI::IsMember({"scene", "dictionary", "none"}));
   c->add_option("--volume-events", a->options.volume_events, "volume: events, each at its own position")
       ->capture_default_str()->check(CLI::Range(1, 10000000));
   c->add_option("--volume-x-mm", a->volume_x, "volume: x range lo,hi (default: the dictionary grid's)")

@@ -57,16 +57,23 @@ void run(const ReconstructArgs& a) {
   po.device_half = a.precision == "half";
   ReconstructionPool pool(reader, level, s, po);
 
-  // The continuous refinement's model: the scene's forward model.
-  std::string model = a.model.empty() ? (m.rays_per_lenslet > 0 || !a.scene.empty() ? "scene" : "none") : a.model;
+  // The continuous refinement's model: the scene's forward model, or the
+  // dictionary interpolated (the default for measured dictionaries).
+  const bool synthesised = m.rays_per_lenslet > 0;
+  const std::string model =
+      a.model.empty() ? (synthesised || !a.scene.empty() ? "scene" : "dictionary") : a.model;
   std::unique_ptr<SourceModel> source_model;
   std::unique_ptr<Refiner> refiner;
   Scene scene = a.scene.empty() ? m.scene : load_scene(a.scene);
   if (model == "scene") {
-    if (m.rays_per_lenslet == 0 && a.scene.empty())
+    if (!synthesised && a.scene.empty())
       throw std::runtime_error(a.dictionary + " was calibrated, not synthesised: it names no scene to refine with; "
-                               "give --scene, or --model none for the search alone");
+                               "give --scene, or --model dictionary, or --model none for the search alone");
     source_model = make_scene_model(scene, refine_trace_settings(events.header().binning), ctx.get());
+  } else if (model == "dictionary") {
+    source_model = make_dictionary_model(reader, level);
+  }
+  if (source_model) {
     RefineSettings rs;
     rs.dark_rate = s.dark_rate;
     rs.alpha_max = s.alpha_max;
@@ -134,9 +141,11 @@ void run(const ReconstructArgs& a) {
   std::printf("time: support scans %.2f s, the rest on the host %.2f s%s\n", t.scan_s, t.host_s,
               threads > 1 ? " (summed over threads)" : "");
   if (refiner)
-    std::printf("refinement (scene model %s, footprint %u cells per lenslet): %.2f s, %.1f starts and %.1f LM steps "
-                "per event, %llu renders\n",
-                scene.name.c_str(), defaults::refine_rays_per_lenslet, refiner->stats().seconds,
+    std::printf("refinement (%s): %.2f s, %.1f starts and %.1f LM steps per event, %llu renders\n",
+                model == "scene" ? ("scene model " + scene.name + ", footprint " +
+                                    std::to_string(defaults::refine_rays_per_lenslet) + " cells per lenslet").c_str()
+                                 : "dictionary model: 8 PSFs around each position, cubic shifts, blended",
+                refiner->stats().seconds,
                 double(refiner->stats().starts) / double(std::max<uint64_t>(1, done)),
                 double(refiner->stats().iterations) / double(std::max<uint64_t>(1, done)),
                 (unsigned long long)source_model->renders());
@@ -159,8 +168,9 @@ void add_reconstruct(CLI::App& app) {
   c->add_option("--out", a->out, "CSV: event,vertex,x_mm,y_mm,depth_mm,alpha,nll,clicks,flags,crlb_x_mm,crlb_y_mm,"
                  "crlb_z_mm,crlb_3d_mm,fit_pvalue (the last five empty without refinement)")->required();
   c->add_option("--model", a->model, "continuous refinement after the search: scene (the scene's forward model, "
-                 "default for synthesised dictionaries) or none (the search's grid positions alone)")
-      ->check(CLI::IsMember({"scene", "none"}));
+                 "default for synthesised dictionaries), dictionary (the dictionary's PSFs interpolated, default for "
+                 "calibrated ones) or none (the search's grid positions alone)")
+      ->check(CLI::IsMember({"scene", "dictionary", "none"}));
   c->add_option("--scene", a->scene, "scene for --model scene (default: the one the dictionary was built from)");
   c->add_option("--backend", a->backend,
                  "vulkan: sparse scan on the device; dense: the paper's dense correlation on the device (baseline); "

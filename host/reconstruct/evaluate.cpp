@@ -216,11 +216,11 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
 
   const unsigned binning = unsigned(m.base_binning << o.level);
   const TraceSettings model_settings = refine_trace_settings(binning);
-  const bool refining = o.model == RefineModel::scene;
+  const bool refining = o.model != RefineModel::none;
   TraceSettings t;
   t.binning = binning;
   t.rays_per_lenslet = o.rays ? o.rays : (m.rays_per_lenslet ? m.rays_per_lenslet : TraceSettings::default_rays(o.splat));
-  if (!o.rays && refining) t.rays_per_lenslet = std::max(t.rays_per_lenslet, 4 * model_settings.rays_per_lenslet);
+  if (!o.rays && o.model == RefineModel::scene) t.rays_per_lenslet = std::max(t.rays_per_lenslet, 4 * model_settings.rays_per_lenslet);
   t.photons_emitted = scene.photons_emitted;
   t.splat = o.splat;
   t.estimator = TraceSettings::default_estimator(o.splat);
@@ -263,7 +263,8 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   std::unique_ptr<SourceModel> source_model;
   std::unique_ptr<Refiner> refiner;
   if (refining) {
-    source_model = make_scene_model(scene, model_settings, &ctx);
+    source_model = o.model == RefineModel::scene ? make_scene_model(scene, model_settings, &ctx)
+                                                 : make_dictionary_model(dictionary, o.level);
     RefineSettings rs = o.refine;
     rs.dark_rate = s.dark_rate;
     rs.alpha_max = s.alpha_max;

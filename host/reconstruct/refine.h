@@ -33,6 +33,7 @@
 #include <glm/glm.hpp>
 
 #include "engine/forward.h"
+#include "host/dictionary/store.h"
 #include "host/events/event_file.h"
 #include "host/reconstruct/reconstruct.h"
 #include "host/scene/scene.h"
@@ -74,6 +75,12 @@ class SourceModel {
 // at `settings` (binning: the clicks'; footprint splat by default).
 std::unique_ptr<SourceModel> make_scene_model(const Scene& scene, const TraceSettings& settings,
                                               vk::Context* ctx /* nullptr: CPU reference */);
+
+// The model from a dictionary alone, at click level `level`: the 8 PSFs
+// around a position, moved by the magnification and blended (bilinear
+// laterally, linear in depth); dictionary_model.cpp says how and what it
+// cannot know.
+std::unique_ptr<SourceModel> make_dictionary_model(const DictionaryReader& reader, int level);
 
 // The refinement's trace settings: footprint cells per lenslet from
 // defaults::refine_rays_per_lenslet at the clicks' binning.
