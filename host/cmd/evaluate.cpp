@@ -70,12 +70,7 @@ void run(EvaluateArgs a) {
   o.volume_x_mm = range_of(a.volume_x, "--volume-x-mm");
   o.volume_y_mm = range_of(a.volume_y, "--volume-y-mm");
   o.volume_depth_mm = range_of(a.volume_depth, "--volume-depth-mm");
-  const std::string model =
-      a.model.empty() ? (m.rays_per_lenslet > 0 || !a.scene.empty() ? "scene" : "dictionary") : a.model;
-  if (model == "scene" && m.rays_per_lenslet == 0 && a.scene.empty())
-    throw std::runtime_error(a.dictionary + " was calibrated, not synthesised: it names no scene to refine with; "
-                             "give --scene, or --model dictionary, or --model none for the search alone");
-  o.model = model == "scene" ? RefineModel::scene : model == "dictionary" ? RefineModel::dictionary : RefineModel::none;
+  o.model = choose_refine_model(a.model, m, !a.scene.empty(), a.dictionary);
 
   o.backend = backend_from_string(a.backend);
   o.device_half = a.precision == "half";
@@ -88,13 +83,7 @@ void run(EvaluateArgs a) {
                 a.precision.c_str(), ctx.describe().c_str());
   std::printf("# scene %s, dictionary %s, clicks on %u x %u binned pixels, %d trials per point, seed %llu\n",
               scene.name.c_str(), a.dictionary.c_str(), binning, binning, o.trials, (unsigned long long)o.seed);
-  if (o.model == RefineModel::scene)
-    std::printf("# refinement: the scene's forward model, footprint splat, %u cells per lenslet\n",
-                defaults::refine_rays_per_lenslet);
-  else if (o.model == RefineModel::dictionary)
-    std::printf("# refinement: the dictionary's PSFs interpolated (8 around each position, cubic shifts, blended)\n");
-  else
-    std::printf("# refinement: none (--model none): positions from the dictionary search alone\n");
+  std::printf("# refinement: %s\n", describe(o.model, scene).c_str());
   std::printf("# best and worst trial (3D error) dropped; alpha error = |alpha - true photons|; CRLB: Poisson, "
               "Fisher information scaled to the point's detected photons; catastrophic: 3D error > %g mm, left "
               "out of RMSE and efficiency\n",

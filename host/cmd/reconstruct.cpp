@@ -59,20 +59,10 @@ void run(const ReconstructArgs& a) {
 
   // The continuous refinement's model: the scene's forward model, or the
   // dictionary interpolated (the default for measured dictionaries).
-  const bool synthesised = m.rays_per_lenslet > 0;
-  const std::string model =
-      a.model.empty() ? (synthesised || !a.scene.empty() ? "scene" : "dictionary") : a.model;
-  std::unique_ptr<SourceModel> source_model;
-  std::unique_ptr<Refiner> refiner;
+  const RefineModel model = choose_refine_model(a.model, m, !a.scene.empty(), a.dictionary);
   Scene scene = a.scene.empty() ? m.scene : load_scene(a.scene);
-  if (model == "scene") {
-    if (!synthesised && a.scene.empty())
-      throw std::runtime_error(a.dictionary + " was calibrated, not synthesised: it names no scene to refine with; "
-                               "give --scene, or --model dictionary, or --model none for the search alone");
-    source_model = make_scene_model(scene, refine_trace_settings(events.header().binning), ctx.get());
-  } else if (model == "dictionary") {
-    source_model = make_dictionary_model(reader, level);
-  }
+  std::unique_ptr<SourceModel> source_model = make_refine_model(model, scene, reader, level, ctx.get());
+  std::unique_ptr<Refiner> refiner;
   if (source_model) {
     RefineSettings rs;
     rs.dark_rate = s.dark_rate;
@@ -142,10 +132,7 @@ void run(const ReconstructArgs& a) {
               threads > 1 ? " (summed over threads)" : "");
   if (refiner)
     std::printf("refinement (%s): %.2f s, %.1f starts and %.1f LM steps per event, %llu renders\n",
-                model == "scene" ? ("scene model " + scene.name + ", footprint " +
-                                    std::to_string(defaults::refine_rays_per_lenslet) + " cells per lenslet").c_str()
-                                 : "dictionary model: 8 PSFs around each position, cubic shifts, blended",
-                refiner->stats().seconds,
+                describe(model, scene).c_str(), refiner->stats().seconds,
                 double(refiner->stats().starts) / double(std::max<uint64_t>(1, done)),
                 double(refiner->stats().iterations) / double(std::max<uint64_t>(1, done)),
                 (unsigned long long)source_model->renders());

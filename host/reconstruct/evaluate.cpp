@@ -229,6 +229,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   // The volume's events: positions from each event's own random stream.
   Field field{};
   std::vector<glm::dvec3> volume_positions;
+  std::vector<EventRng> volume_rngs;  // each event's stream, past its position's draws
   const uint64_t volume_first_id = uint64_t(1) << 40;  // ids apart from the paper's points'
   if (volume) {
     field = volume_field(m.grid, o);
@@ -239,6 +240,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
       p.y = field.y.x + (field.y.y - field.y.x) * uniform01(rng);
       p.z = field.depth.x + (field.depth.y - field.depth.x) * uniform01(rng);
       volume_positions.push_back(p);
+      volume_rngs.push_back(rng);
     }
   }
 
@@ -263,8 +265,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   std::unique_ptr<SourceModel> source_model;
   std::unique_ptr<Refiner> refiner;
   if (refining) {
-    source_model = o.model == RefineModel::scene ? make_scene_model(scene, model_settings, &ctx)
-                                                 : make_dictionary_model(dictionary, o.level);
+    source_model = make_refine_model(o.model, scene, dictionary, o.level, &ctx);
     RefineSettings rs = o.refine;
     rs.dark_rate = s.dark_rate;
     rs.alpha_max = s.alpha_max;
@@ -354,11 +355,9 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
         const glm::dvec3& at = volume_positions[first + i];
         auto& e = events[i];
         e.id = volume_first_id + first + i;
-        auto rng = event_rng(o.seed, e.id);
-        for (int skip = 0; skip < 3; ++skip) uniform01(rng);  // the position's draws
         auto psf = truth.psf(at);
         const ClickSource source{psf.get(), volume_protocol::photons};
-        sample_clicks(std::span(&source, 1), rng, e.clicks);
+        sample_clicks(std::span(&source, 1), volume_rngs[first + i], e.clicks);
       }
       auto estimates = reconstruct(events, 1);
       for (size_t i = 0; i < n; ++i) {

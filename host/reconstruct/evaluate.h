@@ -88,8 +88,6 @@ struct AxisStats {
 };
 AxisStats axis_stats(const std::vector<glm::dvec3>& err_mm, const std::vector<glm::dvec3>& crlb_mm);
 
-// Which continuous model refines the search's answer (refine.h).
-enum class RefineModel { none, scene, dictionary };
 
 struct EvaluationOptions {
   std::vector<std::string> experiments{"single-lines", "photons", "double"};

@@ -103,6 +103,42 @@ TraceSettings refine_trace_settings(unsigned binning) {
   return t;
 }
 
+RefineModel choose_refine_model(const std::string& name, const DictionaryManifest& m, bool scene_given,
+                                const std::string& dictionary_dir) {
+  const bool synthesised = m.rays_per_lenslet > 0;
+  if (name.empty()) return synthesised || scene_given ? RefineModel::scene : RefineModel::dictionary;
+  if (name == "none") return RefineModel::none;
+  if (name == "dictionary") return RefineModel::dictionary;
+  if (name != "scene") throw std::invalid_argument("--model " + name + ": choose scene, dictionary or none");
+  if (!synthesised && !scene_given)
+    throw std::runtime_error(dictionary_dir + " was calibrated, not synthesised: it names no scene to refine with; "
+                             "give --scene, or --model dictionary, or --model none for the search alone");
+  return RefineModel::scene;
+}
+
+std::unique_ptr<SourceModel> make_refine_model(RefineModel choice, const Scene& scene,
+                                               const DictionaryReader& dictionary, int level, vk::Context* ctx) {
+  switch (choice) {
+    case RefineModel::scene:
+      return make_scene_model(scene, refine_trace_settings(unsigned(dictionary.manifest().base_binning << level)),
+                              ctx);
+    case RefineModel::dictionary: return make_dictionary_model(dictionary, level);
+    case RefineModel::none: break;
+  }
+  return nullptr;
+}
+
+std::string describe(RefineModel choice, const Scene& scene) {
+  switch (choice) {
+    case RefineModel::scene:
+      return "scene model " + scene.name + ", footprint " + std::to_string(defaults::refine_rays_per_lenslet) +
+             " cells per lenslet";
+    case RefineModel::dictionary: return "dictionary model: 8 PSFs around each position, cubic shifts, blended";
+    case RefineModel::none: break;
+  }
+  return "none: positions from the dictionary search alone";
+}
+
 RefineBounds RefineBounds::of(const Scene& scene) {
   const Volume& v = scene.volume;
   return {{v.x_min_mm, v.y_min_mm, v.depth_min_mm}, {v.x_max_mm, v.y_max_mm, v.depth_max_mm}};

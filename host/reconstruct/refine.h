@@ -82,6 +82,21 @@ std::unique_ptr<SourceModel> make_scene_model(const Scene& scene, const TraceSet
 // cannot know.
 std::unique_ptr<SourceModel> make_dictionary_model(const DictionaryReader& reader, int level);
 
+// Which continuous model refines the search's answer.
+enum class RefineModel { none, scene, dictionary };
+
+// --model's value ("scene", "dictionary", "none"; "" for the default: scene
+// for a dictionary synthesised from one or when a scene is given, dictionary
+// for a calibrated one). Scene for a calibrated dictionary without a scene
+// is an error that says what to give instead.
+RefineModel choose_refine_model(const std::string& name, const DictionaryManifest& m, bool scene_given,
+                                const std::string& dictionary_dir);
+// The model for `choice` on click level `level` (nullptr for none), and a
+// line saying what it is.
+std::unique_ptr<SourceModel> make_refine_model(RefineModel choice, const Scene& scene,
+                                               const DictionaryReader& dictionary, int level, vk::Context* ctx);
+std::string describe(RefineModel choice, const Scene& scene);
+
 // The refinement's trace settings: footprint cells per lenslet from
 // defaults::refine_rays_per_lenslet at the clicks' binning.
 TraceSettings refine_trace_settings(unsigned binning);
