@@ -3,6 +3,7 @@
 #include <filesystem>
 
 #include "host/cmd/commands.h"
+#include "engine/defaults.h"
 #include "host/cmd/options.h"
 #include "host/dictionary/build.h"
 #include "host/util/progress.h"
@@ -14,7 +15,8 @@ namespace {
 struct BuildArgs {
   std::string scene = "prototype";
   std::string out;
-  std::string grid_x = "-25:25:5", grid_y = "-25:25:5", grid_depth = "5:50:5";
+  std::string grid_x = "-25:25:5", grid_y = "-25:25:5";
+  std::string grid_depth = format_list(defaults::dictionary_depth_planes_mm);
   int binning = 4;
   unsigned rays = 4096;
   SplatOptions splat;
@@ -78,9 +80,10 @@ void add_dictionary_build(CLI::App& dictionary) {
   CLI::App* c = dictionary.add_subcommand("build", "render every grid PSF with the forward model (resumable)");
   c->add_option("--scene", a->scene, "built-in scene or JSON file")->capture_default_str();
   c->add_option("--out", a->out, "dictionary directory (a rerun continues an interrupted build)")->required();
-  c->add_option("--grid-x-mm", a->grid_x, "x positions: A,B,C or FIRST:LAST:STEP")->capture_default_str();
+  c->add_option("--grid-x-mm", a->grid_x, "x positions: A,B,C, FIRST:LAST:STEP or both (0:10:1,12.5,15:50:5)")->capture_default_str();
   c->add_option("--grid-y-mm", a->grid_y, "y positions")->capture_default_str();
-  c->add_option("--grid-depth-mm", a->grid_depth, "depths from the scintillator face")->capture_default_str();
+  c->add_option("--grid-depth-mm", a->grid_depth,
+                "depths from the scintillator face (the default is dense near the face, README \"Dictionary\"; the paper's planes: 5:50:5)")->capture_default_str();
   c->add_option("--binning", a->binning, "level 0 = sensor pixels binned B x B (1: full resolution, 128 MB/PSF in memory)")
       ->capture_default_str()->check(CLI::Range(1, 256));
   c->add_option("--rays", a->rays, "rays per 3 mm lenslet for each PSF")->capture_default_str()->check(CLI::Range(4u, 1u << 24));

@@ -77,25 +77,39 @@ std::vector<double> parse_list(const std::string& text, const std::string& optio
       if (used != s.size() || !std::isfinite(v)) throw std::invalid_argument(s);
       return v;
     } catch (const std::exception&) {
-      throw std::runtime_error(option + ": '" + s + "' is not a number (use A,B,C or FIRST:LAST:STEP)");
+      throw std::runtime_error(option + ": '" + s + "' is not a number (use A,B,C, FIRST:LAST:STEP or both, e.g. 0:10:1,12.5,15:50:5)");
     }
   };
+  auto split = [](const std::string& s, char sep) {
+    std::vector<std::string> parts;
+    std::stringstream ss(s);
+    std::string part;
+    while (std::getline(ss, part, sep)) parts.push_back(part);
+    return parts;
+  };
   std::vector<double> out;
-  if (text.find(':') != std::string::npos) {
-    std::vector<std::string> p;
-    std::stringstream ss(text);
-    std::string part;
-    while (std::getline(ss, part, ':')) p.push_back(part);
-    if (p.size() != 3) throw std::runtime_error(option + ": a range is FIRST:LAST:STEP, got '" + text + "'");
+  for (const std::string& item : split(text, ',')) {
+    if (item.find(':') == std::string::npos) {
+      out.push_back(num(item));
+      continue;
+    }
+    auto p = split(item, ':');
+    if (p.size() != 3) throw std::runtime_error(option + ": a range is FIRST:LAST:STEP, got '" + item + "'");
     double a = num(p[0]), b = num(p[1]), step = num(p[2]);
-    if (!(step > 0) || b < a) throw std::runtime_error(option + ": need FIRST <= LAST and STEP > 0 in '" + text + "'");
+    if (!(step > 0) || b < a) throw std::runtime_error(option + ": need FIRST <= LAST and STEP > 0 in '" + item + "'");
     for (int i = 0; a + i * step <= b + 1e-9 * step; ++i) out.push_back(a + i * step);
-  } else {
-    std::stringstream ss(text);
-    std::string part;
-    while (std::getline(ss, part, ',')) out.push_back(num(part));
   }
   if (out.empty()) throw std::runtime_error(option + ": empty list");
+  return out;
+}
+
+std::string format_list(std::span<const double> values) {
+  std::string out;
+  for (double v : values) {
+    char b[32];
+    std::snprintf(b, sizeof b, "%s%g", out.empty() ? "" : ",", v);
+    out += b;
+  }
   return out;
 }
 

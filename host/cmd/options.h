@@ -1,5 +1,6 @@
 // Options and parsing shared by several subcommands.
 #pragma once
+#include <span>
 #include <string>
 #include <vector>
 
@@ -41,8 +42,11 @@ struct ForwardOptions {
   Backend backend_kind() const { return backend == "cpu" ? Backend::cpu : Backend::vulkan; }
 };
 
-// "0:50:2.5" (first:last:step) or "5,10,25".
+// Comma-separated numbers and FIRST:LAST:STEP ranges: "5,10,25", "0:50:2.5",
+// "0:10:1,12.5,15:50:5".
 std::vector<double> parse_list(const std::string& text, const std::string& option);
+// Values as parse_list reads them back (A,B,C with %g).
+std::string format_list(std::span<const double> values);
 // "X,Y,DEPTH".
 glm::dvec3 parse_point(const std::string& text, const std::string& option);
 

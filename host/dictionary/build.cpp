@@ -45,7 +45,11 @@ void write_manifest(const std::string& dir, const DictionaryManifest& m) {
 DictionaryBuildReport build_dictionary(vk::Context& ctx, const Scene& scene, const std::string& dir,
                                        const DictionaryBuildOptions& o,
                                        const std::function<void(size_t, size_t)>& progress) {
-  if (o.grid.size() == 0) throw DictionaryError(dir + ": the grid has no positions");
+  try {
+    o.grid.validate();
+  } catch (const DictionaryError& e) {
+    throw DictionaryError(dir + ": grid: " + e.what() + "; nothing written");
+  }
   DictionaryManifest wanted = manifest_for(scene, o);
   std::filesystem::create_directories(dir + "/psf");
   if (std::filesystem::exists(dir + "/manifest.json")) {

@@ -12,7 +12,7 @@
 namespace prism {
 
 struct DictionaryBuildOptions {
-  DictionaryGrid grid = DictionaryGrid::paper();
+  DictionaryGrid grid = DictionaryGrid::fine_near_face();
   int base_binning = 4;       // level 0 = sensor binned B x B (1: full resolution)
   unsigned rays_per_lenslet = 4096;
   Splat splat = TraceSettings{}.splat;  // how the forward model's rays become pixel values

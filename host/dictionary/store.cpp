@@ -17,6 +17,7 @@
 #include <filesystem>
 #include <fstream>
 
+#include "engine/defaults.h"
 #include "host/util/image_io.h"
 
 namespace prism {
@@ -66,6 +67,30 @@ DictionaryGrid DictionaryGrid::paper() {
   g.y_mm = g.x_mm;
   for (int i = 1; i <= 10; ++i) g.depth_mm.push_back(5.0 * i);
   return g;
+}
+
+DictionaryGrid DictionaryGrid::fine_near_face() {
+  DictionaryGrid g = paper();
+  g.depth_mm.assign(std::begin(defaults::dictionary_depth_planes_mm), std::end(defaults::dictionary_depth_planes_mm));
+  return g;
+}
+
+void DictionaryGrid::validate() const {
+  auto str = [](double v) {
+    char b[32];
+    std::snprintf(b, sizeof b, "%g", v);
+    return std::string(b);
+  };
+  for (const auto& [name, v] : {std::pair{"x", &x_mm}, {"y", &y_mm}, {"depth", &depth_mm}}) {
+    if (v->empty()) throw DictionaryError(std::string("no ") + name + " positions");
+    for (size_t i = 0; i < v->size(); ++i) {
+      if (!std::isfinite((*v)[i]))
+        throw DictionaryError(name + std::string(" position ") + std::to_string(i + 1) + " is not a number");
+      if (i > 0 && !((*v)[i] > (*v)[i - 1]))
+        throw DictionaryError(name + std::string(" positions must increase, but ") +
+                              str((*v)[i]) + " follows " + str((*v)[i - 1]));
+    }
+  }
 }
 
 std::string DictionaryManifest::file_of(size_t i) const {
@@ -136,7 +161,11 @@ DictionaryManifest DictionaryManifest::from_json(const nlohmann::json& j, const 
   } catch (const std::exception& e) {
     throw fail("(fields)", std::string("missing or malformed: ") + e.what());
   }
-  if (m.grid.size() == 0) throw fail("grid", "has no positions");
+  try {
+    m.grid.validate();
+  } catch (const DictionaryError& e) {
+    throw fail("grid", e.what());
+  }
   if (m.width != ceil_div(m.scene.optics.sensor_width_px, m.base_binning) ||
       m.height != ceil_div(m.scene.optics.sensor_height_px, m.base_binning))
     throw fail("levels.level0_px", "does not match the sensor binned by levels.base_binning");

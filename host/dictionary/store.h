@@ -42,6 +42,13 @@ struct DictionaryGrid {
   // The node nearest to a position, axis by axis (ties to the lower index).
   glm::ivec3 nearest_node(const glm::dvec3& position_mm) const;
   static DictionaryGrid paper();  // 11 x 11 x 10: x, y in -25..25, depth 5..50, 5 mm steps
+  // The default: the paper's nodes, depth planes dense near the face
+  // (defaults::dictionary_depth_planes_mm, 23 planes, 2783 PSFs).
+  static DictionaryGrid fine_near_face();
+  // Throws DictionaryError naming the axis (callers add the file) unless every axis is non-empty,
+  // finite and strictly increasing (the search and the dictionary model
+  // bracket positions between neighbouring nodes).
+  void validate() const;
 };
 
 struct DictionaryManifest {

@@ -116,6 +116,15 @@ TEST_CASE("bad input: the error names the problem and nothing is written") {
   auto d = prism::test::run_prism("crlb --depth-mm 5:1:1");
   CHECK(d.status == 1);
   CHECK(d.output.find("--depth-mm") != std::string::npos);
+  // Lists mix numbers and ranges; a grid that does not increase is refused
+  // before the directory is made.
+  auto g = prism::test::run_prism("dictionary build --out " + dir + "/dict --grid-x-mm 0 --grid-y-mm 0 --grid-depth-mm 1:3:1,2.5");
+  CHECK(g.status == 1);
+  CHECK(g.output.find("depth positions must increase, but 2.5 follows 3") != std::string::npos);
+  CHECK_FALSE(std::filesystem::exists(dir + "/dict"));
+  auto x = prism::test::run_prism("dictionary build --out " + dir + "/dict --grid-depth-mm 1:3:1,x");
+  CHECK(x.status == 1);
+  CHECK(x.output.find("--grid-depth-mm: 'x' is not a number") != std::string::npos);
   auto m = prism::test::run_prism("crlb --scene single-f3 --lens-model real --depth-mm 5");
   CHECK(m.status == 1);
   CHECK(m.output.find("use lens_model thin") != std::string::npos);

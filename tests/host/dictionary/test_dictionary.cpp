@@ -53,6 +53,39 @@ TEST_CASE("the paper's grid: 11 x 11 x 10 = 1210 positions at 5 mm spacing") {
   CHECK(g.position(11) == glm::dvec3(-25, -20, 5));
 }
 
+TEST_CASE("the default grid: the paper's nodes, planes from the face every 1 mm to 12 mm, 5 mm beyond 20") {
+  auto g = prism::DictionaryGrid::fine_near_face();
+  CHECK(g.x_mm == prism::DictionaryGrid::paper().x_mm);
+  CHECK(g.y_mm == g.x_mm);
+  REQUIRE(g.depth_mm.size() == 23);
+  CHECK(g.size() == 11 * 11 * 23);
+  CHECK(g.depth_mm.front() == 0.0);
+  CHECK(g.depth_mm.back() == prism::defaults::volume_depth_mm);
+  for (size_t i = 1; i < g.depth_mm.size(); ++i) {
+    const double step = g.depth_mm[i] - g.depth_mm[i - 1], at = g.depth_mm[i];
+    CHECK(step <= (at <= 12 ? 1.0 : at <= 20 ? 2.5 : 5.0));
+  }
+  CHECK_NOTHROW(g.validate());
+  CHECK_NOTHROW(prism::DictionaryGrid::paper().validate());
+}
+
+TEST_CASE("a grid whose positions do not increase is refused, naming the axis, before anything is written") {
+  auto g = prism::DictionaryGrid::paper();
+  g.depth_mm = {5, 10, 10, 15};
+  CHECK_THROWS_WITH_AS(g.validate(), doctest::Contains("depth positions must increase, but 10 follows 10"),
+                       prism::DictionaryError);
+  g.depth_mm = {5};
+  g.y_mm.clear();
+  CHECK_THROWS_WITH_AS(g.validate(), doctest::Contains("no y positions"), prism::DictionaryError);
+  const std::string dir = (fs::temp_directory_path() / ("prism-dict-badgrid-" + std::to_string(::getpid()))).string();
+  fs::remove_all(dir);
+  prism::DictionaryBuildOptions o;
+  o.grid = {{0.0}, {0.0}, {20.0, 10.0}};
+  CHECK_THROWS_WITH_AS(prism::build_dictionary(prism::test::gpu(), prism::builtin_scene("prototype"), dir, o),
+                       doctest::Contains("grid: depth positions must increase"), prism::DictionaryError);
+  CHECK_FALSE(fs::exists(dir));
+}
+
 TEST_CASE("a synthesised dictionary reads back: level 0 is the normalised PSF within half precision") {
   auto& d = small();
   CHECK(d.first.rendered == 4);
@@ -152,6 +185,11 @@ TEST_CASE("corrupt files, wrong versions and another sensor give errors naming t
   std::ifstream in(manifest);
   auto j = nlohmann::json::parse(in);
   in.close();
+  j["grid"]["x_mm"] = {0.0, -5.0};
+  std::ofstream(manifest) << j.dump();
+  CHECK_THROWS_WITH_AS(prism::DictionaryReader{copy},
+                       doctest::Contains((manifest + ": grid: x positions must increase, but -5 follows 0").c_str()),
+                       prism::DictionaryError);
   j["version"] = 99;
   std::ofstream(manifest) << j.dump();
   CHECK_THROWS_WITH_AS(prism::DictionaryReader{copy}, doctest::Contains("version"), prism::DictionaryError);
@@ -217,7 +255,8 @@ TEST_CASE("streaming serves a dictionary several times larger than its budget") 
 TEST_CASE("the full 1210-PSF prototype dictionary builds, reads back and is tier-consistent") {
   std::string dir = (fs::temp_directory_path() / ("prism-dict-1210-" + std::to_string(::getpid()))).string();
   fs::remove_all(dir);
-  prism::DictionaryBuildOptions o;  // the paper's grid
+  prism::DictionaryBuildOptions o;
+  o.grid = prism::DictionaryGrid::paper();
   o.base_binning = 32;              // 210 x 149 px level 0 keeps the suite quick,
   o.rays_per_lenslet = 256;         // as the point splat does (its storage is tested here)
   o.splat = prism::Splat::point;
