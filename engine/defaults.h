@@ -85,6 +85,10 @@ inline constexpr unsigned refine_rays_per_lenslet = 1024;
 inline constexpr int refine_iterations = 20;       // Levenberg-Marquardt steps per start, at most
 inline constexpr int refine_search_starts = 3;     // the search's runners-up probed per vertex
 inline constexpr int refine_alias_starts = 2;      // lattice aliases probed per vertex
+// A fit flagged poor (p < fit_pvalue_flag) after every start also tries the
+// aliases of its estimate for lattice vectors up to this many pitches (18 in
+// the hex array): near the face the search confuses sources two pitches apart.
+inline constexpr double refine_rescue_alias_pitches = 2.0;
 // The ladder: after the other starts, points every 0.75 mm up to 3 mm along
 // the estimate's weakest direction and along depth, the best 2 probed. On 60
 // events over the prototype's volume 9 ended 1-2.4 mm off in a local optimum

@@ -144,7 +144,7 @@ RefineBounds RefineBounds::of(const Scene& scene) {
   return {{v.x_min_mm, v.y_min_mm, v.depth_min_mm}, {v.x_max_mm, v.y_max_mm, v.depth_max_mm}};
 }
 
-std::vector<glm::dvec2> lattice_vectors(const OpticalSystem& sys) {
+std::vector<glm::dvec2> lattice_vectors(const OpticalSystem& sys, double max_pitches, double min_pitches) {
   const auto& ls = sys.lenslets;
   double nearest = std::numeric_limits<double>::infinity();
   for (size_t i = 0; i < ls.size(); ++i)
@@ -154,7 +154,8 @@ std::vector<glm::dvec2> lattice_vectors(const OpticalSystem& sys) {
   for (size_t i = 0; i < ls.size(); ++i)
     for (size_t j = 0; j < ls.size(); ++j) {
       glm::dvec2 d(ls[j].x_mm - ls[i].x_mm, ls[j].y_mm - ls[i].y_mm);
-      if (i == j || glm::length(d) > nearest * 1.01) continue;
+      const double length = glm::length(d);
+      if (i == j || length > nearest * (max_pitches + 0.01) || length <= nearest * (min_pitches + 0.01)) continue;
       bool seen = false;
       for (const auto& o : out) seen = seen || glm::length(o - d) < 1e-6 * nearest;
       if (!seen) out.push_back(d);
@@ -340,6 +341,7 @@ Refiner::Refiner(SourceModel& model, const Scene& scene, int grid_width, int gri
       width_(grid_width),
       height_(grid_height),
       lattice_mm_(lattice_vectors(scene.optics)),
+      rescue_lattice_mm_(lattice_vectors(scene.optics, defaults::refine_rescue_alias_pitches)),
       lens_to_sensor_mm_(scene.optics.lens_to_sensor_mm),
       working_distance_mm_(scene.optics.working_distance_mm) {
   if (s_.iterations < 1 || s_.alias_starts < 0 || s_.search_starts < 0 || s_.ladder_starts < 0 || s_.pvalue_draws < 1)
@@ -486,6 +488,46 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
     stats_.iterations += uint64_t(taken);
     if (g.nll < f.nll) f = std::move(g);
   };
+  // Candidates for vertex k scored with the weight refitted (one render
+  // each, the position held); the best `n` are probed.
+  auto probe_best = [&](size_t k, const std::vector<glm::dvec3>& cand, int n) {
+    if (cand.empty() || n <= 0) return;
+    auto imgs = model_.render(cand);
+    Fit others = f;
+    others.alpha[k] = 0;
+    const auto background = others.click_rates();
+    std::vector<std::tuple<double, size_t, double>> scored;  // NLL, candidate, alpha
+    for (size_t j = 0; j < cand.size(); ++j) {
+      if (!(imgs[j].photons > 0)) continue;
+      std::vector<double> p(f.clicks.size(), 0.0);
+      for (size_t c = 0; c < f.clicks.size(); ++c)
+        if (const ModelPixel* m = imgs[j].find(f.clicks[c])) p[c] = m->p;
+      std::vector<double> a{f.alpha[k]};
+      const std::vector<double>* cols[] = {&p};
+      const double one = 1.0;
+      const double nll = ref::fit_weights(cols, std::span<const double>(&one, 1), background, a, 60, s_.alpha_max);
+      scored.push_back({nll, j, a[0]});
+    }
+    std::sort(scored.begin(), scored.end());
+    for (size_t t = 0; t < scored.size() && t < size_t(n); ++t)
+      try_start(k, cand[std::get<1>(scored[t])], std::get<2>(scored[t]));
+  };
+  auto inside = [&](glm::dvec3 a) {
+    return glm::all(glm::greaterThanEqual(a, bounds_.lo)) && glm::all(glm::lessThanEqual(a, bounds_.hi));
+  };
+  // Lattice aliases of vertex k: the source moved by a lattice vector times
+  // (D + L) / L (D: source to lens plane, L: lens to sensor) puts every
+  // lenslet image where its neighbour's was.
+  auto aliases = [&](size_t k, const std::vector<glm::dvec2>& lattice, auto&& is_new) {
+    std::vector<glm::dvec3> cand;
+    const double D = f.theta[k].z + working_distance_mm_;
+    for (const auto& v : lattice) {
+      glm::dvec3 a = f.theta[k] + glm::dvec3(v * ((D + lens_to_sensor_mm_) / lens_to_sensor_mm_), 0.0);
+      if (inside(a) && is_new(a)) cand.push_back(a);
+    }
+    return cand;
+  };
+  const bool use_aliases = s_.aliases && !lattice_mm_.empty() && s_.alias_starts > 0;
   for (size_t k = 0; k < f.K; ++k) {
     std::vector<glm::dvec3> tried{f.theta[k]};
     auto is_new = [&](glm::dvec3 p) {
@@ -502,45 +544,7 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
       ++taken;
       try_start(k, p, r.w);
     }
-    // Candidates scored with the weight refitted (one render each, the
-    // position held); the best `n` are probed.
-    auto probe_best = [&](const std::vector<glm::dvec3>& cand, int n) {
-      if (cand.empty() || n <= 0) return;
-      auto imgs = model_.render(cand);
-      Fit others = f;
-      others.alpha[k] = 0;
-      const auto background = others.click_rates();
-      std::vector<std::tuple<double, size_t, double>> scored;  // NLL, candidate, alpha
-      for (size_t j = 0; j < cand.size(); ++j) {
-        if (!(imgs[j].photons > 0)) continue;
-        std::vector<double> p(f.clicks.size(), 0.0);
-        for (size_t c = 0; c < f.clicks.size(); ++c)
-          if (const ModelPixel* m = imgs[j].find(f.clicks[c])) p[c] = m->p;
-        std::vector<double> a{f.alpha[k]};
-        const std::vector<double>* cols[] = {&p};
-        const double one = 1.0;
-        const double nll = ref::fit_weights(cols, std::span<const double>(&one, 1), background, a, 60, s_.alpha_max);
-        scored.push_back({nll, j, a[0]});
-      }
-      std::sort(scored.begin(), scored.end());
-      for (size_t t = 0; t < scored.size() && t < size_t(n); ++t)
-        try_start(k, cand[std::get<1>(scored[t])], std::get<2>(scored[t]));
-    };
-    auto inside = [&](glm::dvec3 a) {
-      return glm::all(glm::greaterThanEqual(a, bounds_.lo)) && glm::all(glm::lessThanEqual(a, bounds_.hi));
-    };
-    if (s_.aliases && !lattice_mm_.empty() && s_.alias_starts > 0) {
-      // Lattice aliases: the source moved by a lattice vector times (D + L) / L
-      // (D: source to lens plane, L: lens to sensor) puts every lenslet image
-      // where its neighbour's was.
-      std::vector<glm::dvec3> cand;
-      const double D = f.theta[k].z + working_distance_mm_;
-      for (const auto& v : lattice_mm_) {
-        glm::dvec3 a = f.theta[k] + glm::dvec3(v * ((D + lens_to_sensor_mm_) / lens_to_sensor_mm_), 0.0);
-        if (inside(a) && is_new(a)) cand.push_back(a);
-      }
-      probe_best(cand, s_.alias_starts);
-    }
+    if (use_aliases) probe_best(k, aliases(k, lattice_mm_, is_new), s_.alias_starts);
     if (s_.ladder_starts > 0) {
       // The ladder: the converged estimate moved along its weakest direction
       // (the position covariance's principal axis, mostly depth) and along
@@ -556,8 +560,20 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
             const glm::dvec3 a = f.theta[k] + u * (sign * j * defaults::refine_ladder_step_mm);
             if (inside(a)) cand.push_back(a);
           }
-      probe_best(cand, s_.ladder_starts);
+      probe_best(k, cand, s_.ladder_starts);
     }
+  }
+
+  double pvalue = fit_pvalue(f, event.id);
+  if (pvalue < defaults::fit_pvalue_flag && s_.rescue && use_aliases && !rescue_lattice_mm_.empty()) {
+    // Rescue of a poor fit: near the face the lenslet images lie about a
+    // sensor width apart and the search also confuses sources two pitches
+    // apart; the aliases of the estimate out to 2 pitches are probed only
+    // here, where they can pay.
+    ++stats_.rescues;
+    for (size_t k = 0; k < f.K; ++k)
+      probe_best(k, aliases(k, rescue_lattice_mm_, [](glm::dvec3) { return true; }), s_.alias_starts);
+    pvalue = fit_pvalue(f, event.id);
   }
 
   // CRLB at the estimate: the inverse of the full Fisher information (all
@@ -566,8 +582,6 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
   f.derivatives(grad, fisher);
   const auto inv = inverse_diagonal(fisher, f.n());
   auto variance_3d = [&](size_t k) { return inv[4 * k] + inv[4 * k + 1] + inv[4 * k + 2]; };
-
-  const double pvalue = fit_pvalue(f, event.id);
 
   // Rows: refined positions, weights, CRLB; flags redone where the
   // refinement decides them (edge, merged, poor_fit, alpha_*).

@@ -106,6 +106,7 @@ struct RefineSettings {
   bool aliases = true;                           // also start from the best vertex's lattice aliases
   int search_starts = defaults::refine_search_starts;  // the search's runners-up probed per vertex
   int alias_starts = defaults::refine_alias_starts;    // lattice aliases probed per vertex (best by first NLL)
+  bool rescue = true;  // a poor fit also tries the aliases out to defaults::refine_rescue_alias_pitches
   int ladder_starts = defaults::refine_ladder_starts;  // ladder points probed per vertex (0: no ladder)
   int pvalue_draws = defaults::fit_pvalue_draws; // Monte Carlo events per goodness-of-fit p-value
   double dark_rate = ReconstructionSettings{}.dark_rate;
@@ -120,6 +121,7 @@ struct RefineBounds {
 
 struct RefineStats {
   uint64_t events = 0, starts = 0, iterations = 0;
+  uint64_t rescues = 0;  // events whose poor fit sent them to the far aliases
   double seconds = 0;
 };
 
@@ -139,13 +141,17 @@ class Refiner {
   RefineSettings s_;
   RefineBounds bounds_;
   int width_, height_;
-  std::vector<glm::dvec2> lattice_mm_;  // lenslet-lattice vectors (nearest neighbours)
+  std::vector<glm::dvec2> lattice_mm_;      // lenslet-lattice vectors (nearest neighbours)
+  std::vector<glm::dvec2> rescue_lattice_mm_;  // those up to 2 pitches, for the rescue of a poor fit
   double lens_to_sensor_mm_, working_distance_mm_;
   RefineStats stats_;
 };
 
-// The lenslet lattice's nearest-neighbour vectors (each direction once and
-// its negative): for the prototype's hex array, six vectors of the 4 mm pitch.
-std::vector<glm::dvec2> lattice_vectors(const OpticalSystem& sys);
+// The lenslet lattice's vectors longer than `min_pitches` and at most
+// `max_pitches` times the nearest-neighbour distance, each once (a vector and
+// its negative both). The default, the nearest neighbours: for the
+// prototype's hex array six vectors of the 4 mm pitch; (2, 1) adds the six
+// of sqrt(3) and the six of 2 pitches.
+std::vector<glm::dvec2> lattice_vectors(const OpticalSystem& sys, double max_pitches = 1.0, double min_pitches = 0.0);
 
 }  // namespace prism

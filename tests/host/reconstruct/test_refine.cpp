@@ -71,6 +71,11 @@ TEST_CASE("refinement: lattice vectors are the lenslets' nearest neighbours") {
   auto hex = prism::lattice_vectors(prism::builtin_scene("prototype").optics);
   CHECK(hex.size() == 6);
   for (auto v : hex) CHECK(glm::length(v) == doctest::Approx(prism::defaults::lenslet_pitch_mm));
+  auto wide = prism::lattice_vectors(prism::builtin_scene("prototype").optics, 2.0);
+  CHECK(wide.size() == 18);  // 6 of 1 pitch, 6 of sqrt(3), 6 of 2
+  auto ring2 = prism::lattice_vectors(prism::builtin_scene("prototype").optics, 2.0, 1.0);
+  CHECK(ring2.size() == 12);
+  for (auto v : ring2) CHECK(glm::length(v) > 1.5 * prism::defaults::lenslet_pitch_mm);
   auto row = prism::lattice_vectors(small_scene().optics);  // one row: +-x only
   REQUIRE(row.size() == 2);
   CHECK(std::abs(row[0].y) < 1e-12);
@@ -154,6 +159,27 @@ TEST_CASE("refinement: a start on a lattice alias comes back to the truth") {
   CAPTURE(with[0].x_mm);
   CHECK(glm::length(glm::dvec3(with[0].x_mm, with[0].y_mm, with[0].depth_mm) - at) < 0.5);
   CHECK(with[0].nll < without[0].nll);
+}
+
+TEST_CASE("refinement: a poor fit two pitches off is rescued by the far aliases") {
+  // Near the face a source two pitches away makes a look-alike the nearest
+  // aliases cannot reach (from +2 pitches they try +1 and +3).
+  const glm::dvec3 at(0.6, 0.3, 4.5);
+  const auto& o = small_scene().optics;
+  const double scale = (at.z + o.working_distance_mm + o.lens_to_sensor_mm) / o.lens_to_sensor_mm;
+  const glm::dvec3 alias = at + glm::dvec3(2 * prism::defaults::lenslet_pitch_mm * scale, 0, 0);
+  auto e = make_event({{at, 300}}, 8);
+  auto stuck = refine(e, {row(alias, 300)}, true, {.rescue = false});
+  auto rescued = refine(e, {row(alias, 300)}, true);
+  CAPTURE(stuck[0].x_mm);
+  CAPTURE(stuck[0].fit_pvalue);
+  CAPTURE(rescued[0].x_mm);
+  CHECK(glm::length(glm::dvec3(stuck[0].x_mm, stuck[0].y_mm, stuck[0].depth_mm) - at) > 3);
+  CHECK((stuck[0].flags & prism::poor_fit) != 0);
+  CHECK(glm::length(glm::dvec3(rescued[0].x_mm, rescued[0].y_mm, rescued[0].depth_mm) - at) < 0.5);
+  CHECK((rescued[0].flags & prism::poor_fit) == 0);
+  CHECK(rescued[0].nll < stuck[0].nll);
+  prism::test::check_validation_clean();
 }
 
 TEST_CASE("refinement: two vertices jointly, and the goodness of fit") {
