@@ -145,7 +145,7 @@ TEST_CASE("sweep: the same seed gives the same ranking, another seed another seq
   TempDir dir;
   auto space = row_space(dir);
   auto run = [&](const std::string& name, uint64_t seed) {
-    prism::Sweep s(space, tiny(9, seed), dir.file(name));
+    prism::Sweep s(space, tiny(6, seed), dir.file(name));
     s.run(&prism::test::gpu());
     return s;
   };
@@ -163,8 +163,8 @@ TEST_CASE("sweep: an interrupted sweep keeps its designs and resumes to the same
   TempDir dir;
   auto space = row_space(dir);
   // Candidates are scored a batch at a time: a stop keeps whole batches.
-  auto settings = tiny(9, 5);
-  settings.batch = 3;
+  auto settings = tiny(6, 5);
+  settings.batch = 2;
   prism::Sweep full(space, settings, dir.file("full.jsonl"));
   full.run(&prism::test::gpu());
 
@@ -176,7 +176,7 @@ TEST_CASE("sweep: an interrupted sweep keeps its designs and resumes to the same
     first.run(&prism::test::gpu(), [&] { return seen >= 4; }, [&](const prism::Evaluated&, size_t done) { seen = done; });
     kept = first.evaluated().size();
     CHECK(kept >= 4);
-    CHECK(kept < 9);
+    CHECK(kept < settings.budget);
   }
   // A kill while appending leaves at most a torn last line: dropped on restart.
   std::ofstream(state, std::ios::app) << "{\"key\": \"L0 f0";
@@ -184,7 +184,7 @@ TEST_CASE("sweep: an interrupted sweep keeps its designs and resumes to the same
   CHECK(second.evaluated().size() == kept);
   second.run(&prism::test::gpu());
   CHECK(second.replayed() == kept);
-  CHECK(second.evaluated().size() == 9);
+  CHECK(second.evaluated().size() == settings.budget);
   CHECK(ranked_keys(second) == ranked_keys(full));
 
   // Other trace settings cannot share the state.
