@@ -2,10 +2,12 @@
 // after the support search has put each vertex near a dictionary node, all K
 // vertices, (x, y, depth, alpha) each, are fitted jointly on the binary
 // sensor's sparse likelihood with the scene's own forward model, which gives
-// the PSF and its derivatives at any position. The search's 5 mm planes and
-// lateral nodes stop mattering; what is left is the likelihood's own
-// ambiguity, which the refinement meets by starting from the search's answer,
-// its runners-up and the lenslet-lattice aliases, and keeping the best.
+// the PSF and its derivatives at any position. The search's planes and
+// lateral nodes stop mattering once it has found the right basin; what is
+// left is the likelihood's own ambiguity, which the refinement meets by
+// starting from the search's answer, its runners-up, the lenslet-lattice
+// aliases and a ladder along the weakest direction, keeping the best, and by
+// trying the aliases out to 2 pitches when the fit is still poor.
 //
 // The model of one vertex: P(theta) = b(theta) / sum(b(theta)), b the forward
 // model's expected photons on the click grid, so P sums to 1 on the sensor
