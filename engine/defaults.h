@@ -74,7 +74,6 @@ inline constexpr double crlb_convergence_tol = 0.01;       // relative change of
 // grows like 1 / D). Planes every 1 mm to 12 mm, 1.5-2.5 mm to 20 mm, then
 // 5 mm: on 40 thin-lens events at depth 2..12 mm with the refinement the
 // catastrophic rate fell from 60% (5 mm planes) to 10% (README "Accuracy").
-inline constexpr double dictionary_node_step_mm = 5.0;
 inline constexpr double dictionary_depth_planes_mm[] = {0,  1,  2,  3,  4,    5,  6,    7,  8,  9,  10, 11,
                                                         12, 13.5, 15, 17.5, 20, 25, 30, 35, 40, 45, 50};
 
