@@ -153,7 +153,7 @@ struct ForwardVulkan::Impl {
     vk::Kernel split, split_values, cut, cut_values;
     List splits, cuts;
     uint32_t chunks = 1;  // the first pass over the cells in this many chunks (record_splat)
-    Footprint(vk::Context& c, const OpticalSystem& sys)
+    Footprint(vk::Context& c, const OpticalSystem& sys, uint32_t first_capacity)
         : split(c, "psf_footprint_split", spirv(spv_psf_footprint_split), 7, sizeof(shared::TraceParams),
                 specialisation(sys, true)),
           split_values(c, "psf_footprint_split (values)", spirv(spv_psf_footprint_split), 7,
@@ -162,8 +162,8 @@ struct ForwardVulkan::Impl {
               specialisation(sys, true)),
           cut_values(c, "psf_footprint_cut (values)", spirv(spv_psf_footprint_cut), 7, sizeof(shared::TraceParams),
                      specialisation(sys, false)) {
-      splits.grow(c, 1u << 14);
-      cuts.grow(c, 1u << 14);
+      splits.grow(c, first_capacity);
+      cuts.grow(c, first_capacity);
     }
   };
   std::unique_ptr<Footprint> footprint;
@@ -219,8 +219,9 @@ struct ForwardVulkan::Impl {
     if (band_rows == 0) throw vk::Error("one sensor row does not fit in a storage buffer");
     uint64_t image_bytes = row_bytes * band_rows;
     sources_per_batch = uint32_t(std::clamp<uint64_t>(cap / image_bytes, 1, 65535));
-    list_limit_bytes = std::max<uint64_t>(cap, 1u << 20);
-    if (t.splat == Splat::footprint) footprint = std::make_unique<Footprint>(c, sys);
+    list_limit_bytes = std::max<uint64_t>(cap, 64u << 10);
+    if (t.splat == Splat::footprint)
+      footprint = std::make_unique<Footprint>(c, sys, uint32_t(std::min<uint64_t>(1u << 14, max_list_entries())));
   }
 
   // Record the splat of the dispatch's sources (p.source_offset, count) into
@@ -244,10 +245,10 @@ struct ForwardVulkan::Impl {
                       &q, groups_x, groups_y);
     };
     // The lists of a dispatch can outgrow a storage buffer (many sources, a
-    // real lens's rim cells split 64 ways): then the cells are taken in
+    // real lens's rim cells split in up to 64 pieces): then the cells are taken in
     // chunks, each with lists that fit. An overflow grows the lists (or, at
     // the limit, doubles the chunks) and starts again from a zeroed image.
-    const uint64_t max_entries = (list_limit_bytes - 16) / 16;
+    const uint64_t max_entries = max_list_entries();
     double ms = 0;
     for (;;) {
       const uint32_t per_chunk = uint32_t((uint64_t(params.total_rays) + f.chunks - 1) / f.chunks);
@@ -262,12 +263,20 @@ struct ForwardVulkan::Impl {
         stream.barrier();
         dispatch(main, q, splat_groups(q.cell_count), p.source_count);
         ms += stream.submit();
-        const uint32_t split_count = f.splits.count();
+        // The split, a level per pass: each pass takes the entries the one
+        // before it listed and lists the large children after them.
+        uint32_t split_count = f.splits.count();
         uint32_t cut_count = f.cuts.count();
-        if (split_count <= f.splits.capacity && cut_count <= f.cuts.capacity && split_count > 0) {
+        q.split_first = 0;
+        for (int level = 0; level < shared::SPLIT_DEPTH && q.split_first < split_count &&
+                            split_count <= f.splits.capacity && cut_count <= f.cuts.capacity;
+             ++level) {
+          q.split_end = split_count;
           stream.barrier();
-          dispatch(derivatives ? f.split : f.split_values, q, groups(split_count), 1);
+          dispatch(derivatives ? f.split : f.split_values, q, groups(q.split_end - q.split_first), 1);
           ms += stream.submit();
+          q.split_first = q.split_end;
+          split_count = f.splits.count();
           cut_count = f.cuts.count();  // with the split pieces' cuts
         }
         if (split_count > f.splits.capacity || cut_count > f.cuts.capacity) {
@@ -294,6 +303,8 @@ struct ForwardVulkan::Impl {
       stream.fill_zero(images);
     }
   }
+
+  uint64_t max_list_entries() const { return (list_limit_bytes - 16) / 16; }
 
   uint32_t bands() const { return (uint32_t(params.grid_h) + band_rows - 1) / band_rows; }
 

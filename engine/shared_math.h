@@ -15,5 +15,5 @@ using uint = unsigned int;
 
 static_assert(sizeof(Lenslet) == 48, "Lenslet must match its std430 layout");
 static_assert(sizeof(DesignRange) == 16, "DesignRange must match its std430 layout");
-static_assert(sizeof(TraceParams) == 84, "TraceParams must match its std430 push-constant layout");
+static_assert(sizeof(TraceParams) == 92, "TraceParams must match its std430 push-constant layout");
 }  // namespace prism::shared

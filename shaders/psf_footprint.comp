@@ -70,16 +70,13 @@ void main() {
       bool large = max(u_hi - u_lo, v_hi - v_lo) > LARGE_TRIANGLE_PX;
       if (!(a.ok || b.ok || c.ok) || off) continue;
       if (large || edge) {
-        // A large one as an entry per piece it may split into (footprint.glsl), others as one.
-        uint pieces = large ? SPLIT_ENTRIES : 1u;
-        uint at = atomicAdd(split_count, pieces);
-        for (uint leaf = 0u; leaf < pieces && at + leaf < split_capacity; ++leaf)
-          splits[at + leaf] = uvec4(s, lens_index, cell, t | (leaf << 1u));
+        uint at = atomicAdd(split_count, 1u);
+        if (at < split_capacity) splits[at] = uvec4(s, lens_index, cell, piece_code(t, 0u, 0u));
         continue;
       }
       if (cut) {
         uint at = atomicAdd(cut_count, 1u);
-        if (at < cut_capacity) cuts[at] = uvec4(s, lens_index, cell, t);
+        if (at < cut_capacity) cuts[at] = uvec4(s, lens_index, cell, piece_code(t, 0u, 0u));
         continue;
       }
       Dual w = d_scale(d_add(d_add(a.w, b.w), c.w), half_area / 3.0f);

@@ -1,37 +1,65 @@
-// Footprint splatting, the split pass: the triangles psf_footprint.comp
-// leaves in its split list, large ones (split, footprint.glsl) and those over
-// a partial last column or row at the sensor's far edge (clipped to it,
-// footprint_pieces.glsl). One invocation per entry; a large triangle has an
-// entry for each piece it may split into (SPLIT_ENTRIES), so that one
-// invocation's work stays bounded. A piece with stopped corners goes on to
-// the cut list (psf_footprint_cut.comp).
+// Footprint splatting, the split pass, one level of the split per dispatch:
+// the pieces psf_footprint.comp (level 0) or the previous level left in the
+// split list, entries [split_first, split_end). A large piece is split in
+// four (footprint.glsl); each child still large goes back on the list for
+// the next level, the others are given to the pixels here. So only pieces
+// that exist are traced, and one invocation rasterises at most four, which
+// keeps its loops short (lavapipe ends a shader's loops, silently, after
+// 65535 iterations in all per batch of invocations). Pieces over the
+// sensor's far edge are clipped to it (footprint_pieces.glsl); a piece with
+// stopped corners goes on to the cut list (psf_footprint_cut.comp).
 #version 460
 #extension GL_GOOGLE_include_directive : require
 #extension GL_EXT_shader_atomic_float : require
 #define PRISM_FN
 #include "footprint_pieces.glsl"
-
 layout(local_size_x = 64) in;
 
+// A piece not split further: clipped and rasterised, or listed for the cut
+// pass when some of its corners' rays are stopped.
+void give_piece(uvec4 entry, Piece t, uint image_base, float blur_px, uint half_offset) {
+  int passed = int(t.a.ok) + int(t.b.ok) + int(t.c.ok);
+  if (passed == 0) return;
+  if (passed < 3) {
+    uint at = atomicAdd(cut_count, 1u);
+    if (at < cut_capacity) cuts[at] = entry;
+    return;
+  }
+  // (Still large after the last split: at its centroid, in rasterise_clipped.)
+  rasterise_clipped(image_base, t.a, t.b, t.c, d_scale(d_add(d_add(t.a.w, t.b.w), t.c.w), t.area_mm2 / 3.0f),
+                    blur_px, half_offset);
+}
+
 void main() {
-  uint total = min(split_count, split_capacity);
+  uint end = min(P.split_end, split_capacity);
   uint stride = gl_NumWorkGroups.x * gl_WorkGroupSize.x;
-  for (uint e = gl_GlobalInvocationID.x; e < total; e += stride) {
+  for (uint e = P.split_first + gl_GlobalInvocationID.x; e < end; e += stride) {
+    uvec4 entry = splits[e];
     Piece t;
     vec3 from;
     Lenslet lens;
     uint image_base, half_offset;
     float blur_px;
-    if (!listed_piece(splits[e], t, from, lens, image_base, half_offset, blur_px)) continue;
-    int passed = int(t.a.ok) + int(t.b.ok) + int(t.c.ok);
-    if (passed == 0) continue;
-    if (passed < 3) {
-      uint at = atomicAdd(cut_count, 1u);
-      if (at < cut_capacity) cuts[at] = splits[e];
+    listed_piece(entry, t, from, lens, image_base, half_offset, blur_px);
+    uint depth = piece_depth(entry.w);
+    if (!is_split(t, int(depth))) {  // over the far edge only
+      give_piece(entry, t, image_base, blur_px, half_offset);
       continue;
     }
-    // (Still large after the last split: at its centroid, in rasterise_clipped.)
-    rasterise_clipped(image_base, t.a, t.b, t.c, d_scale(d_add(d_add(t.a.w, t.b.w), t.c.w), t.area_mm2 / 3.0f),
-                      blur_px, half_offset);
+    Corner ab = trace_corner(from, lens, 0.5f * (t.pa + t.pb));
+    Corner bc = trace_corner(from, lens, 0.5f * (t.pb + t.pc));
+    Corner ca = trace_corner(from, lens, 0.5f * (t.pc + t.pa));
+    uint tri = piece_triangle(entry.w);
+    uint path = piece_path(entry.w);
+    for (uint k = 0u; k < 4u; ++k) {
+      Piece child = child_piece(t, ab, bc, ca, k);
+      uvec4 child_entry = uvec4(entry.xyz, piece_code(tri, path | (k << (2u * depth)), depth + 1u));
+      if (is_split(child, int(depth) + 1)) {
+        uint at = atomicAdd(split_count, 1u);
+        if (at < split_capacity) splits[at] = child_entry;
+      } else {
+        give_piece(child_entry, child, image_base, blur_px, half_offset);
+      }
+    }
   }
 }

@@ -74,15 +74,11 @@ const float THIN_TRIANGLE = 0.01f;
 // strong lens's rim, a fold) is split into four at its aperture edges'
 // midpoints, up to SPLIT_DEPTH times: more rays where the light needs them.
 // A piece still that large at the last level gives its light to the pixel of
-// its centroid.
+// its centroid. The split pass takes one level at a time (one piece per
+// invocation, its children that are still large listed for the next), so
+// only the pieces that exist are traced.
 const float LARGE_TRIANGLE_PX = 16.0f;
 const int SPLIT_DEPTH = 3;
-// A large triangle goes to the second pass as one entry for each piece it
-// may split into (a path through the splits), one invocation each. That
-// bounds one invocation's work: lavapipe ends a shader's loops, silently,
-// after 65535 iterations in all (per batch of invocations, over every loop),
-// which a whole split triangle of 64 rasterised pieces can exceed.
-const uint SPLIT_ENTRIES = 1u << (2 * SPLIT_DEPTH);
 
 // The aperture area (mm^2) one of a cell's two triangles carries: half of
 // the cell's, which is an equal share of the disc (the concentric map

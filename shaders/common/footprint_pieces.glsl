@@ -164,10 +164,9 @@ bool is_split(Piece t, int depth) {
 }
 
 // The piece of list entry `entry` (footprint_raster.glsl): its triangle
-// split along the entry's path while large. False where the piece belongs
-// to another entry of the same triangle (one whose remaining path digits are
-// 0); `from` is the cell's source point.
-bool listed_piece(uvec4 entry, out Piece t, out vec3 from, out Lenslet lens, out uint image_base,
+// split along the entry's path (piece_code); `from` is the cell's source
+// point.
+void listed_piece(uvec4 entry, out Piece t, out vec3 from, out Lenslet lens, out uint image_base,
                   out uint half_offset, out float blur_px) {
   uint s = entry.x;
   DesignRange design = designs[source_design[P.source_offset + s]];
@@ -177,13 +176,14 @@ bool listed_piece(uvec4 entry, out Piece t, out vec3 from, out Lenslet lens, out
   uint n = lens.strata;
   uint i = cell % n;
   uint j = cell / n;
-  uint path = entry.w >> 1u;  // base 4, first split in the lowest digit
+  uint path = piece_path(entry.w);
+  uint depth = piece_depth(entry.w);
   image_base = s * uint(P.grid_w) * uint(P.band_rows) * PIXEL_FLOATS;
   half_offset = 1u + 3u * ((i + j) & 1u);
   blur_px = DIFFRACTION ? airy_sigma_px(lens) : 0.0f;
   float turn = strata_turn(in_design, P.stratification);
   from = cell_source(sources[P.source_offset + s].xyz, in_design, cell);
-  CellTriangle tri = cell_triangle(i, j, n, entry.w & 1u);
+  CellTriangle tri = cell_triangle(i, j, n, piece_triangle(entry.w));
   t.pa = aperture_corner(i + tri.ab.x, j + tri.ab.y, n, turn);
   t.pb = aperture_corner(i + tri.ab.z, j + tri.ab.w, n, turn);
   t.pc = aperture_corner(i + tri.c.x, j + tri.c.y, n, turn);
@@ -191,14 +191,13 @@ bool listed_piece(uvec4 entry, out Piece t, out vec3 from, out Lenslet lens, out
   t.b = trace_corner(from, lens, t.pb);
   t.c = trace_corner(from, lens, t.pc);
   t.area_mm2 = half_cell_area_mm2(lens.radius_mm, n);
-  for (int depth = 0; is_split(t, depth); ++depth) {
+  for (uint d = 0u; d < depth; ++d) {
     Corner ab = trace_corner(from, lens, 0.5f * (t.pa + t.pb));
     Corner bc = trace_corner(from, lens, 0.5f * (t.pb + t.pc));
     Corner ca = trace_corner(from, lens, 0.5f * (t.pc + t.pa));
     t = child_piece(t, ab, bc, ca, path & 3u);
     path >>= 2u;
   }
-  return path == 0u;
 }
 
 #endif

@@ -25,9 +25,10 @@
 #include "splat_image.glsl"
 
 // Triangles the common path leaves to the later passes, each list a count,
-// its capacity, then (source in dispatch, lens index, cell index, triangle |
-// path << 1) per entry (the path: footprint.glsl, SPLIT_ENTRIES). Splits:
-// large triangles and those over the sensor's far edge
+// its capacity, then (source in dispatch, lens index, cell index, piece
+// code) per entry; the code names one of the cell's two triangles and the
+// piece of its split (piece_code). Splits: large triangles and those over
+// the sensor's far edge, then the large pieces of each level of the split
 // (psf_footprint_split.comp). Cuts: triangles and pieces some of whose
 // corners' rays are stopped (psf_footprint_cut.comp).
 layout(std430, binding = 5) buffer Splits {
@@ -44,6 +45,14 @@ layout(std430, binding = 6) buffer Cuts {
   uint cut_pad1;
   uvec4 cuts[];
 };
+
+// A piece of triangle `t` (0 or 1) of a cell: split `depth` times, taking
+// child `path & 3` at the first split, `(path >> 2) & 3` at the second, and
+// so on (child_piece, footprint_pieces.glsl).
+uint piece_code(uint t, uint path, uint depth) { return t | (path << 1u) | (depth << (1u + 2u * uint(SPLIT_DEPTH))); }
+uint piece_triangle(uint code) { return code & 1u; }
+uint piece_path(uint code) { return (code >> 1u) & ((1u << (2u * uint(SPLIT_DEPTH))) - 1u); }
+uint piece_depth(uint code) { return code >> (1u + 2u * uint(SPLIT_DEPTH)); }
 
 // A traced corner: landing point in grid pixels (u, v from the sensor's
 // top-left corner), weight density (photons per mm^2 of aperture), and

@@ -64,6 +64,8 @@ struct TraceParams {
   float airy_sigma_mm_times_diameter;  // effect diffraction: sigma of a lenslet's Airy core times its diameter (mm^2)
   uint cell_first;            // footprint: the cells of this pass, [cell_first, cell_first + cell_count)
   uint cell_count;
+  uint split_first;           // footprint split pass: its level's list entries, [split_first, split_end)
+  uint split_end;
 };
 
 // A ray on its way to the sensor, with the photons it carries.
