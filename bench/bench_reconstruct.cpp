@@ -101,8 +101,8 @@ Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, c
     r.out = rec.run(events);
     if (model) {
       RefineSettings rs;
-      if (c.refine == 1) rs.aliases = false, rs.search_starts = 0;
-      Refiner refiner(*model, reader.manifest().scene, reader.manifest().level_width(0), reader.manifest().level_height(0), rs);
+      if (c.refine == 1) rs.aliases = false, rs.search_starts = 0, rs.ladder_starts = 0, rs.lattice_scan = false;
+      Refiner refiner(*model, reader.manifest().scene, reader.manifest().level_grid(0), rs);
       for (size_t i = 0; i < events.size(); ++i) r.out[i] = refiner.refine(events[i], std::move(r.out[i]));
     }
     double t = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();

@@ -88,6 +88,13 @@ inline constexpr int refine_alias_starts = 2;      // lattice aliases probed per
 // aliases of its estimate for lattice vectors up to this many pitches (18 in
 // the hex array): near the face the search confuses sources two pitches apart.
 inline constexpr double refine_rescue_alias_pitches = 2.0;
+// A fit this poor or worse (p-value) also scans the lattice that its clicks
+// vote for (host/reconstruct/click_geometry.h): every alias site of the best
+// voted position, one render each. Near the face a wrong fit of the real
+// lenses' prototype scored p 0.001-0.034 with an NLL ~270 above the truth's;
+// ordinary events fall below it 5% of the time.
+inline constexpr double refine_lattice_scan_pvalue = 0.05;
+inline constexpr int refine_lattice_scan_depths = 3;  // the best voted depths tried, while the fit stays below it
 // The ladder: after the other starts, points every 0.75 mm up to 3 mm along
 // the estimate's weakest direction and along depth, the best 2 probed. On 60
 // events over the prototype's volume 9 ended 1-2.4 mm off in a local optimum

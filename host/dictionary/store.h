@@ -69,6 +69,7 @@ struct DictionaryManifest {
   double pixel_mm(int level) const;
   int level_width(int level) const;
   int level_height(int level) const;
+  AnalysisGrid level_grid(int level) const { return {level_width(level), level_height(level), pixel_mm(level)}; }
   nlohmann::json to_json() const;
   static DictionaryManifest from_json(const nlohmann::json& j, const std::string& path);
 };

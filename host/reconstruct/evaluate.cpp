@@ -269,7 +269,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
     RefineSettings rs = o.refine;
     rs.dark_rate = s.dark_rate;
     rs.alpha_max = s.alpha_max;
-    refiner = std::make_unique<Refiner>(*source_model, scene, m.level_width(o.level), m.level_height(o.level), rs);
+    refiner = std::make_unique<Refiner>(*source_model, scene, m.level_grid(o.level), rs);
   }
 
   Evaluation result;

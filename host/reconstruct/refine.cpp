@@ -10,6 +10,7 @@
 
 #include "engine/ref/forward_ref.h"
 #include "engine/ref/likelihood_ref.h"
+#include "host/reconstruct/click_geometry.h"
 
 namespace prism {
 
@@ -333,12 +334,12 @@ glm::dvec3 largest_eigenvector(const glm::dmat3& c) {
 
 }  // namespace
 
-Refiner::Refiner(SourceModel& model, const Scene& scene, int grid_width, int grid_height, RefineSettings settings)
+Refiner::Refiner(SourceModel& model, const Scene& scene, const AnalysisGrid& clicks, RefineSettings settings)
     : model_(model),
       s_(settings),
       bounds_(RefineBounds::of(scene)),
-      width_(grid_width),
-      height_(grid_height),
+      optics_(scene.optics),
+      grid_(clicks),
       lattice_mm_(lattice_vectors(scene.optics)),
       rescue_lattice_mm_(lattice_vectors(scene.optics, defaults::refine_rescue_alias_pitches)),
       lens_to_sensor_mm_(scene.optics.lens_to_sensor_mm),
@@ -436,7 +437,7 @@ double Refiner::fit_pvalue(const Fit& f, uint64_t event_id) const {
     p_click.push_back(-std::expm1(-l));
     term.push_back(click_term(l));
   }
-  const double dark_pixels = std::max(0.0, double(width_) * double(height_) - double(lam.size()));
+  const double dark_pixels = std::max(0.0, double(grid_.width) * double(grid_.height) - double(lam.size()));
   std::mt19937_64 rng(0x9e3779b97f4a7c15ull ^ event_id);
   std::uniform_real_distribution<double> U(0.0, 1.0);
   std::poisson_distribution<int> dark_draw(dark_pixels * -std::expm1(-s_.dark_rate));
@@ -453,6 +454,9 @@ double Refiner::fit_pvalue(const Fit& f, uint64_t event_id) const {
 std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector<ReconstructedVertex> rows) {
   constexpr int kProbeSteps = 4;            // LM steps before a start is judged
   constexpr double kDistinctStartMm = 1.0;  // starts closer than this to one tried are skipped
+  // The lattice scan's sites are tried moved by up to this many click-grid
+  // pixels: 0.2 mm of source at the face (magnification 3.7) for 110 um pixels.
+  constexpr int kLatticeReachPx = 6;
   const auto start_time = std::chrono::steady_clock::now();
   ++stats_.events;
   // Vertices worth refining: those the search gave light to.
@@ -489,23 +493,44 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
   };
   // Candidates for vertex k scored with the weight refitted (one render
   // each, the position held); the best `n` are probed.
-  auto probe_best = [&](size_t k, const std::vector<glm::dvec3>& cand, int n) {
+  // Candidates for vertex k scored with the weight refitted (one render
+  // each); the best `n` are probed. With reach_px > 0 each image is also
+  // tried moved by up to that many whole pixels (a source moved laterally by
+  // -shift / magnification, near enough), and the candidate moved with the
+  // best: sites predicted a few tenths of a mm off, where sharp images
+  // near the face score as badly as wrong ones.
+  auto probe_best = [&](size_t k, std::vector<glm::dvec3> cand, int n, int reach_px = 0) {
     if (cand.empty() || n <= 0) return;
     auto imgs = model_.render(cand);
     Fit others = f;
     others.alpha[k] = 0;
     const auto background = others.click_rates();
     std::vector<std::tuple<double, size_t, double>> scored;  // NLL, candidate, alpha
+    std::vector<double> p(f.clicks.size());
     for (size_t j = 0; j < cand.size(); ++j) {
       if (!(imgs[j].photons > 0)) continue;
-      std::vector<double> p(f.clicks.size(), 0.0);
-      for (size_t c = 0; c < f.clicks.size(); ++c)
-        if (const ModelPixel* m = imgs[j].find(f.clicks[c])) p[c] = m->p;
-      std::vector<double> a{f.alpha[k]};
-      const std::vector<double>* cols[] = {&p};
-      const double one = 1.0;
-      const double nll = ref::fit_weights(cols, std::span<const double>(&one, 1), background, a, 60, s_.alpha_max);
-      scored.push_back({nll, j, a[0]});
+      std::tuple<double, size_t, double> best{std::numeric_limits<double>::infinity(), j, 0.0};
+      glm::ivec2 best_shift(0);
+      for (int sy = -reach_px; sy <= reach_px; ++sy)
+        for (int sx = -reach_px; sx <= reach_px; ++sx) {
+          for (size_t c = 0; c < f.clicks.size(); ++c) {
+            const int col = int(f.clicks[c] % uint32_t(grid_.width)) - sx, row = int(f.clicks[c] / uint32_t(grid_.width)) - sy;
+            const ModelPixel* m = col >= 0 && row >= 0 && col < grid_.width && row < grid_.height
+                                      ? imgs[j].find(uint32_t(row) * uint32_t(grid_.width) + uint32_t(col))
+                                      : nullptr;
+            p[c] = m ? m->p : 0.0;
+          }
+          std::vector<double> a{f.alpha[k]};
+          const std::vector<double>* cols[] = {&p};
+          const double one = 1.0;
+          const double nll = ref::fit_weights(cols, std::span<const double>(&one, 1), background, a, 60, s_.alpha_max);
+          if (nll < std::get<0>(best)) best = {nll, j, a[0]}, best_shift = {sx, sy};
+        }
+      if (best_shift != glm::ivec2(0))
+        cand[j] = glm::clamp(cand[j] - glm::dvec3(glm::dvec2(best_shift) * grid_.pixel_mm /
+                                                      optics_.magnification(cand[j].z), 0.0),
+                             bounds_.lo, bounds_.hi);
+      scored.push_back(best);
     }
     std::sort(scored.begin(), scored.end());
     for (size_t t = 0; t < scored.size() && t < size_t(n); ++t)
@@ -573,6 +598,47 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
     for (size_t k = 0; k < f.K; ++k)
       probe_best(k, aliases(k, rescue_lattice_mm_, [](glm::dvec3) { return true; }), s_.alias_starts);
     pvalue = fit_pvalue(f, event.id);
+  }
+  if (pvalue < defaults::refine_lattice_scan_pvalue && s_.lattice_scan && !lattice_mm_.empty()) {
+    // The lattice scan: near the face the search can miss the source's
+    // depth altogether (click_geometry.h). The clicks' votes give a depth
+    // and one site of the alias lattice, a few tenths of a mm off: fitted
+    // there, it lands on that site's optimum, and from it every site inside
+    // the field gets a render, the best are probed. The next best voted
+    // depth is tried while the fit stays poor or marginal.
+    ++stats_.lattice_scans;
+    glm::dvec2 a = lattice_mm_[0], b{};
+    for (const auto& v : lattice_mm_)
+      if (std::abs(a.x * v.y - a.y * v.x) > 1e-6 * glm::dot(a, a)) b = v;
+    const auto peaks =
+        vote_source_positions(optics_, grid_, f.clicks, bounds_.lo, bounds_.hi, defaults::refine_lattice_scan_depths);
+    for (size_t q = 0; q < peaks.size() && pvalue < defaults::refine_lattice_scan_pvalue; ++q) {
+      for (size_t k = 0; k < f.K; ++k) {
+        Fit g = f.unrendered();
+        g.theta[k] = peaks[q].position_mm;
+        g.render();
+        ++stats_.starts;
+        stats_.iterations += uint64_t(levenberg_marquardt(g, s_.iterations));
+        const glm::dvec3 at = g.theta[k];
+        if (g.nll < f.nll) f = std::move(g);
+        const double scale = (at.z + working_distance_mm_ + lens_to_sensor_mm_) / lens_to_sensor_mm_;
+        const glm::dvec2 sa = a * scale, sb = b * scale;
+        // Sites i a + j b around it (j = 0 for a single row of lenslets):
+        // enough of them to cover the field.
+        const double field = glm::length(glm::dvec2(bounds_.hi - bounds_.lo));
+        const double spacing = b == glm::dvec2(0) ? glm::length(sa)
+                                                  : std::abs(sa.x * sb.y - sa.y * sb.x) / std::max(glm::length(sa), glm::length(sb));
+        const int n = int(std::ceil(field / spacing)), n_b = b == glm::dvec2(0) ? 0 : n;
+        std::vector<glm::dvec3> sites;
+        for (int i = -n; i <= n; ++i)
+          for (int j = -n_b; j <= n_b; ++j) {
+            const glm::dvec3 site = at + glm::dvec3(double(i) * sa + double(j) * sb, 0.0);
+            if ((i != 0 || j != 0) && inside(site)) sites.push_back(site);
+          }
+        probe_best(k, sites, s_.alias_starts, kLatticeReachPx);
+      }
+      pvalue = fit_pvalue(f, event.id);
+    }
   }
 
   // CRLB at the estimate: the inverse of the full Fisher information (all

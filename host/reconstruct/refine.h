@@ -7,7 +7,9 @@
 // left is the likelihood's own ambiguity, which the refinement meets by
 // starting from the search's answer, its runners-up, the lenslet-lattice
 // aliases and a ladder along the weakest direction, keeping the best, and by
-// trying the aliases out to 2 pitches when the fit is still poor.
+// trying the aliases out to 2 pitches when the fit is still poor, and every
+// site of the lattice the clicks vote for (click_geometry.h) when it is
+// poor or marginal.
 //
 // The model of one vertex: P(theta) = b(theta) / sum(b(theta)), b the forward
 // model's expected photons on the click grid, so P sums to 1 on the sensor
@@ -109,6 +111,7 @@ struct RefineSettings {
   int search_starts = defaults::refine_search_starts;  // the search's runners-up probed per vertex
   int alias_starts = defaults::refine_alias_starts;    // lattice aliases probed per vertex (best by first NLL)
   bool rescue = true;  // a poor fit also tries the aliases out to defaults::refine_rescue_alias_pitches
+  bool lattice_scan = true;  // p < defaults::refine_lattice_scan_pvalue: also the sites the clicks vote for
   int ladder_starts = defaults::refine_ladder_starts;  // ladder points probed per vertex (0: no ladder)
   int pvalue_draws = defaults::fit_pvalue_draws; // Monte Carlo events per goodness-of-fit p-value
   double dark_rate = ReconstructionSettings{}.dark_rate;
@@ -124,12 +127,14 @@ struct RefineBounds {
 struct RefineStats {
   uint64_t events = 0, starts = 0, iterations = 0;
   uint64_t rescues = 0;  // events whose poor fit sent them to the far aliases
+  uint64_t lattice_scans = 0;  // events whose poor or marginal fit scanned the voted lattice
   double seconds = 0;
 };
 
 class Refiner {
  public:
-  Refiner(SourceModel& model, const Scene& scene, int grid_width, int grid_height, RefineSettings settings);
+  // `clicks`: the grid the events' clicks lie on (AnalysisGrid::of at their binning).
+  Refiner(SourceModel& model, const Scene& scene, const AnalysisGrid& clicks, RefineSettings settings);
   // The search's vertices of `event` refined; rows keep their order. Rows
   // flagged no_clicks or alpha_zero are left as the search gave them (the
   // latter get no CRLB).
@@ -142,7 +147,8 @@ class Refiner {
   SourceModel& model_;
   RefineSettings s_;
   RefineBounds bounds_;
-  int width_, height_;
+  OpticalSystem optics_;
+  AnalysisGrid grid_;
   std::vector<glm::dvec2> lattice_mm_;      // lenslet-lattice vectors (nearest neighbours)
   std::vector<glm::dvec2> rescue_lattice_mm_;  // those up to 2 pitches, for the rescue of a poor fit
   double lens_to_sensor_mm_, working_distance_mm_;

@@ -102,7 +102,7 @@ TEST_CASE("dictionary model: the refinement finds a source between nodes and pla
   t.stratification = 1;
   prism::ForwardTruth truth(prism::test::gpu(), thin_row(), t, 8);
   prism::RefineSettings rs;
-  prism::Refiner refiner(*model, thin_row(), m.level_width(0), m.level_height(0), rs);
+  prism::Refiner refiner(*model, thin_row(), m.level_grid(0), rs);
   // Two sources half-way between planes and off the lateral nodes; starts
   // 0.5 mm away from each.
   for (const glm::dvec3 at : {glm::dvec3(0.8, 0.3, 18.75), glm::dvec3(-1.1, -0.6, 26.25)}) {

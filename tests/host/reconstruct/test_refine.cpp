@@ -3,11 +3,13 @@
 // model that fits them (footprint at 4x the cells, other stratification), the
 // refinement starts off the truth, and the Vulkan model must agree with the
 // double CPU reference. Hard cases: a start on the depth bound, a source
-// outside the field, a start on a lattice alias, two vertices, and the
-// goodness of fit on events the model does and does not explain.
+// outside the field, a start on a lattice alias, a start at the wrong depth
+// near the face, two vertices, and the goodness of fit on events the model
+// does and does not explain.
 #include <cmath>
 
 #include "host/events/simulate.h"
+#include "host/reconstruct/click_geometry.h"
 #include "host/reconstruct/refine.h"
 #include "support.h"
 
@@ -56,7 +58,7 @@ std::vector<prism::ReconstructedVertex> refine(const prism::Event& e, std::vecto
   // One model per backend for the whole file (a device model builds its pipelines once).
   static auto device_model = prism::make_scene_model(small_scene(), prism::refine_trace_settings(binning), &prism::test::gpu());
   static auto cpu_model = prism::make_scene_model(small_scene(), prism::refine_trace_settings(binning), nullptr);
-  prism::Refiner r(on_device ? *device_model : *cpu_model, small_scene(), grid().width, grid().height, rs);
+  prism::Refiner r(on_device ? *device_model : *cpu_model, small_scene(), grid(), rs);
   return r.refine(e, std::move(start));
 }
 
@@ -155,7 +157,7 @@ TEST_CASE("refinement: a start on a lattice alias comes back to the truth") {
   const double scale = (at.z + o.working_distance_mm + o.lens_to_sensor_mm) / o.lens_to_sensor_mm;
   const glm::dvec3 alias = at + glm::dvec3(prism::defaults::lenslet_pitch_mm * scale, 0, 0);
   auto e = make_event({{at, 300}}, 6);
-  auto without = refine(e, {row(alias, 300)}, true, {.aliases = false});
+  auto without = refine(e, {row(alias, 300)}, true, {.aliases = false, .lattice_scan = false});
   auto with = refine(e, {row(alias, 300)}, true);
   CAPTURE(without[0].x_mm);
   CAPTURE(with[0].x_mm);
@@ -171,7 +173,7 @@ TEST_CASE("refinement: a poor fit two pitches off is rescued by the far aliases"
   const double scale = (at.z + o.working_distance_mm + o.lens_to_sensor_mm) / o.lens_to_sensor_mm;
   const glm::dvec3 alias = at + glm::dvec3(2 * prism::defaults::lenslet_pitch_mm * scale, 0, 0);
   auto e = make_event({{at, 300}}, 8);
-  auto stuck = refine(e, {row(alias, 300)}, true, {.rescue = false});
+  auto stuck = refine(e, {row(alias, 300)}, true, {.rescue = false, .lattice_scan = false});
   auto rescued = refine(e, {row(alias, 300)}, true);
   CAPTURE(stuck[0].x_mm);
   CAPTURE(stuck[0].fit_pvalue);
@@ -181,6 +183,56 @@ TEST_CASE("refinement: a poor fit two pitches off is rescued by the far aliases"
   CHECK(glm::length(glm::dvec3(rescued[0].x_mm, rescued[0].y_mm, rescued[0].depth_mm) - at) < 0.5);
   CHECK((rescued[0].flags & prism::poor_fit) == 0);
   CHECK(rescued[0].nll < stuck[0].nll);
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("click geometry: the clicks vote for the source's depth and its lattice of aliases") {
+  // Near the face only the three central lenslets image the source on the
+  // sensor; each click, paired with each lenslet, votes for a position.
+  const glm::dvec3 at(0.6, 0.3, 2.5);
+  const auto& o = small_scene().optics;
+  auto e = make_event({{at, 300}}, 9);
+  const prism::RefineBounds field = prism::RefineBounds::of(small_scene());
+  auto peaks = prism::vote_source_positions(o, grid(), e.clicks, field.lo, field.hi, 3);
+  REQUIRE(peaks.size() == 3);
+  CAPTURE(peaks[0].position_mm.z);
+  CAPTURE(peaks[0].votes);
+  CHECK(std::abs(peaks[0].position_mm.z - at.z) < 0.15);
+  CHECK(peaks[0].votes > 0.5);  // most clicks in one peak (a third of the clicks per lenslet image)
+  for (size_t i = 1; i < peaks.size(); ++i) {
+    CHECK(peaks[i].votes <= peaks[0].votes);
+    CHECK(std::abs(peaks[i].position_mm.z - peaks[0].position_mm.z) >= 0.5);
+  }
+  // The peak is the source or one of its aliases along the row.
+  const double scale = (at.z + o.working_distance_mm + o.lens_to_sensor_mm) / o.lens_to_sensor_mm;
+  const double pitches = (peaks[0].position_mm.x - at.x) / (prism::defaults::lenslet_pitch_mm * scale);
+  CAPTURE(pitches);
+  CHECK(std::abs(pitches - std::round(pitches)) * prism::defaults::lenslet_pitch_mm * scale < 0.3);
+  CHECK(std::abs(peaks[0].position_mm.y - at.y) < 0.3);
+  // No clicks, no peaks.
+  CHECK(prism::vote_source_positions(o, grid(), {}, field.lo, field.hi, 3).empty());
+}
+
+TEST_CASE("refinement: a poor fit at another depth is rescued by the lattice its clicks vote for") {
+  // The search's answer at the wrong depth, far from the source near the
+  // face: no alias or ladder of it reaches the truth; the clicks' votes do.
+  const glm::dvec3 at(0.6, 0.3, 2.5);
+  auto e = make_event({{at, 300}}, 10);
+  const prism::RefineSettings alone{.aliases = false, .rescue = false, .lattice_scan = false, .ladder_starts = 0};
+  prism::RefineSettings scan = alone;
+  scan.lattice_scan = true;
+  auto stuck = refine(e, {row({7.0, -2.0, 14.0}, 300)}, true, alone);
+  auto found = refine(e, {row({7.0, -2.0, 14.0}, 300)}, true, scan);
+  CAPTURE(stuck[0].x_mm);
+  CAPTURE(stuck[0].depth_mm);
+  CAPTURE(stuck[0].fit_pvalue);
+  CAPTURE(found[0].x_mm);
+  CAPTURE(found[0].depth_mm);
+  CHECK(glm::length(glm::dvec3(stuck[0].x_mm, stuck[0].y_mm, stuck[0].depth_mm) - at) > 3);
+  CHECK(stuck[0].fit_pvalue < prism::defaults::refine_lattice_scan_pvalue);
+  CHECK(glm::length(glm::dvec3(found[0].x_mm, found[0].y_mm, found[0].depth_mm) - at) < 0.3);
+  CHECK(found[0].fit_pvalue >= prism::defaults::fit_pvalue_flag);
+  CHECK(found[0].nll < stuck[0].nll);
   prism::test::check_validation_clean();
 }
 
