@@ -57,6 +57,10 @@ struct OpticalSystem {
   // through a lenslet's centre: a lateral source shift s moves every lenslet
   // image by -s * magnification(d) on the sensor (the images are inverted).
   double magnification(double depth_mm) const { return lens_to_sensor_mm / (depth_mm + working_distance_mm); }
+  // A source at depth d moved by a lenslet-lattice vector times this puts
+  // every lenslet image where its neighbour's was (a lattice alias):
+  // (D + L) / L = 1 + 1 / magnification(d), D = d + working distance.
+  double alias_scale(double depth_mm) const { return 1.0 + 1.0 / magnification(depth_mm); }
   // Effect diffraction: the Gaussian sigma of a lenslet's Airy core on the
   // sensor is this over the lenslet's diameter (mm^2; defaults.h).
   double airy_sigma_mm_times_diameter() const {

@@ -341,9 +341,7 @@ Refiner::Refiner(SourceModel& model, const Scene& scene, const AnalysisGrid& cli
       optics_(scene.optics),
       grid_(clicks),
       lattice_mm_(lattice_vectors(scene.optics)),
-      rescue_lattice_mm_(lattice_vectors(scene.optics, defaults::refine_rescue_alias_pitches)),
-      lens_to_sensor_mm_(scene.optics.lens_to_sensor_mm),
-      working_distance_mm_(scene.optics.working_distance_mm) {
+      rescue_lattice_mm_(lattice_vectors(scene.optics, defaults::refine_rescue_alias_pitches)) {
   if (s_.iterations < 1 || s_.alias_starts < 0 || s_.search_starts < 0 || s_.ladder_starts < 0 || s_.pvalue_draws < 1)
     throw std::invalid_argument(
         "refinement: iterations and p-value draws must be >= 1, search, alias and ladder starts >= 0");
@@ -492,8 +490,6 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
     if (g.nll < f.nll) f = std::move(g);
   };
   // Candidates for vertex k scored with the weight refitted (one render
-  // each, the position held); the best `n` are probed.
-  // Candidates for vertex k scored with the weight refitted (one render
   // each); the best `n` are probed. With reach_px > 0 each image is also
   // tried moved by up to that many whole pixels (a source moved laterally by
   // -shift / magnification, near enough), and the candidate moved with the
@@ -539,14 +535,12 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
   auto inside = [&](glm::dvec3 a) {
     return glm::all(glm::greaterThanEqual(a, bounds_.lo)) && glm::all(glm::lessThanEqual(a, bounds_.hi));
   };
-  // Lattice aliases of vertex k: the source moved by a lattice vector times
-  // (D + L) / L (D: source to lens plane, L: lens to sensor) puts every
-  // lenslet image where its neighbour's was.
+  // Lattice aliases of vertex k (OpticalSystem::alias_scale).
   auto aliases = [&](size_t k, const std::vector<glm::dvec2>& lattice, auto&& is_new) {
     std::vector<glm::dvec3> cand;
-    const double D = f.theta[k].z + working_distance_mm_;
+    const double scale = optics_.alias_scale(f.theta[k].z);
     for (const auto& v : lattice) {
-      glm::dvec3 a = f.theta[k] + glm::dvec3(v * ((D + lens_to_sensor_mm_) / lens_to_sensor_mm_), 0.0);
+      glm::dvec3 a = f.theta[k] + glm::dvec3(v * scale, 0.0);
       if (inside(a) && is_new(a)) cand.push_back(a);
     }
     return cand;
@@ -621,7 +615,7 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
         stats_.iterations += uint64_t(levenberg_marquardt(g, s_.iterations));
         const glm::dvec3 at = g.theta[k];
         if (g.nll < f.nll) f = std::move(g);
-        const double scale = (at.z + working_distance_mm_ + lens_to_sensor_mm_) / lens_to_sensor_mm_;
+        const double scale = optics_.alias_scale(at.z);
         const glm::dvec2 sa = a * scale, sb = b * scale;
         // Sites i a + j b around it (j = 0 for a single row of lenslets):
         // enough of them to cover the field.

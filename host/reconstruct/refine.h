@@ -151,7 +151,6 @@ class Refiner {
   AnalysisGrid grid_;
   std::vector<glm::dvec2> lattice_mm_;      // lenslet-lattice vectors (nearest neighbours)
   std::vector<glm::dvec2> rescue_lattice_mm_;  // those up to 2 pitches, for the rescue of a poor fit
-  double lens_to_sensor_mm_, working_distance_mm_;
   RefineStats stats_;
 };
 

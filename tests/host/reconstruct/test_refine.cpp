@@ -150,11 +150,12 @@ TEST_CASE("refinement hazards: a start on the depth bound, a source outside the 
 }
 
 TEST_CASE("refinement: a start on a lattice alias comes back to the truth") {
-  // The source moved by one lenslet pitch times (D + L) / L puts every image
-  // where its neighbour's was; only the neighbours' focal lengths differ.
+  // The source moved by one lenslet pitch times (D + L) / L (alias_scale) puts
+  // every image where its neighbour's was; only the neighbours' focal lengths
+  // differ.
   const glm::dvec3 at(-1.2, 0.4, 12.5);
   const auto& o = small_scene().optics;
-  const double scale = (at.z + o.working_distance_mm + o.lens_to_sensor_mm) / o.lens_to_sensor_mm;
+  const double scale = o.alias_scale(at.z);
   const glm::dvec3 alias = at + glm::dvec3(prism::defaults::lenslet_pitch_mm * scale, 0, 0);
   auto e = make_event({{at, 300}}, 6);
   auto without = refine(e, {row(alias, 300)}, true, {.aliases = false, .lattice_scan = false});
@@ -170,7 +171,7 @@ TEST_CASE("refinement: a poor fit two pitches off is rescued by the far aliases"
   // aliases cannot reach (from +2 pitches they try +1 and +3).
   const glm::dvec3 at(0.6, 0.3, 4.5);
   const auto& o = small_scene().optics;
-  const double scale = (at.z + o.working_distance_mm + o.lens_to_sensor_mm) / o.lens_to_sensor_mm;
+  const double scale = o.alias_scale(at.z);
   const glm::dvec3 alias = at + glm::dvec3(2 * prism::defaults::lenslet_pitch_mm * scale, 0, 0);
   auto e = make_event({{at, 300}}, 8);
   auto stuck = refine(e, {row(alias, 300)}, true, {.rescue = false, .lattice_scan = false});
@@ -204,7 +205,7 @@ TEST_CASE("click geometry: the clicks vote for the source's depth and its lattic
     CHECK(std::abs(peaks[i].position_mm.z - peaks[0].position_mm.z) >= 0.5);
   }
   // The peak is the source or one of its aliases along the row.
-  const double scale = (at.z + o.working_distance_mm + o.lens_to_sensor_mm) / o.lens_to_sensor_mm;
+  const double scale = o.alias_scale(at.z);
   const double pitches = (peaks[0].position_mm.x - at.x) / (prism::defaults::lenslet_pitch_mm * scale);
   CAPTURE(pitches);
   CHECK(std::abs(pitches - std::round(pitches)) * prism::defaults::lenslet_pitch_mm * scale < 0.3);
@@ -273,7 +274,7 @@ TEST_CASE("refinement hazards with several vertices: 0.5 mm apart, a lattice ali
   SUBCASE("a lattice alias apart: both found, each where it is") {
     const auto& o = small_scene().optics;
     const glm::dvec3 a(-3, 0.3, 15);
-    const double scale = (a.z + o.working_distance_mm + o.lens_to_sensor_mm) / o.lens_to_sensor_mm;
+    const double scale = o.alias_scale(a.z);
     const glm::dvec3 b = a + glm::dvec3(prism::defaults::lenslet_pitch_mm * scale, 0, 0);
     auto e = make_event({{a, 400}, {b, 400}}, 9);
     auto v = refine(e, {row(a + glm::dvec3(0.3, -0.2, 0.5), 300), row(b + glm::dvec3(-0.3, 0.2, -0.5), 300)}, true);
