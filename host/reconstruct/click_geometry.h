@@ -9,8 +9,9 @@
 // lenslet image gather on the source and, shifted by the lenslet lattice
 // times (1 + m) / m (OpticalSystem::alias_scale), on its lattice aliases,
 // which collect nearly as many votes; at a wrong depth the images' spacing
-// does not match and the votes spread. The votes give the depth and the lattice of the aliases, not which
-// site of it is the source: the likelihood decides that.
+// does not match and the votes spread. The votes give the depth and the
+// lattice of the aliases, not which site of it is the source: the
+// likelihood decides that.
 //
 // Near the scintillator face this finds what the dictionary search misses:
 // only a few lenslet images reach the sensor, a source shifted by a few mm
