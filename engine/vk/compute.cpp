@@ -128,30 +128,59 @@ void Buffer::download(void* data, uint64_t bytes, uint64_t offset) const {
 // ---------------------------------------------------------------------------
 // Kernel
 
-Kernel::Kernel(Context& ctx, std::string name, std::span<const uint32_t> spirv, uint32_t buffer_count,
-               uint32_t push_bytes, std::vector<uint32_t> specialisation)
-    : ctx_(ctx), name_(std::move(name)), buffer_count_(buffer_count), push_bytes_(push_bytes) {
+PipelineCache::~PipelineCache() {
+  for (auto& [key, p] : pipelines_) {
+    vkDestroyPipeline(device_, p.pipeline, nullptr);
+    vkDestroyPipelineLayout(device_, p.layout, nullptr);
+    vkDestroyDescriptorSetLayout(device_, p.set_layout, nullptr);
+  }
+}
+
+size_t PipelineCache::size() const {
+  std::lock_guard lock(mutex_);
+  return pipelines_.size();
+}
+
+const PipelineCache::Pipeline& PipelineCache::get(const std::string& name, std::span<const uint32_t> spirv,
+                                                  uint32_t buffer_count, uint32_t push_bytes,
+                                                  const std::vector<uint32_t>& specialisation) {
+  std::lock_guard lock(mutex_);
+  Key key{std::vector<uint32_t>(spirv.begin(), spirv.end()), buffer_count, push_bytes, specialisation};
+  if (auto it = pipelines_.find(key); it != pipelines_.end()) return it->second;
+
+  Pipeline p;
+  // Whatever is created is destroyed again if a later step throws.
+  struct Undo {
+    VkDevice device;
+    Pipeline& p;
+    bool keep = false;
+    ~Undo() {
+      if (keep) return;
+      vkDestroyPipelineLayout(device, p.layout, nullptr);
+      vkDestroyDescriptorSetLayout(device, p.set_layout, nullptr);
+    }
+  } undo{device_, p};
   std::vector<VkDescriptorSetLayoutBinding> bindings(buffer_count);
   for (uint32_t i = 0; i < buffer_count; ++i)
     bindings[i] = {i, VK_DESCRIPTOR_TYPE_STORAGE_BUFFER, 1, VK_SHADER_STAGE_COMPUTE_BIT, nullptr};
   VkDescriptorSetLayoutCreateInfo li{VK_STRUCTURE_TYPE_DESCRIPTOR_SET_LAYOUT_CREATE_INFO};
   li.bindingCount = buffer_count;
   li.pBindings = bindings.data();
-  check(vkCreateDescriptorSetLayout(ctx.device(), &li, nullptr, &set_layout_), "vkCreateDescriptorSetLayout");
+  check(vkCreateDescriptorSetLayout(device_, &li, nullptr, &p.set_layout), "vkCreateDescriptorSetLayout");
 
   VkPushConstantRange range{VK_SHADER_STAGE_COMPUTE_BIT, 0, push_bytes};
   VkPipelineLayoutCreateInfo pli{VK_STRUCTURE_TYPE_PIPELINE_LAYOUT_CREATE_INFO};
   pli.setLayoutCount = 1;
-  pli.pSetLayouts = &set_layout_;
+  pli.pSetLayouts = &p.set_layout;
   pli.pushConstantRangeCount = push_bytes ? 1 : 0;
   pli.pPushConstantRanges = &range;
-  check(vkCreatePipelineLayout(ctx.device(), &pli, nullptr, &layout_), "vkCreatePipelineLayout");
+  check(vkCreatePipelineLayout(device_, &pli, nullptr, &p.layout), "vkCreatePipelineLayout");
 
   VkShaderModuleCreateInfo mi{VK_STRUCTURE_TYPE_SHADER_MODULE_CREATE_INFO};
   mi.codeSize = spirv.size_bytes();
   mi.pCode = spirv.data();
   VkShaderModule module;
-  check(vkCreateShaderModule(ctx.device(), &mi, nullptr, &module), ("vkCreateShaderModule " + name_).c_str());
+  check(vkCreateShaderModule(device_, &mi, nullptr, &module), ("vkCreateShaderModule " + name).c_str());
 
   std::vector<VkSpecializationMapEntry> entries(specialisation.size());
   for (uint32_t i = 0; i < specialisation.size(); ++i) entries[i] = {i, uint32_t(i * sizeof(uint32_t)), sizeof(uint32_t)};
@@ -163,16 +192,26 @@ Kernel::Kernel(Context& ctx, std::string name, std::span<const uint32_t> spirv, 
   ci.stage.module = module;
   ci.stage.pName = "main";
   ci.stage.pSpecializationInfo = specialisation.empty() ? nullptr : &si;
-  ci.layout = layout_;
-  VkResult r = vkCreateComputePipelines(ctx.device(), VK_NULL_HANDLE, 1, &ci, nullptr, &pipeline_);
-  vkDestroyShaderModule(ctx.device(), module, nullptr);
-  check(r, ("vkCreateComputePipelines " + name_).c_str());
+  ci.layout = p.layout;
+  VkResult r = vkCreateComputePipelines(device_, VK_NULL_HANDLE, 1, &ci, nullptr, &p.pipeline);
+  vkDestroyShaderModule(device_, module, nullptr);
+  check(r, ("vkCreateComputePipelines " + name).c_str());
+  undo.keep = true;
+  return pipelines_.emplace(std::move(key), p).first->second;
 }
 
-Kernel::~Kernel() {
-  vkDestroyPipeline(ctx_.device(), pipeline_, nullptr);
-  vkDestroyPipelineLayout(ctx_.device(), layout_, nullptr);
-  vkDestroyDescriptorSetLayout(ctx_.device(), set_layout_, nullptr);
+Kernel::Kernel(Context& ctx, std::string name, std::span<const uint32_t> spirv, uint32_t buffer_count,
+               uint32_t push_bytes, std::vector<uint32_t> specialisation)
+    : ctx_(ctx),
+      name_(std::move(name)),
+      spirv_(spirv.begin(), spirv.end()),
+      buffer_count_(buffer_count),
+      push_bytes_(push_bytes),
+      specialisation_(std::move(specialisation)) {}
+
+const PipelineCache::Pipeline& Kernel::pipeline() {
+  if (!pipeline_) pipeline_ = &ctx_.pipelines().get(name_, spirv_, buffer_count_, push_bytes_, specialisation_);
+  return *pipeline_;
 }
 
 // ---------------------------------------------------------------------------
@@ -243,10 +282,11 @@ void Stream::dispatch(Kernel& k, std::initializer_list<const Buffer*> buffers, c
     throw Error("dispatch " + k.name_ + ": expects " + std::to_string(k.buffer_count_) + " buffers, got " +
                 std::to_string(buffers.size()));
   if (dispatches_ >= max_dispatches_) throw Error("Stream: more than " + std::to_string(max_dispatches_) + " dispatches before submit()");
+  const PipelineCache::Pipeline& p = k.pipeline();
   VkDescriptorSetAllocateInfo ai{VK_STRUCTURE_TYPE_DESCRIPTOR_SET_ALLOCATE_INFO};
   ai.descriptorPool = pool_;
   ai.descriptorSetCount = 1;
-  ai.pSetLayouts = &k.set_layout_;
+  ai.pSetLayouts = &p.set_layout;
   VkDescriptorSet set;
   check(vkAllocateDescriptorSets(ctx_.device(), &ai, &set), "vkAllocateDescriptorSets");
   std::vector<VkDescriptorBufferInfo> infos;
@@ -262,9 +302,9 @@ void Stream::dispatch(Kernel& k, std::initializer_list<const Buffer*> buffers, c
   }
   vkUpdateDescriptorSets(ctx_.device(), uint32_t(writes.size()), writes.data(), 0, nullptr);
 
-  vkCmdBindPipeline(cmd_, VK_PIPELINE_BIND_POINT_COMPUTE, k.pipeline_);
-  vkCmdBindDescriptorSets(cmd_, VK_PIPELINE_BIND_POINT_COMPUTE, k.layout_, 0, 1, &set, 0, nullptr);
-  if (k.push_bytes_) vkCmdPushConstants(cmd_, k.layout_, VK_SHADER_STAGE_COMPUTE_BIT, 0, k.push_bytes_, push);
+  vkCmdBindPipeline(cmd_, VK_PIPELINE_BIND_POINT_COMPUTE, p.pipeline);
+  vkCmdBindDescriptorSets(cmd_, VK_PIPELINE_BIND_POINT_COMPUTE, p.layout, 0, 1, &set, 0, nullptr);
+  if (k.push_bytes_) vkCmdPushConstants(cmd_, p.layout, VK_SHADER_STAGE_COMPUTE_BIT, 0, k.push_bytes_, push);
   if (queries_) vkCmdWriteTimestamp(cmd_, VK_PIPELINE_STAGE_TOP_OF_PIPE_BIT, queries_, 2 * dispatches_);
   vkCmdDispatch(cmd_, gx, gy, gz);
   if (queries_) vkCmdWriteTimestamp(cmd_, VK_PIPELINE_STAGE_BOTTOM_OF_PIPE_BIT, queries_, 2 * dispatches_ + 1);

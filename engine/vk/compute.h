@@ -2,8 +2,11 @@
 // times each one with GPU timestamps.
 #pragma once
 #include <cstdint>
+#include <map>
+#include <mutex>
 #include <span>
 #include <string>
+#include <tuple>
 #include <vector>
 
 #include "engine/vk/context.h"
@@ -40,13 +43,45 @@ class Buffer {
   uint64_t bytes_ = 0;
 };
 
-// A compute pipeline from embedded SPIR-V. Specialisation constants (ids 0..n-1,
-// 32 bits each) are fixed here; push constants change per dispatch.
+// The compute pipelines of a context, each created once for its SPIR-V,
+// buffer count, push-constant size and specialisation. Forward models are
+// built again and again with the same kernels (a sweep builds one per batch
+// of designs, the tests one per case), and a large kernel takes 0.3-0.7 s to
+// compile on lavapipe.
+class PipelineCache {
+ public:
+  struct Pipeline {
+    VkDescriptorSetLayout set_layout = VK_NULL_HANDLE;
+    VkPipelineLayout layout = VK_NULL_HANDLE;
+    VkPipeline pipeline = VK_NULL_HANDLE;
+  };
+  explicit PipelineCache(VkDevice device) : device_(device) {}
+  ~PipelineCache();
+  PipelineCache(const PipelineCache&) = delete;
+  PipelineCache& operator=(const PipelineCache&) = delete;
+
+  // The pipeline, created on the first request (thread-safe). `name` only
+  // names it in errors.
+  const Pipeline& get(const std::string& name, std::span<const uint32_t> spirv, uint32_t buffer_count,
+                      uint32_t push_bytes, const std::vector<uint32_t>& specialisation);
+  size_t size() const;
+
+ private:
+  using Key = std::tuple<std::vector<uint32_t>, uint32_t, uint32_t, std::vector<uint32_t>>;
+  VkDevice device_;
+  mutable std::mutex mutex_;
+  std::map<Key, Pipeline> pipelines_;
+};
+
+// A compute kernel from embedded SPIR-V. Specialisation constants (ids 0..n-1,
+// 32 bits each) are fixed here; push constants change per dispatch. Its
+// pipeline comes from the context's PipelineCache at the first dispatch: a
+// kernel never dispatched (the values-only variant of a model used for
+// derivatives) is never compiled.
 class Kernel {
  public:
   Kernel(Context& ctx, std::string name, std::span<const uint32_t> spirv, uint32_t buffer_count,
          uint32_t push_bytes, std::vector<uint32_t> specialisation = {});
-  ~Kernel();
   Kernel(const Kernel&) = delete;
   Kernel& operator=(const Kernel&) = delete;
 
@@ -54,13 +89,14 @@ class Kernel {
 
  private:
   friend class Stream;
+  const PipelineCache::Pipeline& pipeline();
   Context& ctx_;
   std::string name_;
+  std::vector<uint32_t> spirv_;
   uint32_t buffer_count_;
   uint32_t push_bytes_;
-  VkDescriptorSetLayout set_layout_ = VK_NULL_HANDLE;
-  VkPipelineLayout layout_ = VK_NULL_HANDLE;
-  VkPipeline pipeline_ = VK_NULL_HANDLE;
+  std::vector<uint32_t> specialisation_;
+  const PipelineCache::Pipeline* pipeline_ = nullptr;
 };
 
 // Records dispatches into one command buffer; submit() runs them and returns

@@ -5,6 +5,7 @@
 #include <cstdlib>
 #include <cstring>
 
+#include "engine/vk/compute.h"
 #include "engine/vk/error.h"
 
 namespace prism::vk {
@@ -187,11 +188,13 @@ Context::Context(ContextOptions options) {
   pi.flags = VK_COMMAND_POOL_CREATE_RESET_COMMAND_BUFFER_BIT;
   pi.queueFamilyIndex = queue_family_;
   check(vkCreateCommandPool(device_, &pi, nullptr, &pool_), "vkCreateCommandPool");
+  pipelines_ = std::make_unique<PipelineCache>(device_);
 }
 
 Context::~Context() {
   if (device_) {
     vkDeviceWaitIdle(device_);
+    pipelines_.reset();
     vkDestroyCommandPool(device_, pool_, nullptr);
     vkDestroyDevice(device_, nullptr);
   }

@@ -2,11 +2,14 @@
 // Mesa lavapipe (CPU) otherwise; `--device` or PRISM_DEVICE overrides.
 #pragma once
 #include <cstdint>
+#include <memory>
 #include <string>
 #include <vector>
 #include <vulkan/vulkan.h>
 
 namespace prism::vk {
+
+class PipelineCache;  // compute.h
 
 struct ContextOptions {
   // "auto" (GPU if present, else CPU), "gpu", "cpu", a device index, or part of
@@ -29,6 +32,8 @@ class Context {
   VkQueue queue() const { return queue_; }
   uint32_t queue_family() const { return queue_family_; }
   VkCommandPool command_pool() const { return pool_; }
+  // Compute pipelines, each compiled once per context (vk::Kernel).
+  PipelineCache& pipelines() { return *pipelines_; }
   const VkPhysicalDeviceProperties& properties() const { return props_; }
 
   // "llvmpipe (LLVM 15.0.6, 256 bits) [cpu, Vulkan 1.3.230]"
@@ -59,6 +64,7 @@ class Context {
   VkPhysicalDeviceMemoryProperties mem_props_{};
   double timestamp_period_ns_ = 0;
   std::vector<std::string> messages_;
+  std::unique_ptr<PipelineCache> pipelines_;
 
   static VKAPI_ATTR VkBool32 VKAPI_CALL on_message(VkDebugUtilsMessageSeverityFlagBitsEXT,
                                                    VkDebugUtilsMessageTypeFlagsEXT,

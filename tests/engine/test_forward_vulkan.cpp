@@ -255,3 +255,40 @@ TEST_CASE("several designs in one dispatch give what each gives alone") {
                        doctest::Contains("differs from design 0 in the effects"), std::invalid_argument);
   prism::test::check_validation_clean();
 }
+
+TEST_CASE("kernels compile once per context and specialisation, and a kernel never dispatched never") {
+  // A context of its own: its pipeline cache starts empty.
+  prism::vk::Context ctx(prism::vk::ContextOptions{"", true});
+  auto sys = prism::test::small_system(prism::LensModel::thin);
+  prism::TraceSettings t;
+  t.binning = 64;
+  t.rays_per_lenslet = 64;
+  t.splat = prism::Splat::point;
+  const glm::dvec3 theta(0.5, -0.5, 25);
+  prism::ForwardVulkan a(ctx, sys, t);
+  CHECK(ctx.pipelines().size() == 0);  // built, nothing dispatched: nothing compiled
+  const auto values = a.psf_values(theta);
+  const size_t after_values = ctx.pipelines().size();
+  CHECK(after_values >= 1);
+  // A second model of the same kernels compiles nothing and gives the same image.
+  prism::ForwardVulkan b(ctx, sys, t);
+  CHECK(b.psf_values(theta) == values);
+  CHECK(ctx.pipelines().size() == after_values);
+  // The derivatives' kernel is another pipeline; another effect another one.
+  const auto full = b.psf(theta);
+  const size_t after_full = ctx.pipelines().size();
+  CHECK(after_full > after_values);
+  auto holder = sys;
+  holder.effects.holder_vignetting = true;
+  prism::ForwardVulkan c(ctx, holder, t);
+  c.psf(theta);
+  CHECK(ctx.pipelines().size() > after_full);
+  // The cached pipelines trace what fresh ones do: the b channel of the full
+  // kernel is the values-only image (as in the test above).
+  auto bch = channel(full, 0);
+  REQUIRE(prism::test::peak_abs(bch) > 0);
+  auto cmp = prism::test::compare_values(bch, values, {.abs = 1e-5 * prism::test::peak_abs(bch)});
+  CHECK_MESSAGE(cmp.ok(), cmp.report("values-only kernel vs the b channel, second model"));
+  INFO("validation layer messages: " << ctx.validation_messages().size());
+  CHECK(ctx.validation_messages().empty());
+}
