@@ -95,7 +95,7 @@ inline constexpr double refine_rescue_alias_pitches = 2.0;
 // ordinary events fall below it at most 5% of the time (the p-value is
 // conservative): 6 of 500 thin-lens and 0 of 60 real-lens volume events.
 inline constexpr double refine_lattice_scan_pvalue = 0.05;
-inline constexpr int refine_lattice_scan_depths = 3;  // the best voted depths tried, while the fit stays below it
+inline constexpr int refine_lattice_scan_depths = 3;  // the best voted depths tried, while the fit stays below it and improves
 // The ladder: after the other starts, points every 0.75 mm up to 3 mm along
 // the estimate's weakest direction and along depth, the best 2 probed. On 60
 // events over the prototype's volume 9 ended 1-2.4 mm off in a local optimum

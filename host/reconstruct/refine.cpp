@@ -599,7 +599,9 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
     // and one site of the alias lattice, a few tenths of a mm off: fitted
     // there, it lands on that site's optimum, and from it every site inside
     // the field gets a render, the best are probed. The next best voted
-    // depth is tried while the fit stays poor or marginal.
+    // depth is tried while the fit stays poor or marginal and the depth
+    // before it improved the fit: a fit that is poor for another reason
+    // (a biased model, clicks the model does not expect) costs one depth.
     ++stats_.lattice_scans;
     glm::dvec2 a = lattice_mm_[0], b{};
     for (const auto& v : lattice_mm_)
@@ -607,6 +609,8 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
     const auto peaks =
         vote_source_positions(optics_, grid_, f.clicks, bounds_.lo, bounds_.hi, defaults::refine_lattice_scan_depths);
     for (size_t q = 0; q < peaks.size() && pvalue < defaults::refine_lattice_scan_pvalue; ++q) {
+      const double nll_before = f.nll;
+      ++stats_.lattice_depths;
       for (size_t k = 0; k < f.K; ++k) {
         Fit g = f.unrendered();
         g.theta[k] = peaks[q].position_mm;
@@ -631,6 +635,7 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
           }
         probe_best(k, sites, s_.alias_starts, kLatticeReachPx);
       }
+      if (!(f.nll < nll_before)) break;
       pvalue = fit_pvalue(f, event.id);
     }
   }

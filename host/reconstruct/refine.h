@@ -127,7 +127,8 @@ struct RefineBounds {
 struct RefineStats {
   uint64_t events = 0, starts = 0, iterations = 0;
   uint64_t rescues = 0;  // events whose poor fit sent them to the far aliases
-  uint64_t lattice_scans = 0;  // events whose poor or marginal fit scanned the voted lattice
+  uint64_t lattice_scans = 0;   // events whose poor or marginal fit had the clicks' votes counted
+  uint64_t lattice_depths = 0;  // voted depths scanned
   double seconds = 0;
 };
 
