@@ -42,14 +42,18 @@ void write_manifest(const std::string& dir, const DictionaryManifest& m) {
 
 }  // namespace
 
-DictionaryBuildReport build_dictionary(vk::Context& ctx, const Scene& scene, const std::string& dir,
-                                       const DictionaryBuildOptions& o,
-                                       const std::function<void(size_t, size_t)>& progress) {
+void check_build_options(const std::string& dir, const DictionaryBuildOptions& o) {
   try {
     o.grid.validate();
   } catch (const DictionaryError& e) {
     throw DictionaryError(dir + ": grid: " + e.what() + "; nothing written");
   }
+}
+
+DictionaryBuildReport build_dictionary(vk::Context& ctx, const Scene& scene, const std::string& dir,
+                                       const DictionaryBuildOptions& o,
+                                       const std::function<void(size_t, size_t)>& progress) {
+  check_build_options(dir, o);
   DictionaryManifest wanted = manifest_for(scene, o);
   std::filesystem::create_directories(dir + "/psf");
   if (std::filesystem::exists(dir + "/manifest.json")) {

@@ -26,7 +26,12 @@ struct DictionaryBuildReport {
   double seconds_per_psf = 0;  // rendering and writing, median
 };
 
-// progress(done, total) is called after each entry.
+// Throws DictionaryError, naming `dir` and the axis, unless the options'
+// grid is valid (DictionaryGrid::validate); nothing is written. Callers that
+// must set up a device first check here before it.
+void check_build_options(const std::string& dir, const DictionaryBuildOptions& options);
+
+// progress(done, total) is called after each entry (options checked first).
 DictionaryBuildReport build_dictionary(vk::Context& ctx, const Scene& scene, const std::string& dir,
                                        const DictionaryBuildOptions& options,
                                        const std::function<void(size_t, size_t)>& progress = {});

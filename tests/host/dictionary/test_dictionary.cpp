@@ -84,6 +84,12 @@ TEST_CASE("a grid whose positions do not increase is refused, naming the axis, b
   CHECK_THROWS_WITH_AS(prism::build_dictionary(prism::test::gpu(), prism::builtin_scene("prototype"), dir, o),
                        doctest::Contains("grid: depth positions must increase"), prism::DictionaryError);
   CHECK_FALSE(fs::exists(dir));
+  // The CLI checks the grid before it sets up a device: a device that does
+  // not exist is not what it reports.
+  auto r = prism::test::run_prism("dictionary build --out " + dir + " --grid-depth-mm 20,10 --device no-such-device");
+  CHECK(r.status != 0);
+  CHECK_MESSAGE(r.output.find("grid: depth positions must increase") != std::string::npos, r.output);
+  CHECK_FALSE(fs::exists(dir));
 }
 
 TEST_CASE("a synthesised dictionary reads back: level 0 is the normalised PSF within half precision") {
