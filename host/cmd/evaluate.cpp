@@ -118,11 +118,11 @@ void run(EvaluateArgs a) {
                   r.axes.median_ratio.x, r.axes.median_ratio.y, r.axes.median_ratio.z);
   const auto& cost = result.cost;
   std::printf("reconstruction: %llu events in %.2f s, %.2f events/s, %.2f s per event (support scans %.2f s, "
-              "refinement %.2f s of it; %s backend)\n",
+              "refinement %.2f s of it, %.1f renders per event; %s backend)\n",
               (unsigned long long)cost.events, cost.reconstruct_s,
               cost.reconstruct_s > 0 ? double(cost.events) / cost.reconstruct_s : 0.0,
               cost.events ? cost.reconstruct_s / double(cost.events) : 0.0, cost.scan_s, cost.refine_s,
-              a.backend.c_str());
+              cost.events ? double(cost.renders) / double(cost.events) : 0.0, a.backend.c_str());
   for (const auto& path : write_evaluation(a.out, result))
     std::fprintf(stderr, "prism evaluate: wrote %s\n", path.c_str());
 }

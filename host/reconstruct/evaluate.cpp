@@ -295,6 +295,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
     spent.reconstruct_s += std::chrono::duration<double>(end - start).count();
     spent.refine_s += std::chrono::duration<double>(end - searched).count();
     spent.events += events.size();
+    if (source_model) spent.renders = source_model->renders();
     return estimates;
   };
 

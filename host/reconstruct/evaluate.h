@@ -117,6 +117,7 @@ struct EvaluationCost {
   double reconstruct_s = 0;  // wall time inside the reconstructions
   double scan_s = 0;         // of which the support scans
   double refine_s = 0;       // the refinement, after the search
+  uint64_t renders = 0;      // sources the refinement's model rendered (its main cost)
 };
 
 struct EvaluationRow {
