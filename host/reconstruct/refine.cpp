@@ -145,7 +145,7 @@ RefineBounds RefineBounds::of(const Scene& scene) {
   return {{v.x_min_mm, v.y_min_mm, v.depth_min_mm}, {v.x_max_mm, v.y_max_mm, v.depth_max_mm}};
 }
 
-std::vector<glm::dvec2> lattice_vectors(const OpticalSystem& sys, double max_pitches) {
+std::vector<glm::dvec2> lattice_vectors(const OpticalSystem& sys) {
   const auto& ls = sys.lenslets;
   double nearest = std::numeric_limits<double>::infinity();
   for (size_t i = 0; i < ls.size(); ++i)
@@ -155,7 +155,7 @@ std::vector<glm::dvec2> lattice_vectors(const OpticalSystem& sys, double max_pit
   for (size_t i = 0; i < ls.size(); ++i)
     for (size_t j = 0; j < ls.size(); ++j) {
       glm::dvec2 d(ls[j].x_mm - ls[i].x_mm, ls[j].y_mm - ls[i].y_mm);
-      if (i == j || glm::length(d) > nearest * (max_pitches + 0.01)) continue;
+      if (i == j || glm::length(d) > nearest * 1.01) continue;  // (1.01: rounding in the layout)
       bool seen = false;
       for (const auto& o : out) seen = seen || glm::length(o - d) < 1e-6 * nearest;
       if (!seen) out.push_back(d);

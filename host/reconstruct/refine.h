@@ -152,10 +152,9 @@ class Refiner {
   RefineStats stats_;
 };
 
-// The lenslet lattice's vectors at most `max_pitches` times the
-// nearest-neighbour distance, each once (a vector and its negative both).
-// The default, the nearest neighbours: for the prototype's hex array six
-// vectors of the 4 mm pitch; 2 adds the six of sqrt(3) and the six of 2 pitches.
-std::vector<glm::dvec2> lattice_vectors(const OpticalSystem& sys, double max_pitches = 1.0);
+// The lenslet lattice's nearest-neighbour vectors, each once (a vector and
+// its negative both): for the prototype's hex array six vectors of the 4 mm
+// pitch, for a single row two. The alias sites are built from them.
+std::vector<glm::dvec2> lattice_vectors(const OpticalSystem& sys);
 
 }  // namespace prism
