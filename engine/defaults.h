@@ -83,7 +83,11 @@ inline constexpr double dictionary_depth_planes_mm[] = {0,  1,  2,  3,  4,    5,
 inline constexpr unsigned refine_rays_per_lenslet = 1024;
 inline constexpr int refine_iterations = 20;       // Levenberg-Marquardt steps per start, at most
 inline constexpr int refine_search_starts = 3;     // the search's runners-up probed per vertex
-inline constexpr int refine_alias_starts = 2;      // alias sites probed per vertex, of all in the field
+inline constexpr int refine_alias_starts = 2;      // lattice aliases probed per vertex
+// A fit flagged poor (p < fit_pvalue_flag) after every start also tries the
+// aliases of its estimate for lattice vectors up to this many pitches (18 in
+// the hex array): near the face the search confuses sources two pitches apart.
+inline constexpr double refine_rescue_alias_pitches = 2.0;
 // A fit this poor or worse (p-value) also scans the lattice that its clicks
 // vote for (host/reconstruct/click_geometry.h): every alias site of the best
 // voted position, one render each. Near the face a wrong fit of the real

@@ -131,12 +131,12 @@ void run(const ReconstructArgs& a) {
   std::printf("time: support scans %.2f s, the rest on the host %.2f s%s\n", t.scan_s, t.host_s,
               threads > 1 ? " (summed over threads)" : "");
   if (refiner)
-    std::printf("refinement (%s): %.2f s, %.1f starts and %.1f LM steps per event, %llu renders; %llu poor or "
-                "marginal fits had the clicks' votes counted (%llu voted depths scanned)\n",
+    std::printf("refinement (%s): %.2f s, %.1f starts and %.1f LM steps per event, %llu renders; %llu poor fits "
+                "sent to the far aliases, %llu poor or marginal ones had the clicks' votes counted (%llu voted depths scanned)\n",
                 describe(model, scene).c_str(), refiner->stats().seconds,
                 double(refiner->stats().starts) / double(std::max<uint64_t>(1, done)),
                 double(refiner->stats().iterations) / double(std::max<uint64_t>(1, done)),
-                (unsigned long long)source_model->renders(),
+                (unsigned long long)source_model->renders(), (unsigned long long)refiner->stats().rescues,
                 (unsigned long long)refiner->stats().lattice_scans, (unsigned long long)refiner->stats().lattice_depths);
   else
     std::printf("refinement: none (--model none): positions from the dictionary search alone\n");

@@ -145,7 +145,7 @@ RefineBounds RefineBounds::of(const Scene& scene) {
   return {{v.x_min_mm, v.y_min_mm, v.depth_min_mm}, {v.x_max_mm, v.y_max_mm, v.depth_max_mm}};
 }
 
-std::vector<glm::dvec2> lattice_vectors(const OpticalSystem& sys) {
+std::vector<glm::dvec2> lattice_vectors(const OpticalSystem& sys, double max_pitches) {
   const auto& ls = sys.lenslets;
   double nearest = std::numeric_limits<double>::infinity();
   for (size_t i = 0; i < ls.size(); ++i)
@@ -155,7 +155,7 @@ std::vector<glm::dvec2> lattice_vectors(const OpticalSystem& sys) {
   for (size_t i = 0; i < ls.size(); ++i)
     for (size_t j = 0; j < ls.size(); ++j) {
       glm::dvec2 d(ls[j].x_mm - ls[i].x_mm, ls[j].y_mm - ls[i].y_mm);
-      if (i == j || glm::length(d) > nearest * 1.01) continue;  // (1.01: rounding in the layout)
+      if (i == j || glm::length(d) > nearest * (max_pitches + 0.01)) continue;
       bool seen = false;
       for (const auto& o : out) seen = seen || glm::length(o - d) < 1e-6 * nearest;
       if (!seen) out.push_back(d);
@@ -340,7 +340,8 @@ Refiner::Refiner(SourceModel& model, const Scene& scene, const AnalysisGrid& cli
       bounds_(RefineBounds::of(scene)),
       optics_(scene.optics),
       grid_(clicks),
-      lattice_mm_(lattice_vectors(scene.optics)) {
+      lattice_mm_(lattice_vectors(scene.optics)),
+      rescue_lattice_mm_(lattice_vectors(scene.optics, defaults::refine_rescue_alias_pitches)) {
   if (s_.iterations < 1 || s_.alias_starts < 0 || s_.search_starts < 0 || s_.ladder_starts < 0 || s_.pvalue_draws < 1)
     throw std::invalid_argument(
         "refinement: iterations and p-value draws must be >= 1, search, alias and ladder starts >= 0");
@@ -451,9 +452,8 @@ double Refiner::fit_pvalue(const Fit& f, uint64_t event_id) const {
 std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector<ReconstructedVertex> rows) {
   constexpr int kProbeSteps = 4;            // LM steps before a start is judged
   constexpr double kDistinctStartMm = 1.0;  // starts closer than this to one tried are skipped
-  // Alias sites are tried moved by up to this many click-grid pixels: 0.2 mm
-  // of source at the face (magnification 3.7) for 110 um pixels, where the
-  // chief-ray alias scale misplaces far sites by tenths of a mm.
+  // The lattice scan's sites are tried moved by up to this many click-grid
+  // pixels: 0.2 mm of source at the face (magnification 3.7) for 110 um pixels.
   constexpr int kLatticeReachPx = 6;
   const auto start_time = std::chrono::steady_clock::now();
   ++stats_.events;
@@ -476,8 +476,8 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
 
   // Further starts per vertex, the others held where they are: the search's
   // runners-up (other planes and nodes), the lattice aliases of the current
-  // estimate (every site in the field) and its ladder. Each is probed for a
-  // few steps; one that has overtaken the best is followed to convergence.
+  // estimate and its ladder. Each is probed for a few steps; one that has overtaken
+  // the best is followed to convergence.
   auto try_start = [&](size_t k, glm::dvec3 at, double alpha) {
     Fit g = f.unrendered();
     g.theta[k] = glm::clamp(at, bounds_.lo, bounds_.hi);
@@ -535,28 +535,15 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
   auto inside = [&](glm::dvec3 a) {
     return glm::all(glm::greaterThanEqual(a, bounds_.lo)) && glm::all(glm::lessThanEqual(a, bounds_.hi));
   };
-  // Every site of the alias lattice through `at` inside the field, `at`
-  // itself left out: at + i a + j b (j = 0 for a single row of lenslets),
-  // a and b the lattice's two shortest independent vectors times the alias
-  // scale at its depth.
-  glm::dvec2 lattice_a = lattice_mm_.empty() ? glm::dvec2(0) : lattice_mm_[0], lattice_b{};
-  for (const auto& v : lattice_mm_)
-    if (std::abs(lattice_a.x * v.y - lattice_a.y * v.x) > 1e-6 * glm::dot(lattice_a, lattice_a)) lattice_b = v;
-  auto field_sites = [&](glm::dvec3 at) {
-    const double scale = optics_.alias_scale(at.z);
-    const glm::dvec2 sa = lattice_a * scale, sb = lattice_b * scale;
-    const double field = glm::length(glm::dvec2(bounds_.hi - bounds_.lo));
-    const double spacing = lattice_b == glm::dvec2(0)
-                               ? glm::length(sa)
-                               : std::abs(sa.x * sb.y - sa.y * sb.x) / std::max(glm::length(sa), glm::length(sb));
-    const int n = int(std::ceil(field / spacing)), n_b = lattice_b == glm::dvec2(0) ? 0 : n;
-    std::vector<glm::dvec3> sites;
-    for (int i = -n; i <= n; ++i)
-      for (int j = -n_b; j <= n_b; ++j) {
-        const glm::dvec3 site = at + glm::dvec3(double(i) * sa + double(j) * sb, 0.0);
-        if ((i != 0 || j != 0) && inside(site)) sites.push_back(site);
-      }
-    return sites;
+  // Lattice aliases of vertex k (OpticalSystem::alias_scale).
+  auto aliases = [&](size_t k, const std::vector<glm::dvec2>& lattice, auto&& is_new) {
+    std::vector<glm::dvec3> cand;
+    const double scale = optics_.alias_scale(f.theta[k].z);
+    for (const auto& v : lattice) {
+      glm::dvec3 a = f.theta[k] + glm::dvec3(v * scale, 0.0);
+      if (inside(a) && is_new(a)) cand.push_back(a);
+    }
+    return cand;
   };
   const bool use_aliases = s_.aliases && !lattice_mm_.empty() && s_.alias_starts > 0;
   for (size_t k = 0; k < f.K; ++k) {
@@ -575,17 +562,7 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
       ++taken;
       try_start(k, p, r.w);
     }
-    if (use_aliases) {
-      // Every site, not only the nearest: near the face the thin lenses'
-      // search put sources 2-4 pitches off, with the fit's p-value at
-      // 0.13-0.87 and an NLL 5-86 above the truth's basin (README
-      // "Reconstruction"). Far from the face the sites are few (their
-      // spacing grows with the alias scale).
-      std::vector<glm::dvec3> sites;
-      for (const glm::dvec3& a : field_sites(f.theta[k]))
-        if (is_new(a)) sites.push_back(a);
-      probe_best(k, sites, s_.alias_starts, kLatticeReachPx);
-    }
+    if (use_aliases) probe_best(k, aliases(k, lattice_mm_, is_new), s_.alias_starts);
     if (s_.ladder_starts > 0) {
       // The ladder: the converged estimate moved along its weakest direction
       // (the position covariance's principal axis, mostly depth) and along
@@ -606,6 +583,16 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
   }
 
   double pvalue = fit_pvalue(f, event.id);
+  if (pvalue < defaults::fit_pvalue_flag && s_.rescue && use_aliases && !rescue_lattice_mm_.empty()) {
+    // Rescue of a poor fit: near the face the lenslet images lie about a
+    // sensor width apart and the search also confuses sources two pitches
+    // apart; the aliases of the estimate out to 2 pitches are probed only
+    // here, where they can pay.
+    ++stats_.rescues;
+    for (size_t k = 0; k < f.K; ++k)
+      probe_best(k, aliases(k, rescue_lattice_mm_, [](glm::dvec3) { return true; }), s_.alias_starts);
+    pvalue = fit_pvalue(f, event.id);
+  }
   if (pvalue < defaults::refine_lattice_scan_pvalue && s_.lattice_scan && !lattice_mm_.empty()) {
     // The lattice scan: near the face the search can miss the source's
     // depth altogether (click_geometry.h). The clicks' votes give a depth
@@ -616,6 +603,9 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
     // before it improved the fit: a fit that is poor for another reason
     // (a biased model, clicks the model does not expect) costs one depth.
     ++stats_.lattice_scans;
+    glm::dvec2 a = lattice_mm_[0], b{};
+    for (const auto& v : lattice_mm_)
+      if (std::abs(a.x * v.y - a.y * v.x) > 1e-6 * glm::dot(a, a)) b = v;
     const auto peaks =
         vote_source_positions(optics_, grid_, f.clicks, bounds_.lo, bounds_.hi, defaults::refine_lattice_scan_depths);
     for (size_t q = 0; q < peaks.size() && pvalue < defaults::refine_lattice_scan_pvalue; ++q) {
@@ -629,7 +619,20 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
         stats_.iterations += uint64_t(levenberg_marquardt(g, s_.iterations));
         const glm::dvec3 at = g.theta[k];
         if (g.nll < f.nll) f = std::move(g);
-        const std::vector<glm::dvec3> sites = field_sites(at);
+        const double scale = optics_.alias_scale(at.z);
+        const glm::dvec2 sa = a * scale, sb = b * scale;
+        // Sites i a + j b around it (j = 0 for a single row of lenslets):
+        // enough of them to cover the field.
+        const double field = glm::length(glm::dvec2(bounds_.hi - bounds_.lo));
+        const double spacing = b == glm::dvec2(0) ? glm::length(sa)
+                                                  : std::abs(sa.x * sb.y - sa.y * sb.x) / std::max(glm::length(sa), glm::length(sb));
+        const int n = int(std::ceil(field / spacing)), n_b = b == glm::dvec2(0) ? 0 : n;
+        std::vector<glm::dvec3> sites;
+        for (int i = -n; i <= n; ++i)
+          for (int j = -n_b; j <= n_b; ++j) {
+            const glm::dvec3 site = at + glm::dvec3(double(i) * sa + double(j) * sb, 0.0);
+            if ((i != 0 || j != 0) && inside(site)) sites.push_back(site);
+          }
         probe_best(k, sites, s_.alias_starts, kLatticeReachPx);
       }
       if (!(f.nll < nll_before)) break;

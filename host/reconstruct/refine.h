@@ -107,9 +107,10 @@ TraceSettings refine_trace_settings(unsigned binning);
 
 struct RefineSettings {
   int iterations = defaults::refine_iterations;  // LM steps per start
-  bool aliases = true;  // also start from each vertex's lattice aliases: every site in the field, scored
+  bool aliases = true;                           // also start from the best vertex's lattice aliases
   int search_starts = defaults::refine_search_starts;  // the search's runners-up probed per vertex
-  int alias_starts = defaults::refine_alias_starts;    // alias sites probed per vertex (the best scored)
+  int alias_starts = defaults::refine_alias_starts;    // lattice aliases probed per vertex (best by first NLL)
+  bool rescue = true;  // a poor fit also tries the aliases out to defaults::refine_rescue_alias_pitches
   bool lattice_scan = true;  // p < defaults::refine_lattice_scan_pvalue: also the sites the clicks vote for
   int ladder_starts = defaults::refine_ladder_starts;  // ladder points probed per vertex (0: no ladder)
   int pvalue_draws = defaults::fit_pvalue_draws; // Monte Carlo events per goodness-of-fit p-value
@@ -125,6 +126,7 @@ struct RefineBounds {
 
 struct RefineStats {
   uint64_t events = 0, starts = 0, iterations = 0;
+  uint64_t rescues = 0;  // events whose poor fit sent them to the far aliases
   uint64_t lattice_scans = 0;   // events whose poor or marginal fit had the clicks' votes counted
   uint64_t lattice_depths = 0;  // voted depths scanned
   double seconds = 0;
@@ -149,12 +151,14 @@ class Refiner {
   OpticalSystem optics_;
   AnalysisGrid grid_;
   std::vector<glm::dvec2> lattice_mm_;      // lenslet-lattice vectors (nearest neighbours)
+  std::vector<glm::dvec2> rescue_lattice_mm_;  // those up to 2 pitches, for the rescue of a poor fit
   RefineStats stats_;
 };
 
-// The lenslet lattice's nearest-neighbour vectors, each once (a vector and
-// its negative both): for the prototype's hex array six vectors of the 4 mm
-// pitch, for a single row two. The alias sites are built from them.
-std::vector<glm::dvec2> lattice_vectors(const OpticalSystem& sys);
+// The lenslet lattice's vectors at most `max_pitches` times the
+// nearest-neighbour distance, each once (a vector and its negative both).
+// The default, the nearest neighbours: for the prototype's hex array six
+// vectors of the 4 mm pitch; 2 adds the six of sqrt(3) and the six of 2 pitches.
+std::vector<glm::dvec2> lattice_vectors(const OpticalSystem& sys, double max_pitches = 1.0);
 
 }  // namespace prism

@@ -73,6 +73,13 @@ TEST_CASE("refinement: lattice vectors are the lenslets' nearest neighbours") {
   auto hex = prism::lattice_vectors(prism::builtin_scene("prototype").optics);
   CHECK(hex.size() == 6);
   for (auto v : hex) CHECK(glm::length(v) == doctest::Approx(prism::defaults::lenslet_pitch_mm));
+  auto wide = prism::lattice_vectors(prism::builtin_scene("prototype").optics, 2.0);
+  CHECK(wide.size() == 18);  // 6 of 1 pitch, 6 of sqrt(3), 6 of 2
+  std::vector<glm::dvec2> ring2;  // beyond the nearest neighbours
+  for (auto v : wide)
+    if (glm::length(v) > 1.01 * prism::defaults::lenslet_pitch_mm) ring2.push_back(v);
+  CHECK(ring2.size() == 12);
+  for (auto v : ring2) CHECK(glm::length(v) > 1.5 * prism::defaults::lenslet_pitch_mm);
   auto row = prism::lattice_vectors(small_scene().optics);  // one row: +-x only
   REQUIRE(row.size() == 2);
   CHECK(std::abs(row[0].y) < 1e-12);
@@ -159,25 +166,24 @@ TEST_CASE("refinement: a start on a lattice alias comes back to the truth") {
   CHECK(with[0].nll < without[0].nll);
 }
 
-TEST_CASE("refinement: a start three pitches off comes back through the alias sites of the whole field") {
-  // Near the face a source several pitches away makes a look-alike that fits
-  // as well as the model expects (no poor fit to trigger anything) and that
-  // the nearest aliases cannot reach (from +3 pitches they try +2 and +4).
+TEST_CASE("refinement: a poor fit two pitches off is rescued by the far aliases") {
+  // Near the face a source two pitches away makes a look-alike the nearest
+  // aliases cannot reach (from +2 pitches they try +1 and +3).
   const glm::dvec3 at(0.6, 0.3, 4.5);
   const auto& o = small_scene().optics;
   const double scale = o.alias_scale(at.z);
-  const glm::dvec3 alias = at + glm::dvec3(3 * prism::defaults::lenslet_pitch_mm * scale, 0, 0);
-  REQUIRE(alias.x < prism::RefineBounds::of(small_scene()).hi.x);
+  const glm::dvec3 alias = at + glm::dvec3(2 * prism::defaults::lenslet_pitch_mm * scale, 0, 0);
   auto e = make_event({{at, 300}}, 8);
-  auto stuck = refine(e, {row(alias, 300)}, true, {.aliases = false, .lattice_scan = false});
-  auto found = refine(e, {row(alias, 300)}, true);
+  auto stuck = refine(e, {row(alias, 300)}, true, {.rescue = false, .lattice_scan = false});
+  auto rescued = refine(e, {row(alias, 300)}, true);
   CAPTURE(stuck[0].x_mm);
   CAPTURE(stuck[0].fit_pvalue);
-  CAPTURE(found[0].x_mm);
+  CAPTURE(rescued[0].x_mm);
   CHECK(glm::length(glm::dvec3(stuck[0].x_mm, stuck[0].y_mm, stuck[0].depth_mm) - at) > 3);
-  CHECK(glm::length(glm::dvec3(found[0].x_mm, found[0].y_mm, found[0].depth_mm) - at) < 0.5);
-  CHECK((found[0].flags & prism::poor_fit) == 0);
-  CHECK(found[0].nll < stuck[0].nll);
+  CHECK((stuck[0].flags & prism::poor_fit) != 0);
+  CHECK(glm::length(glm::dvec3(rescued[0].x_mm, rescued[0].y_mm, rescued[0].depth_mm) - at) < 0.5);
+  CHECK((rescued[0].flags & prism::poor_fit) == 0);
+  CHECK(rescued[0].nll < stuck[0].nll);
   prism::test::check_validation_clean();
 }
 
@@ -213,7 +219,7 @@ TEST_CASE("refinement: a poor fit at another depth is rescued by the lattice its
   // face: no alias or ladder of it reaches the truth; the clicks' votes do.
   const glm::dvec3 at(0.6, 0.3, 2.5);
   auto e = make_event({{at, 300}}, 10);
-  const prism::RefineSettings alone{.aliases = false, .lattice_scan = false, .ladder_starts = 0};
+  const prism::RefineSettings alone{.aliases = false, .rescue = false, .lattice_scan = false, .ladder_starts = 0};
   prism::RefineSettings scan = alone;
   scan.lattice_scan = true;
   auto stuck = refine(e, {row({7.0, -2.0, 14.0}, 300)}, true, alone);
