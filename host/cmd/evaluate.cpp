@@ -2,7 +2,9 @@
 // experiment (host/reconstruct/evaluate.h) on forward-model events with a
 // reconstruction backend and, by default, the continuous refinement; a CSV
 // and a PNG per experiment, a table and the reconstruction rate on stdout.
+#include <algorithm>
 #include <cstdio>
+#include <filesystem>
 #include <memory>
 
 #include "host/cmd/commands.h"
@@ -88,6 +90,13 @@ void run(EvaluateArgs a) {
               "Fisher information scaled to the point's detected photons; catastrophic: 3D error > %g mm, left "
               "out of RMSE and efficiency\n",
               defaults::catastrophic_error_mm);
+  if (std::find(o.experiments.begin(), o.experiments.end(), "volume") != o.experiments.end()) {
+    std::filesystem::create_directories(a.out);
+    o.volume_journal = a.out + "/volume-journal.jsonl";
+    std::printf("# volume: events are kept in %s as they are done; a stopped run resumes from it (remove it to "
+                "start over)\n",
+                o.volume_journal.c_str());
+  }
   std::unique_ptr<Progress> progress;
   auto result = evaluate(ctx, scene, *reader, o, [&](size_t done, size_t total) {
     if (!progress) progress = std::make_unique<Progress>("evaluate", total);
@@ -117,6 +126,10 @@ void run(EvaluateArgs a) {
                   r.axes.events, 100 * r.axes.catastrophic_rate, defaults::catastrophic_error_mm,
                   r.axes.median_ratio.x, r.axes.median_ratio.y, r.axes.median_ratio.z);
   const auto& cost = result.cost;
+  if (result.volume_resumed)
+    std::printf("volume: %zu of the %zu events read from %s (reconstructed by an earlier run; not in the cost "
+                "below)\n",
+                result.volume_resumed, result.volume.size(), o.volume_journal.c_str());
   std::printf("reconstruction: %llu events in %.2f s, %.2f events/s, %.2f s per event (support scans %.2f s, "
               "refinement %.2f s of it, %.1f renders per event; %s backend)\n",
               (unsigned long long)cost.events, cost.reconstruct_s,
@@ -157,7 +170,10 @@ void add_evaluate(CLI::App& app) {
       ->capture_default_str()->check(CLI::PositiveNumber);
   c->add_option("--trials", a->options.trials, "events per point (best and worst dropped); --quick: 5")
       ->capture_default_str()->check(CLI::Range(3, 100000));
-  c->add_option("--out", a->out, "directory for <experiment>.csv and <experiment>.png")->capture_default_str();
+  c->add_option("--out", a->out,
+                "directory for <experiment>.csv and <experiment>.png; volume: also volume-journal.jsonl, the events "
+                "done so far, from which a stopped run resumes")
+      ->capture_default_str();
   c->add_option("--binning", a->binning, "click binning: the dictionary's base binning x 2^k (default: base)")
       ->check(CLI::Range(1u, 1024u));
   c->add_option("--rays", a->options.rays, "rays per 3 mm lenslet for the event truth and the CRLB (default: the "

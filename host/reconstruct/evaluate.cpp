@@ -9,6 +9,7 @@
 #include <map>
 #include <memory>
 #include <numeric>
+#include <optional>
 #include <stdexcept>
 
 #include "engine/defaults.h"
@@ -18,6 +19,7 @@
 #include "host/scene/crlb_study.h"
 #include "host/util/format.h"
 #include "host/util/image_io.h"
+#include "host/util/journal.h"
 #include "host/util/plot.h"
 
 namespace prism {
@@ -199,6 +201,61 @@ TrimmedStats trimmed_stats(const std::vector<double>& err3d_mm, const std::vecto
   return s;
 }
 
+namespace {
+
+using json = nlohmann::json;
+
+// JSON has no NaN: null stands for it (an unrefined vertex's CRLB and p-value).
+json number_or_null(double x) { return std::isnan(x) ? json(nullptr) : json(x); }
+double number_of(const json& j) { return j.is_null() ? NAN : j.get<double>(); }
+
+// A volume event as one journal record, and back.
+json to_json(const VolumeEvent& v) {
+  const auto& e = v.estimate;
+  return {{"index", v.index},
+          {"truth_mm", {v.truth_mm.x, v.truth_mm.y, v.truth_mm.z}},
+          {"crlb_mm", {v.crlb_mm.x, v.crlb_mm.y, v.crlb_mm.z}},
+          {"estimate",
+           {{"x_mm", e.x_mm}, {"y_mm", e.y_mm}, {"depth_mm", e.depth_mm}, {"alpha", e.alpha}, {"nll", e.nll},
+            {"clicks", e.clicks}, {"flags", e.flags}, {"refined", e.refined},
+            {"crlb_mm", {number_or_null(e.crlb_x_mm), number_or_null(e.crlb_y_mm), number_or_null(e.crlb_z_mm),
+                         number_or_null(e.crlb_3d_mm)}},
+            {"fit_pvalue", number_or_null(e.fit_pvalue)}}}};
+}
+
+VolumeEvent volume_event_from_json(const json& j, const std::string& path) {
+  try {
+    VolumeEvent v;
+    v.index = j.at("index").get<uint64_t>();
+    for (int k = 0; k < 3; ++k) {
+      v.truth_mm[k] = j.at("truth_mm").at(size_t(k)).get<double>();
+      v.crlb_mm[k] = number_of(j.at("crlb_mm").at(size_t(k)));
+    }
+    const json& e = j.at("estimate");
+    auto& r = v.estimate;
+    r.x_mm = e.at("x_mm").get<double>();
+    r.y_mm = e.at("y_mm").get<double>();
+    r.depth_mm = e.at("depth_mm").get<double>();
+    r.alpha = e.at("alpha").get<double>();
+    r.nll = e.at("nll").get<double>();
+    r.clicks = e.at("clicks").get<uint32_t>();
+    r.flags = e.at("flags").get<uint32_t>();
+    r.refined = e.at("refined").get<bool>();
+    const json& c = e.at("crlb_mm");
+    r.crlb_x_mm = number_of(c.at(0));
+    r.crlb_y_mm = number_of(c.at(1));
+    r.crlb_z_mm = number_of(c.at(2));
+    r.crlb_3d_mm = number_of(c.at(3));
+    r.fit_pvalue = number_of(e.at("fit_pvalue"));
+    return v;
+  } catch (const json::exception& err) {
+    throw JournalError(path + ": a volume event record without what it needs (" + err.what() +
+                       "); remove the file to start over");
+  }
+}
+
+}  // namespace
+
 const std::vector<std::string>& evaluation_experiments() {
   static const std::vector<std::string> names{"single-lines", "photons", "double", "volume"};
   return names;
@@ -273,11 +330,45 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   }
 
   Evaluation result;
+  // The volume's events already in the journal: not redone.
+  std::optional<Journal> journal;
+  std::vector<std::optional<VolumeEvent>> journaled(volume_positions.size());
+  if (volume && !o.volume_journal.empty()) {
+    const RefineSettings& r = o.refine;
+    const json header = {
+        {"prism_evaluate_volume", 1},
+        {"seed", o.seed},
+        {"photons", volume_protocol::photons},
+        {"field_mm", {{field.x.x, field.x.y}, {field.y.x, field.y.y}, {field.depth.x, field.depth.y}}},
+        {"truth", {{"rays_per_lenslet", t.rays_per_lenslet}, {"splat", to_string(t.splat)},
+                   {"stratification", t.stratification}, {"binning", t.binning}}},
+        {"scene", to_json(scene)},
+        {"dictionary", std::filesystem::weakly_canonical(dictionary.dir()).string()},
+        {"search", {{"level", s.search_level}, {"backend", to_string(o.backend)}, {"half", o.device_half},
+                    {"tau_mm", s.tau_mm}, {"dark_rate", s.dark_rate}, {"candidates", s.refine_candidates},
+                    {"newton_iterations", s.newton_iterations}, {"descent_rounds", s.descent_rounds},
+                    {"alpha_max", s.alpha_max}, {"min_clicks", s.min_clicks}, {"scan_step_px", s.scan_step_px}}},
+        {"refine", {{"model", describe(o.model, scene)}, {"iterations", r.iterations}, {"aliases", r.aliases},
+                    {"search_starts", r.search_starts}, {"alias_starts", r.alias_starts}, {"rescue", r.rescue},
+                    {"lattice_scan", r.lattice_scan}, {"ladder_starts", r.ladder_starts},
+                    {"pvalue_draws", r.pvalue_draws}}}};
+    journal.emplace(o.volume_journal, header,
+                    "rerun with the same options (--volume-events may differ) or use a new --out");
+    for (const json& j : journal->records()) {
+      VolumeEvent v = volume_event_from_json(j, o.volume_journal);
+      if (v.index < journaled.size()) {
+        if (!journaled[v.index]) ++result.volume_resumed;
+        journaled[v.index] = v;
+      }
+    }
+  }
   EvaluationCost& spent = result.cost;
-  const size_t total = points.size() * size_t(o.trials) + volume_positions.size();
+  const size_t total = points.size() * size_t(o.trials) + volume_positions.size() - result.volume_resumed;
   size_t done = 0;
   // The search, then the refinement, of a batch of K-vertex events.
-  auto reconstruct = [&](const std::vector<Event>& events, int k) {
+  // `each(i, estimate)` is called as event i is done.
+  auto reconstruct = [&](const std::vector<Event>& events, int k,
+                         const std::function<void(size_t, const std::vector<ReconstructedVertex>&)>& each = {}) {
     ReconstructionSettings ks = s;
     ks.vertices = k;
     auto& r = reconstructors[k];
@@ -289,6 +380,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
     const auto searched = std::chrono::steady_clock::now();
     for (size_t i = 0; i < events.size(); ++i) {
       if (refiner) estimates[i] = refiner->refine(events[i], std::move(estimates[i]));
+      if (each) each(i, estimates[i]);
       if (progress) progress(++done, total);
     }
     const auto end = std::chrono::steady_clock::now();
@@ -348,28 +440,33 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   }
 
   if (volume) {
+    std::vector<size_t> pending;
+    for (size_t i = 0; i < volume_positions.size(); ++i)
+      if (!journaled[i]) pending.push_back(i);
     const size_t batch = 32;
-    for (size_t first = 0; first < volume_positions.size(); first += batch) {
-      const size_t n = std::min(batch, volume_positions.size() - first);
+    for (size_t first = 0; first < pending.size(); first += batch) {
+      const size_t n = std::min(batch, pending.size() - first);
       std::vector<Event> events(n);
       for (size_t i = 0; i < n; ++i) {
-        const glm::dvec3& at = volume_positions[first + i];
+        const size_t index = pending[first + i];
         auto& e = events[i];
-        e.id = volume_first_id + first + i;
-        auto psf = truth.psf(at);
+        e.id = volume_first_id + index;
+        auto psf = truth.psf(volume_positions[index]);
         const ClickSource source{psf.get(), volume_protocol::photons};
-        sample_clicks(std::span(&source, 1), volume_rngs[first + i], e.clicks);
+        sample_clicks(std::span(&source, 1), volume_rngs[index], e.clicks);
       }
-      auto estimates = reconstruct(events, 1);
-      for (size_t i = 0; i < n; ++i) {
+      reconstruct(events, 1, [&](size_t i, const std::vector<ReconstructedVertex>& estimate) {
+        const size_t index = pending[first + i];
         VolumeEvent v;
-        v.index = first + i;
-        v.truth_mm = volume_positions[first + i];
-        v.estimate = estimates[i].at(0);
-        v.crlb_mm = crlb_at(bound + first + i, volume_protocol::photons).first;
-        result.volume.push_back(v);
-      }
+        v.index = index;
+        v.truth_mm = volume_positions[index];
+        v.estimate = estimate.at(0);
+        v.crlb_mm = crlb_at(bound + index, volume_protocol::photons).first;
+        if (journal) journal->append(to_json(v));
+        journaled[index] = v;
+      });
     }
+    for (const auto& v : journaled) result.volume.push_back(*v);
     // By depth band, then the whole field.
     auto bands = depth_bands(field.depth, o.band_mm);
     bands.push_back(field.depth);

@@ -109,6 +109,11 @@ struct EvaluationOptions {
   bool device_half = false;    // device backends: the scan level as half floats
   RefineModel model = RefineModel::scene;
   RefineSettings refine;       // dark_rate and alpha_max: from `settings`
+  // The volume experiment's journal (host/util/journal.h): each event is
+  // appended as it is reconstructed and the events already in it are not
+  // redone, so a stopped run resumes. It must have been made with the same
+  // options (--volume-events may differ). Empty: none.
+  std::string volume_journal;
 };
 
 // What the reconstructions of an evaluation cost.
@@ -144,7 +149,8 @@ struct VolumeEvent {
 struct Evaluation {
   std::vector<EvaluationRow> rows;
   std::vector<VolumeEvent> volume;  // every event of the volume experiment
-  EvaluationCost cost;
+  size_t volume_resumed = 0;        // of which read from the journal (not in `cost`)
+  EvaluationCost cost;              // what this run's reconstructions cost
 };
 
 // Valid experiment names, in the order they run.

@@ -2,17 +2,11 @@
 // appended to the state file as it exists so a stopped sweep resumes.
 #include "host/sweep/sweep.h"
 
-#include <fcntl.h>
-#include <unistd.h>
-
 #include <algorithm>
 #include <chrono>
 #include <cmath>
-#include <filesystem>
-#include <fstream>
-#include <sstream>
 
-#include "host/util/image_io.h"
+#include "host/util/journal.h"
 
 namespace prism {
 
@@ -136,62 +130,25 @@ Sweep::Sweep(const DesignSpace& space, SweepSettings settings, std::string state
     : space_(space), settings_(std::move(settings)), state_path_(std::move(state_path)) {
   objective_value(Objectives{}, settings_.objective);  // an unknown name fails before any work
   if (settings_.budget == 0) throw SweepError("--budget must be at least 1");
-  json want = header();
-  std::ifstream in(state_path_);
-  if (!in) {
-    write_atomically(state_path_, [&](const std::string& tmp) {
-      std::ofstream out(tmp);
-      out << want.dump() << '\n';
-      if (!out) throw SweepError("cannot write " + state_path_);
-    });
-    return;
+  try {
+    journal_.emplace(state_path_, header(),
+                     "rerun with the same space and --rays/--binning/--device kind, or use a new --out");
+  } catch (const JournalError& e) {
+    throw SweepError(e.what());
   }
-  std::string line;
-  std::vector<std::string> good;
-  bool torn = false;
-  size_t line_no = 0;
-  while (std::getline(in, line)) {
-    ++line_no;
-    json j;
-    try {
-      j = json::parse(line);
-    } catch (const json::parse_error&) {
-      // Only a design cut short by a kill can be half written: the last line.
-      if (in.peek() != EOF) throw SweepError(state_path_ + ":" + std::to_string(line_no) + ": not a sweep record; remove the file to start over");
-      torn = true;
-      break;
-    }
-    if (line_no == 1) {
-      for (auto it = want.begin(); it != want.end(); ++it)
-        if (!j.contains(it.key()) || j[it.key()] != it.value())
-          throw SweepError(state_path_ + " was made with a different " + it.key() + " (" +
-                           (j.contains(it.key()) ? j[it.key()].dump() : "none") + ", this run: " + it.value().dump() +
-                           "); rerun with the same space and --rays/--binning/--device kind, or use a new --out");
-    } else {
-      Evaluated e = evaluated_from_json(j);
-      stored_.emplace(e.key, e);
-      done_.push_back(std::move(e));
-    }
-    good.push_back(line);
-  }
-  if (torn) {
-    write_atomically(state_path_, [&](const std::string& tmp) {
-      std::ofstream out(tmp);
-      for (const auto& g : good) out << g << '\n';
-    });
+  for (const json& j : journal_->records()) {
+    Evaluated e = evaluated_from_json(j);
+    stored_.emplace(e.key, e);
+    done_.push_back(std::move(e));
   }
 }
 
 void Sweep::append(const Evaluated& e) const {
-  // One write() of a whole line with O_APPEND, then fsync: a kill leaves
-  // either the line or (at worst) a torn last line, which the reader drops.
-  std::string line = to_json(e).dump() + "\n";
-  int fd = ::open(state_path_.c_str(), O_WRONLY | O_APPEND);
-  if (fd < 0) throw SweepError("cannot append to " + state_path_);
-  ssize_t n = ::write(fd, line.data(), line.size());
-  ::fsync(fd);
-  ::close(fd);
-  if (n != ssize_t(line.size())) throw SweepError("cannot append to " + state_path_ + " (disk full?)");
+  try {
+    journal_->append(to_json(e));
+  } catch (const JournalError& err) {
+    throw SweepError(err.what());
+  }
 }
 
 bool Sweep::better(const Evaluated& a, const Evaluated& b) const {

@@ -10,6 +10,7 @@
 #pragma once
 #include <cstdint>
 #include <functional>
+#include <optional>
 #include <string>
 #include <unordered_map>
 #include <unordered_set>
@@ -19,6 +20,7 @@
 
 #include "host/sweep/objectives.h"
 #include "host/sweep/space.h"
+#include "host/util/journal.h"
 
 namespace prism {
 
@@ -74,6 +76,7 @@ class Sweep {
   const DesignSpace& space_;
   SweepSettings settings_;
   std::string state_path_;
+  std::optional<Journal> journal_;  // the state file
   std::vector<Evaluated> done_;           // in state-file order
   std::unordered_map<std::string, Evaluated> stored_;  // read from the state file, not yet replayed
   std::unordered_set<std::string> seen_;                // keys consumed by this run

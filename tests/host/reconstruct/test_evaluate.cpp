@@ -12,6 +12,7 @@
 #include "host/dictionary/build.h"
 #include "host/reconstruct/evaluate.h"
 #include "host/scene/crlb_study.h"
+#include "host/util/journal.h"
 #include "support.h"
 
 namespace fs = std::filesystem;
@@ -39,6 +40,20 @@ struct EvalDictionary {
 EvalDictionary& dictionary() {
   static EvalDictionary d;
   return d;
+}
+
+// The volume experiment on the small dictionary, the search alone (quick).
+prism::EvaluationOptions search_volume(int events) {
+  prism::EvaluationOptions o;
+  o.experiments = {"volume"};
+  o.model = prism::RefineModel::none;
+  o.volume_events = events;
+  o.volume_x_mm = {-4, 4};
+  o.volume_y_mm = {-3, 3};  // depth: the grid's 5..35 mm
+  o.rays = 1024;
+  o.splat = prism::Splat::point;
+  o.seed = 11;
+  return o;
 }
 
 std::vector<std::string> lines_of(const std::string& path) {
@@ -195,15 +210,7 @@ TEST_CASE("prism evaluate: --quick from the CLI, and errors that say what to do"
 
 TEST_CASE("evaluation volume: events uniform over the field, by depth band, every event's own CRLB") {
   auto& d = dictionary();
-  prism::EvaluationOptions o;
-  o.experiments = {"volume"};
-  o.model = prism::RefineModel::none;
-  o.volume_events = 8;
-  o.volume_x_mm = {-4, 4};
-  o.volume_y_mm = {-3, 3};  // depth: the grid's 5..35 mm
-  o.rays = 1024;
-  o.splat = prism::Splat::point;
-  o.seed = 11;
+  const prism::EvaluationOptions o = search_volume(8);
   const auto& scene = d.reader->manifest().scene;
   auto result = prism::evaluate(prism::test::gpu(), scene, *d.reader, o);
   REQUIRE(result.volume.size() == 8);
@@ -260,6 +267,50 @@ TEST_CASE("evaluation volume: events uniform over the field, by depth band, ever
   prism::test::check_validation_clean();
 }
 
+TEST_CASE("evaluation volume: a stopped run resumes from its journal, which must match the run") {
+  auto& d = dictionary();
+  prism::EvaluationOptions o = search_volume(5);
+  const std::string dir = d.dir + "/journal";
+  fs::create_directories(dir);
+  o.volume_journal = dir + "/volume-journal.jsonl";
+  const auto& scene = d.reader->manifest().scene;
+  const auto whole = prism::evaluate(prism::test::gpu(), scene, *d.reader, o);
+  CHECK(whole.volume_resumed == 0);
+  auto lines = lines_of(o.volume_journal);
+  REQUIRE(lines.size() == 6);  // the header and one line per event
+
+  // A run killed while writing its fourth event: three events and a torn line.
+  {
+    std::ofstream cut(o.volume_journal, std::ios::trunc);
+    for (size_t i = 0; i < 4; ++i) cut << lines[i] << '\n';
+    cut.write(lines[4].data(), std::streamsize(lines[4].size() / 2));
+  }
+  o.volume_events = 6;  // and asked for one more event
+  const auto resumed = prism::evaluate(prism::test::gpu(), scene, *d.reader, o);
+  CHECK(resumed.volume_resumed == 3);
+  CHECK(resumed.cost.events == 3);  // only the events not in the journal were reconstructed
+  REQUIRE(resumed.volume.size() == 6);
+  for (size_t i = 0; i < 5; ++i) {
+    CAPTURE(i);
+    const auto &a = whole.volume[i], &b = resumed.volume[i];
+    CHECK(b.index == i);
+    CHECK(b.truth_mm == a.truth_mm);
+    CHECK(b.crlb_mm.z == doctest::Approx(a.crlb_mm.z).epsilon(1e-12));
+    CHECK(b.estimate.x_mm == doctest::Approx(a.estimate.x_mm).epsilon(1e-12));
+    CHECK(b.estimate.depth_mm == doctest::Approx(a.estimate.depth_mm).epsilon(1e-12));
+    CHECK(b.estimate.alpha == doctest::Approx(a.estimate.alpha).epsilon(1e-12));
+    CHECK(b.estimate.flags == a.estimate.flags);
+    CHECK(std::isnan(b.estimate.fit_pvalue));  // not refined: NaN survives the journal (as null)
+  }
+  CHECK(lines_of(o.volume_journal).size() == 7);
+
+  // Another seed draws other events: the journal is refused, not mixed in.
+  o.seed = 12;
+  CHECK_THROWS_WITH_AS(prism::evaluate(prism::test::gpu(), scene, *d.reader, o), doctest::Contains("different seed"),
+                       prism::JournalError);
+  prism::test::check_validation_clean();
+}
+
 TEST_CASE("evaluation volume with the refinement: thin-lens row, truth at 4x the model's cells and other strata") {
   // A 7-lenslet thin-lens row (test_refine.cpp's scene) and a 15-PSF
   // dictionary of it; the refinement's model: its forward model.
@@ -287,7 +338,9 @@ TEST_CASE("evaluation volume with the refinement: thin-lens row, truth at 4x the
   CHECK(result.cost.refine_s > 0);
   for (const auto& v : result.volume) {
     auto text = [](glm::dvec3 p) {
-      return "(" + std::to_string(p.x) + ", " + std::to_string(p.y) + ", " + std::to_string(p.z) + ")";
+      std::ostringstream s;
+      s << '(' << p.x << ", " << p.y << ", " << p.z << ')';
+      return s.str();
     };
     const glm::dvec3 estimate(v.estimate.x_mm, v.estimate.y_mm, v.estimate.depth_mm);
     INFO("event ", v.index, ": truth ", text(v.truth_mm), " estimate ", text(estimate), " CRLB ", text(v.crlb_mm),
