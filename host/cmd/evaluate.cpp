@@ -2,7 +2,6 @@
 // experiment (host/reconstruct/evaluate.h) on forward-model events with a
 // reconstruction backend and, by default, the continuous refinement; a CSV
 // and a PNG per experiment, a table and the reconstruction rate on stdout.
-#include <algorithm>
 #include <cstdio>
 #include <filesystem>
 #include <memory>
@@ -90,13 +89,10 @@ void run(EvaluateArgs a) {
               "Fisher information scaled to the point's detected photons; catastrophic: 3D error > %g mm, left "
               "out of RMSE and efficiency\n",
               defaults::catastrophic_error_mm);
-  if (std::find(o.experiments.begin(), o.experiments.end(), "volume") != o.experiments.end()) {
-    std::filesystem::create_directories(a.out);
-    o.volume_journal = a.out + "/volume-journal.jsonl";
-    std::printf("# volume: events are kept in %s as they are done; a stopped run resumes from it (remove it to "
-                "start over)\n",
-                o.volume_journal.c_str());
-  }
+  std::filesystem::create_directories(a.out);
+  o.journal_dir = a.out;
+  std::printf("# events are kept in %s/*-journal.jsonl as they are done; %s\n", a.out.c_str(),
+              o.resume ? "resuming from what is there" : "a stopped run resumes from there with --resume");
   std::unique_ptr<Progress> progress;
   auto result = evaluate(ctx, scene, *reader, o, [&](size_t done, size_t total) {
     if (!progress) progress = std::make_unique<Progress>("evaluate", total);
@@ -126,10 +122,9 @@ void run(EvaluateArgs a) {
                   r.axes.events, 100 * r.axes.catastrophic_rate, defaults::catastrophic_error_mm,
                   r.axes.median_ratio.x, r.axes.median_ratio.y, r.axes.median_ratio.z);
   const auto& cost = result.cost;
-  if (result.volume_resumed)
-    std::printf("volume: %zu of the %zu events read from %s (reconstructed by an earlier run; not in the cost "
-                "below)\n",
-                result.volume_resumed, result.volume.size(), o.volume_journal.c_str());
+  if (result.resumed)
+    std::printf("%zu events read from the journals in %s (reconstructed by an earlier run; not in the cost below)\n",
+                result.resumed, a.out.c_str());
   std::printf("reconstruction: %llu events in %.2f s, %.2f events/s, %.2f s per event (support scans %.2f s, "
               "refinement %.2f s of it, %.1f renders per event; %s backend)\n",
               (unsigned long long)cost.events, cost.reconstruct_s,
@@ -171,8 +166,8 @@ void add_evaluate(CLI::App& app) {
   c->add_option("--trials", a->options.trials, "events per point (best and worst dropped); --quick: 5")
       ->capture_default_str()->check(CLI::Range(3, 100000));
   c->add_option("--out", a->out,
-                "directory for <experiment>.csv and <experiment>.png; volume: also volume-journal.jsonl, the events "
-                "done so far, from which a stopped run resumes")
+                "directory for <experiment>.csv and <experiment>.png, and the journals of the events done so far "
+                "(protocol-journal.jsonl, volume-journal.jsonl)")
       ->capture_default_str();
   c->add_option("--binning", a->binning, "click binning: the dictionary's base binning x 2^k (default: base)")
       ->check(CLI::Range(1u, 1024u));
@@ -181,6 +176,9 @@ void add_evaluate(CLI::App& app) {
       ->check(CLI::Range(1u, 1u << 24));
   a->splat.add_to(c, "here for the event truth and the CRLB, by default strata other than the dictionary's (0), so "
                      "that the estimator never sees its own model");
+  c->add_flag("--resume", a->options.resume,
+              "reconstruct only the events the journals in --out lack (a run stopped or killed, or one given more "
+              "--volume-events); the journals must come from the same options and engine");
   c->add_option("--seed", a->options.seed, "random seed of the events")->capture_default_str();
   c->add_flag("--quick", a->quick, "a reduced grid (2 points per line, 2 photon counts, 1 double) with 5 trials");
   c->add_option("--backend", a->backend,

@@ -209,49 +209,62 @@ using json = nlohmann::json;
 json number_or_null(double x) { return std::isnan(x) ? json(nullptr) : json(x); }
 double number_of(const json& j) { return j.is_null() ? NAN : j.get<double>(); }
 
+// A vertex as JSON, and back (journal records).
+json to_json(const ReconstructedVertex& e) {
+  return {{"x_mm", e.x_mm}, {"y_mm", e.y_mm}, {"depth_mm", e.depth_mm}, {"alpha", e.alpha}, {"nll", e.nll},
+          {"clicks", e.clicks}, {"flags", e.flags}, {"refined", e.refined},
+          {"crlb_mm", {number_or_null(e.crlb_x_mm), number_or_null(e.crlb_y_mm), number_or_null(e.crlb_z_mm),
+                       number_or_null(e.crlb_3d_mm)}},
+          {"fit_pvalue", number_or_null(e.fit_pvalue)}};
+}
+
+ReconstructedVertex vertex_from_json(const json& e) {
+  ReconstructedVertex r;
+  r.x_mm = e.at("x_mm").get<double>();
+  r.y_mm = e.at("y_mm").get<double>();
+  r.depth_mm = e.at("depth_mm").get<double>();
+  r.alpha = e.at("alpha").get<double>();
+  r.nll = e.at("nll").get<double>();
+  r.clicks = e.at("clicks").get<uint32_t>();
+  r.flags = e.at("flags").get<uint32_t>();
+  r.refined = e.at("refined").get<bool>();
+  const json& c = e.at("crlb_mm");
+  r.crlb_x_mm = number_of(c.at(0));
+  r.crlb_y_mm = number_of(c.at(1));
+  r.crlb_z_mm = number_of(c.at(2));
+  r.crlb_3d_mm = number_of(c.at(3));
+  r.fit_pvalue = number_of(e.at("fit_pvalue"));
+  return r;
+}
+
+// A journal record read with `read`; a record without what it needs names
+// the file.
+template <class F>
+auto read_record(const json& j, const std::string& path, F&& read) {
+  try {
+    return read(j);
+  } catch (const json::exception& err) {
+    throw JournalError(path + ": a record without what it needs (" + err.what() + "); remove the file to start over");
+  }
+}
+
 // A volume event as one journal record, and back.
 json to_json(const VolumeEvent& v) {
-  const auto& e = v.estimate;
   return {{"index", v.index},
           {"truth_mm", {v.truth_mm.x, v.truth_mm.y, v.truth_mm.z}},
           {"crlb_mm", {v.crlb_mm.x, v.crlb_mm.y, v.crlb_mm.z}},
-          {"estimate",
-           {{"x_mm", e.x_mm}, {"y_mm", e.y_mm}, {"depth_mm", e.depth_mm}, {"alpha", e.alpha}, {"nll", e.nll},
-            {"clicks", e.clicks}, {"flags", e.flags}, {"refined", e.refined},
-            {"crlb_mm", {number_or_null(e.crlb_x_mm), number_or_null(e.crlb_y_mm), number_or_null(e.crlb_z_mm),
-                         number_or_null(e.crlb_3d_mm)}},
-            {"fit_pvalue", number_or_null(e.fit_pvalue)}}}};
+          {"estimate", to_json(v.estimate)}};
 }
 
-VolumeEvent volume_event_from_json(const json& j, const std::string& path) {
-  try {
-    VolumeEvent v;
-    v.index = j.at("index").get<uint64_t>();
-    for (int k = 0; k < 3; ++k) {
-      v.truth_mm[k] = j.at("truth_mm").at(size_t(k)).get<double>();
-      v.crlb_mm[k] = number_of(j.at("crlb_mm").at(size_t(k)));
-    }
-    const json& e = j.at("estimate");
-    auto& r = v.estimate;
-    r.x_mm = e.at("x_mm").get<double>();
-    r.y_mm = e.at("y_mm").get<double>();
-    r.depth_mm = e.at("depth_mm").get<double>();
-    r.alpha = e.at("alpha").get<double>();
-    r.nll = e.at("nll").get<double>();
-    r.clicks = e.at("clicks").get<uint32_t>();
-    r.flags = e.at("flags").get<uint32_t>();
-    r.refined = e.at("refined").get<bool>();
-    const json& c = e.at("crlb_mm");
-    r.crlb_x_mm = number_of(c.at(0));
-    r.crlb_y_mm = number_of(c.at(1));
-    r.crlb_z_mm = number_of(c.at(2));
-    r.crlb_3d_mm = number_of(c.at(3));
-    r.fit_pvalue = number_of(e.at("fit_pvalue"));
-    return v;
-  } catch (const json::exception& err) {
-    throw JournalError(path + ": a volume event record without what it needs (" + err.what() +
-                       "); remove the file to start over");
+VolumeEvent volume_event_from_json(const json& j) {
+  VolumeEvent v;
+  v.index = j.at("index").get<uint64_t>();
+  for (int k = 0; k < 3; ++k) {
+    v.truth_mm[k] = j.at("truth_mm").at(size_t(k)).get<double>();
+    v.crlb_mm[k] = number_of(j.at("crlb_mm").at(size_t(k)));
   }
+  v.estimate = vertex_from_json(j.at("estimate"));
+  return v;
 }
 
 }  // namespace
@@ -330,40 +343,74 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   }
 
   Evaluation result;
-  // The volume's events already in the journal: not redone.
-  std::optional<Journal> journal;
-  std::vector<std::optional<VolumeEvent>> journaled(volume_positions.size());
-  if (volume && !o.volume_journal.empty()) {
-    const RefineSettings& r = o.refine;
-    const json header = {
-        {"prism_evaluate_volume", 1},
-        {"seed", o.seed},
-        {"photons", volume_protocol::photons},
-        {"field_mm", {{field.x.x, field.x.y}, {field.y.x, field.y.y}, {field.depth.x, field.depth.y}}},
-        {"truth", {{"rays_per_lenslet", t.rays_per_lenslet}, {"splat", to_string(t.splat)},
-                   {"stratification", t.stratification}, {"binning", t.binning}}},
-        {"scene", to_json(scene)},
-        {"dictionary", std::filesystem::weakly_canonical(dictionary.dir()).string()},
-        {"search", {{"level", s.search_level}, {"backend", to_string(o.backend)}, {"half", o.device_half},
-                    {"tau_mm", s.tau_mm}, {"dark_rate", s.dark_rate}, {"candidates", s.refine_candidates},
-                    {"newton_iterations", s.newton_iterations}, {"descent_rounds", s.descent_rounds},
-                    {"alpha_max", s.alpha_max}, {"min_clicks", s.min_clicks}, {"scan_step_px", s.scan_step_px}}},
-        {"refine", {{"model", describe(o.model, scene)}, {"iterations", r.iterations}, {"aliases", r.aliases},
-                    {"search_starts", r.search_starts}, {"alias_starts", r.alias_starts}, {"rescue", r.rescue},
-                    {"lattice_scan", r.lattice_scan}, {"ladder_starts", r.ladder_starts},
-                    {"pvalue_draws", r.pvalue_draws}}}};
-    journal.emplace(o.volume_journal, header,
-                    "rerun with the same options (--volume-events may differ) or use a new --out");
-    for (const json& j : journal->records()) {
-      VolumeEvent v = volume_event_from_json(j, o.volume_journal);
-      if (v.index < journaled.size()) {
-        if (!journaled[v.index]) ++result.volume_resumed;
-        journaled[v.index] = v;
+  // What decides an event's outcome, besides the experiment's own choices:
+  // the journals' common header.
+  const RefineSettings& rs = o.refine;
+  const json run = {
+      {"seed", o.seed},
+      {"truth", {{"rays_per_lenslet", t.rays_per_lenslet}, {"splat", to_string(t.splat)},
+                 {"stratification", t.stratification}, {"binning", t.binning}}},
+      {"scene", to_json(scene)},
+      {"dictionary", std::filesystem::weakly_canonical(dictionary.dir()).string()},
+      {"search", {{"level", s.search_level}, {"backend", to_string(o.backend)}, {"half", o.device_half},
+                  {"tau_mm", s.tau_mm}, {"dark_rate", s.dark_rate}, {"candidates", s.refine_candidates},
+                  {"newton_iterations", s.newton_iterations}, {"descent_rounds", s.descent_rounds},
+                  {"alpha_max", s.alpha_max}, {"min_clicks", s.min_clicks}, {"scan_step_px", s.scan_step_px}}},
+      {"refine", {{"model", describe(o.model, scene)}, {"iterations", rs.iterations}, {"aliases", rs.aliases},
+                  {"search_starts", rs.search_starts}, {"alias_starts", rs.alias_starts}, {"rescue", rs.rescue},
+                  {"lattice_scan", rs.lattice_scan}, {"ladder_starts", rs.ladder_starts},
+                  {"pvalue_draws", rs.pvalue_draws}}}};
+  const std::string on_mismatch = "rerun with the same options, or without --resume to start over";
+  // A journal of an earlier run is resumed only when asked for.
+  auto open_journal = [&](std::optional<Journal>& j, const std::string& name, const json& header,
+                          const std::string& mismatch) {
+    const std::string path = o.journal_dir + "/" + name;
+    if (!o.resume) std::filesystem::remove(path);
+    j.emplace(path, header, mismatch);
+  };
+  // The protocol's trials already in its journal: point -> trial -> estimate.
+  std::optional<Journal> points_journal;
+  std::vector<std::map<int, std::vector<ReconstructedVertex>>> trials_done(points.size());
+  if (!points.empty() && !o.journal_dir.empty()) {
+    json header = run;
+    header["prism_evaluate_protocol"] = 1;
+    header["experiments"] = o.experiments;
+    header["quick"] = o.quick;
+    header["trials"] = o.trials;  // event ids are point * trials + trial
+    open_journal(points_journal, "protocol-journal.jsonl", header, on_mismatch);
+    for (const json& j : points_journal->records())
+      read_record(j, points_journal->path(), [&](const json& r) {
+        const size_t p = r.at("point").get<size_t>();
+        const int trial = r.at("trial").get<int>();
+        std::vector<ReconstructedVertex> est;
+        for (const json& v : r.at("estimate")) est.push_back(vertex_from_json(v));
+        if (p < points.size() && trial < o.trials && !trials_done[p].count(trial)) {
+          trials_done[p].emplace(trial, std::move(est));
+          ++result.resumed;
+        }
+        return 0;
+      });
+  }
+  // The volume's events already in its journal.
+  std::optional<Journal> volume_journal;
+  std::vector<std::optional<VolumeEvent>> volume_done(volume_positions.size());
+  if (volume && !o.journal_dir.empty()) {
+    json header = run;
+    header["prism_evaluate_volume"] = 1;
+    header["photons"] = volume_protocol::photons;
+    header["field_mm"] = {{field.x.x, field.x.y}, {field.y.x, field.y.y}, {field.depth.x, field.depth.y}};
+    open_journal(volume_journal, "volume-journal.jsonl", header,
+                 "rerun with the same options (--volume-events may differ), or without --resume to start over");
+    for (const json& j : volume_journal->records()) {
+      VolumeEvent v = read_record(j, volume_journal->path(), volume_event_from_json);
+      if (v.index < volume_done.size()) {
+        if (!volume_done[v.index]) ++result.resumed;
+        volume_done[v.index] = v;
       }
     }
   }
   EvaluationCost& spent = result.cost;
-  const size_t total = points.size() * size_t(o.trials) + volume_positions.size() - result.volume_resumed;
+  const size_t total = points.size() * size_t(o.trials) + volume_positions.size() - result.resumed;
   size_t done = 0;
   // The search, then the refinement, of a batch of K-vertex events.
   // `each(i, estimate)` is called as event i is done.
@@ -392,25 +439,41 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   };
 
   size_t bound = 0;
-  uint64_t event_id = 0;
-  for (const auto& p : points) {
-    std::vector<std::shared_ptr<const PsfSampler>> held;
-    std::vector<ClickSource> sources;
-    for (const auto& v : p.vertices) {
-      held.push_back(truth.psf(v.position));
-      sources.push_back({held.back().get(), v.photons});
-    }
+  for (size_t pi = 0; pi < points.size(); ++pi) {
+    const Point& p = points[pi];
     const size_t n = p.vertices.size();
     std::vector<std::vector<double>> err(n), alpha_err(n);
     std::vector<std::vector<glm::dvec3>> axis_err(n);
     std::vector<int> flagged(n, 0);
-    std::vector<Event> events(size_t(o.trials));
-    for (auto& e : events) {
-      e.id = event_id++;
+    // The trials not in the journal: event ids pi * trials + trial.
+    std::vector<Event> events;
+    std::vector<int> event_trial;
+    std::vector<std::shared_ptr<const PsfSampler>> held;
+    std::vector<ClickSource> sources;
+    for (int trial = 0; trial < o.trials; ++trial) {
+      if (trials_done[pi].count(trial)) continue;
+      if (sources.empty())
+        for (const auto& v : p.vertices) {
+          held.push_back(truth.psf(v.position));
+          sources.push_back({held.back().get(), v.photons});
+        }
+      Event& e = events.emplace_back();
+      e.id = uint64_t(pi) * uint64_t(o.trials) + uint64_t(trial);
       auto rng = event_rng(o.seed, e.id);
       sample_clicks(sources, rng, e.clicks);
+      event_trial.push_back(trial);
     }
-    auto estimates = reconstruct(events, int(n));
+    if (!events.empty())
+      reconstruct(events, int(n), [&](size_t i, const std::vector<ReconstructedVertex>& estimate) {
+        if (points_journal) {
+          json rows = json::array();
+          for (const auto& v : estimate) rows.push_back(to_json(v));
+          points_journal->append({{"point", pi}, {"trial", event_trial[i]}, {"estimate", rows}});
+        }
+        trials_done[pi][event_trial[i]] = estimate;
+      });
+    std::vector<std::vector<ReconstructedVertex>> estimates;
+    for (auto& [trial, estimate] : trials_done[pi]) estimates.push_back(std::move(estimate));
     std::vector<glm::dvec3> truth_mm;
     for (const auto& v : p.vertices) truth_mm.push_back(v.position);
     for (const auto& est : estimates) {
@@ -442,7 +505,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   if (volume) {
     std::vector<size_t> pending;
     for (size_t i = 0; i < volume_positions.size(); ++i)
-      if (!journaled[i]) pending.push_back(i);
+      if (!volume_done[i]) pending.push_back(i);
     const size_t batch = 32;
     for (size_t first = 0; first < pending.size(); first += batch) {
       const size_t n = std::min(batch, pending.size() - first);
@@ -462,11 +525,11 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
         v.truth_mm = volume_positions[index];
         v.estimate = estimate.at(0);
         v.crlb_mm = crlb_at(bound + index, volume_protocol::photons).first;
-        if (journal) journal->append(to_json(v));
-        journaled[index] = v;
+        if (volume_journal) volume_journal->append(to_json(v));
+        volume_done[index] = v;
       });
     }
-    for (const auto& v : journaled) result.volume.push_back(*v);
+    for (const auto& v : volume_done) result.volume.push_back(*v);
     // By depth band, then the whole field.
     auto bands = depth_bands(field.depth, o.band_mm);
     bands.push_back(field.depth);

@@ -109,11 +109,14 @@ struct EvaluationOptions {
   bool device_half = false;    // device backends: the scan level as half floats
   RefineModel model = RefineModel::scene;
   RefineSettings refine;       // dark_rate and alpha_max: from `settings`
-  // The volume experiment's journal (host/util/journal.h): each event is
-  // appended as it is reconstructed and the events already in it are not
-  // redone, so a stopped run resumes. It must have been made with the same
-  // options (--volume-events may differ). Empty: none.
-  std::string volume_journal;
+  // Where the journals are kept (host/util/journal.h): protocol-journal.jsonl
+  // (the paper's experiments) and volume-journal.jsonl. Each event is
+  // appended as it is reconstructed. With `resume` the events already there
+  // are not redone, so a stopped run resumes (a journal must have been made
+  // with the same options; --volume-events may differ); without it they are
+  // replaced. Empty: none.
+  std::string journal_dir;
+  bool resume = false;
 };
 
 // What the reconstructions of an evaluation cost.
@@ -149,7 +152,7 @@ struct VolumeEvent {
 struct Evaluation {
   std::vector<EvaluationRow> rows;
   std::vector<VolumeEvent> volume;  // every event of the volume experiment
-  size_t volume_resumed = 0;        // of which read from the journal (not in `cost`)
+  size_t resumed = 0;               // events read from the journals (not in `cost`)
   EvaluationCost cost;              // what this run's reconstructions cost
 };
 

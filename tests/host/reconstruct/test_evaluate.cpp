@@ -272,22 +272,24 @@ TEST_CASE("evaluation volume: a stopped run resumes from its journal, which must
   prism::EvaluationOptions o = search_volume(5);
   const std::string dir = d.dir + "/journal";
   fs::create_directories(dir);
-  o.volume_journal = dir + "/volume-journal.jsonl";
+  o.journal_dir = dir;
+  const std::string journal = dir + "/volume-journal.jsonl";
   const auto& scene = d.reader->manifest().scene;
   const auto whole = prism::evaluate(prism::test::gpu(), scene, *d.reader, o);
-  CHECK(whole.volume_resumed == 0);
-  auto lines = lines_of(o.volume_journal);
+  CHECK(whole.resumed == 0);
+  auto lines = lines_of(journal);
   REQUIRE(lines.size() == 6);  // the header and one line per event
 
   // A run killed while writing its fourth event: three events and a torn line.
   {
-    std::ofstream cut(o.volume_journal, std::ios::trunc);
+    std::ofstream cut(journal, std::ios::trunc);
     for (size_t i = 0; i < 4; ++i) cut << lines[i] << '\n';
     cut.write(lines[4].data(), std::streamsize(lines[4].size() / 2));
   }
   o.volume_events = 6;  // and asked for one more event
+  o.resume = true;
   const auto resumed = prism::evaluate(prism::test::gpu(), scene, *d.reader, o);
-  CHECK(resumed.volume_resumed == 3);
+  CHECK(resumed.resumed == 3);
   CHECK(resumed.cost.events == 3);  // only the events not in the journal were reconstructed
   REQUIRE(resumed.volume.size() == 6);
   for (size_t i = 0; i < 5; ++i) {
@@ -302,12 +304,55 @@ TEST_CASE("evaluation volume: a stopped run resumes from its journal, which must
     CHECK(b.estimate.flags == a.estimate.flags);
     CHECK(std::isnan(b.estimate.fit_pvalue));  // not refined: NaN survives the journal (as null)
   }
-  CHECK(lines_of(o.volume_journal).size() == 7);
+  CHECK(lines_of(journal).size() == 7);
 
   // Another seed draws other events: the journal is refused, not mixed in.
   o.seed = 12;
   CHECK_THROWS_WITH_AS(prism::evaluate(prism::test::gpu(), scene, *d.reader, o), doctest::Contains("different seed"),
                        prism::JournalError);
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("evaluation protocol: a stopped run resumes from its journal with the same trials") {
+  auto& d = dictionary();
+  prism::EvaluationOptions o;
+  o.experiments = {"photons"};
+  o.model = prism::RefineModel::none;
+  o.quick = true;  // 50 and 400 photons
+  o.trials = 4;
+  o.rays = 1024;
+  o.splat = prism::Splat::point;
+  o.seed = 5;
+  const std::string dir = d.dir + "/protocol-journal";
+  fs::create_directories(dir);
+  o.journal_dir = dir;
+  const std::string journal = dir + "/protocol-journal.jsonl";
+  const auto& scene = d.reader->manifest().scene;
+  const auto whole = prism::evaluate(prism::test::gpu(), scene, *d.reader, o);
+  auto lines = lines_of(journal);
+  REQUIRE(lines.size() == 1 + 8);
+  {  // stopped after five of the eight events
+    std::ofstream cut(journal, std::ios::trunc);
+    for (size_t i = 0; i < 6; ++i) cut << lines[i] << '\n';
+  }
+  o.resume = true;
+  const auto resumed = prism::evaluate(prism::test::gpu(), scene, *d.reader, o);
+  CHECK(resumed.resumed == 5);
+  CHECK(resumed.cost.events == 3);
+  REQUIRE(resumed.rows.size() == whole.rows.size());
+  for (size_t i = 0; i < whole.rows.size(); ++i) {
+    CAPTURE(i);
+    CHECK(resumed.rows[i].stats.err3d_mean == doctest::Approx(whole.rows[i].stats.err3d_mean).epsilon(1e-12));
+    CHECK(resumed.rows[i].axes.rmse_mm.z == doctest::Approx(whole.rows[i].axes.rmse_mm.z).epsilon(1e-12));
+  }
+  o.trials = 5;  // another protocol: refused
+  CHECK_THROWS_WITH_AS(prism::evaluate(prism::test::gpu(), scene, *d.reader, o), doctest::Contains("different trials"),
+                       prism::JournalError);
+  o.resume = false;  // without --resume: started over
+  const auto fresh = prism::evaluate(prism::test::gpu(), scene, *d.reader, o);
+  CHECK(fresh.resumed == 0);
+  CHECK(fresh.cost.events == 10);
+  CHECK(lines_of(journal).size() == 1 + 10);
   prism::test::check_validation_clean();
 }
 
