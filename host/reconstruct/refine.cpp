@@ -11,6 +11,7 @@
 #include "engine/ref/forward_ref.h"
 #include "engine/ref/likelihood_ref.h"
 #include "host/reconstruct/click_geometry.h"
+#include "host/reconstruct/levenberg_marquardt.h"
 
 namespace prism {
 
@@ -255,34 +256,6 @@ struct Refiner::Fit {
 
 namespace {
 
-// Cholesky solve of the n x n SPD system A x = b in place (b becomes x);
-// false when A is not positive definite.
-bool solve_spd(std::vector<double> A, std::vector<double>& b, size_t n) {
-  for (size_t j = 0; j < n; ++j) {
-    double d = A[j * n + j];
-    for (size_t k = 0; k < j; ++k) d -= A[j * n + k] * A[j * n + k];
-    if (!(d > 0)) return false;
-    d = std::sqrt(d);
-    A[j * n + j] = d;
-    for (size_t i = j + 1; i < n; ++i) {
-      double s = A[i * n + j];
-      for (size_t k = 0; k < j; ++k) s -= A[i * n + k] * A[j * n + k];
-      A[i * n + j] = s / d;
-    }
-  }
-  for (size_t i = 0; i < n; ++i) {
-    double s = b[i];
-    for (size_t k = 0; k < i; ++k) s -= A[i * n + k] * b[k];
-    b[i] = s / A[i * n + i];
-  }
-  for (size_t i = n; i-- > 0;) {
-    double s = b[i];
-    for (size_t k = i + 1; k < n; ++k) s -= A[k * n + i] * b[k];
-    b[i] = s / A[i * n + i];
-  }
-  return true;
-}
-
 // The diagonal of the inverse of SPD `A` (n x n); +inf where A is singular
 // (smallest pivot below 1e-12 of the largest diagonal).
 std::vector<double> inverse_diagonal(const std::vector<double>& A, size_t n) {
@@ -346,72 +319,6 @@ Refiner::Refiner(SourceModel& model, const Scene& scene, const AnalysisGrid& cli
     throw std::invalid_argument(
         "refinement: iterations and p-value draws must be >= 1, search, alias and ladder starts >= 0");
 }
-
-namespace {
-
-// Levenberg-Marquardt on the Fisher information from `f` (rendered), holding
-// parameters on a bound that the gradient pushes outward. The damping scales
-// the diagonal (mu = 1 halves a step along an uncorrelated axis); a rejected
-// step raises it at once to at least kRejectedMu, because the binary
-// likelihood of sharp-edged PSFs is far from quadratic beyond a fraction of
-// a pixel (a click left outside a disc edge costs -log(dark)). Stops when a
-// step gains less than kGainNll: NLL differences that small mean nothing
-// next to the 0.5 of one standard error. Returns the steps taken.
-template <class Fit>
-int levenberg_marquardt(Fit& f, int max_steps) {
-  constexpr double kRejectedMu = 0.1, kGainNll = 1e-3, kMaxMu = 1e4;
-  const size_t N = f.n();
-  double mu = 1e-3;
-  int steps = 0;
-  std::vector<double> grad, fisher;
-  for (; steps < max_steps; ++steps) {
-    f.derivatives(grad, fisher);
-    std::vector<size_t> act;
-    for (size_t i = 0; i < N; ++i) {
-      const double v = f.param(i);
-      const bool held = (v <= f.lo(i) && grad[i] > 0) || (v >= f.hi(i) && grad[i] < 0);
-      if (!held && fisher[i * N + i] > 0) act.push_back(i);
-    }
-    if (act.empty()) break;
-    const size_t m = act.size();
-    bool accepted = false;
-    while (!accepted && mu <= kMaxMu) {
-      std::vector<double> A(m * m), step(m);
-      for (size_t a = 0; a < m; ++a) {
-        for (size_t b = 0; b < m; ++b) A[a * m + b] = fisher[act[a] * N + act[b]];
-        A[a * m + a] *= 1.0 + mu;
-        step[a] = -grad[act[a]];
-      }
-      if (!solve_spd(A, step, m)) {
-        mu = std::max(mu * 4, kRejectedMu);
-        continue;
-      }
-      Fit trial = f.unrendered();
-      bool moved = false;
-      for (size_t a = 0; a < m; ++a) {
-        const size_t i = act[a];
-        const double v = std::clamp(f.param(i) + step[a], f.lo(i), f.hi(i));
-        moved = moved || v != f.param(i);
-        trial.set(i, v);
-      }
-      if (!moved) return steps;
-      trial.render();
-      if (trial.nll < f.nll) {
-        const double gain = f.nll - trial.nll;
-        f = std::move(trial);
-        accepted = true;
-        mu = std::max(mu / 4, 1e-6);
-        if (gain < kGainNll) return steps + 1;
-      } else {
-        mu = std::max(mu * 4, kRejectedMu);
-      }
-    }
-    if (!accepted) break;
-  }
-  return steps;
-}
-
-}  // namespace
 
 // Goodness of fit: T = sum over pixels of the binary NLL, observed against
 // draws from the fitted model (seeded by the event id). T = const + sum over
