@@ -3,7 +3,6 @@
 // reconstruction backend and, by default, the continuous refinement; a CSV
 // and a PNG per experiment, a table and the reconstruction rate on stdout.
 #include <cstdio>
-#include <filesystem>
 #include <memory>
 
 #include "host/cmd/commands.h"
@@ -89,7 +88,6 @@ void run(EvaluateArgs a) {
               "Fisher information scaled to the point's detected photons; catastrophic: 3D error > %g mm, left "
               "out of RMSE and efficiency\n",
               defaults::catastrophic_error_mm);
-  std::filesystem::create_directories(a.out);
   o.journal_dir = a.out;
   std::printf("# events are kept in %s/*-journal.jsonl as they are done; %s\n", a.out.c_str(),
               o.resume ? "resuming from what is there" : "a stopped run resumes from there with --resume");

@@ -365,6 +365,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   auto open_journal = [&](std::optional<Journal>& j, const std::string& name, const json& header,
                           const std::string& mismatch) {
     const std::string path = o.journal_dir + "/" + name;
+    std::filesystem::create_directories(o.journal_dir);
     if (!o.resume) std::filesystem::remove(path);
     j.emplace(path, header, mismatch);
   };
@@ -374,7 +375,10 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   if (!points.empty() && !o.journal_dir.empty()) {
     json header = run;
     header["prism_evaluate_protocol"] = 1;
-    header["experiments"] = o.experiments;
+    std::vector<std::string> protocol;  // the volume's events are in their own journal
+    for (const auto& e : o.experiments)
+      if (e != "volume") protocol.push_back(e);
+    header["experiments"] = protocol;
     header["quick"] = o.quick;
     header["trials"] = o.trials;  // event ids are point * trials + trial
     open_journal(points_journal, "protocol-journal.jsonl", header, on_mismatch);
