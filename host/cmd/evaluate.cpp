@@ -2,6 +2,7 @@
 // experiment (host/reconstruct/evaluate.h) on forward-model events with a
 // reconstruction backend and, by default, the continuous refinement; a CSV
 // and a PNG per experiment, a table and the reconstruction rate on stdout.
+#include <cmath>
 #include <cstdio>
 #include <memory>
 
@@ -123,6 +124,16 @@ void run(EvaluateArgs a) {
   if (result.resumed)
     std::printf("%zu events read from the journals in %s (reconstructed by an earlier run; not in the cost below)\n",
                 result.resumed, a.out.c_str());
+  {
+    double seconds = 0, renders = 0;
+    size_t costed = 0;
+    for (const auto& v : result.volume)
+      if (std::isfinite(v.seconds)) seconds += v.seconds, renders += v.renders, ++costed;
+    if (costed)
+      std::printf("volume: %.2f s and %.1f renders per event over the %zu of %zu events whose cost is recorded "
+                  "(journal included)\n",
+                  seconds / double(costed), renders / double(costed), costed, result.volume.size());
+  }
   std::printf("reconstruction: %llu events in %.2f s, %.2f events/s, %.2f s per event (support scans %.2f s, "
               "refinement %.2f s of it, %.1f renders per event; %s backend)\n",
               (unsigned long long)cost.events, cost.reconstruct_s,

@@ -253,7 +253,9 @@ json to_json(const VolumeEvent& v) {
   return {{"index", v.index},
           {"truth_mm", {v.truth_mm.x, v.truth_mm.y, v.truth_mm.z}},
           {"crlb_mm", {v.crlb_mm.x, v.crlb_mm.y, v.crlb_mm.z}},
-          {"estimate", to_json(v.estimate)}};
+          {"estimate", to_json(v.estimate)},
+          {"seconds", number_or_null(v.seconds)},
+          {"renders", number_or_null(v.renders)}};
 }
 
 VolumeEvent volume_event_from_json(const json& j) {
@@ -264,6 +266,8 @@ VolumeEvent volume_event_from_json(const json& j) {
     v.crlb_mm[k] = number_of(j.at("crlb_mm").at(size_t(k)));
   }
   v.estimate = vertex_from_json(j.at("estimate"));
+  v.seconds = number_of(j.value("seconds", json()));  // absent in journals of 30abc7b and before
+  v.renders = number_of(j.value("renders", json()));
   return v;
 }
 
@@ -417,9 +421,10 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   const size_t total = points.size() * size_t(o.trials) + volume_positions.size() - result.resumed;
   size_t done = 0;
   // The search, then the refinement, of a batch of K-vertex events.
-  // `each(i, estimate)` is called as event i is done.
-  auto reconstruct = [&](const std::vector<Event>& events, int k,
-                         const std::function<void(size_t, const std::vector<ReconstructedVertex>&)>& each = {}) {
+  // `each(i, estimate, seconds, renders)` is called as event i is done, with
+  // its share of the batch's search and its own refinement.
+  using EachEvent = std::function<void(size_t, const std::vector<ReconstructedVertex>&, double, uint64_t)>;
+  auto reconstruct = [&](const std::vector<Event>& events, int k, const EachEvent& each = {}) {
     ReconstructionSettings ks = s;
     ks.vertices = k;
     auto& r = reconstructors[k];
@@ -429,9 +434,14 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
     auto estimates = r->run(events);
     spent.scan_s += r->timings().scan_s - before.scan_s;
     const auto searched = std::chrono::steady_clock::now();
+    const double search_share = std::chrono::duration<double>(searched - start).count() / double(events.size());
     for (size_t i = 0; i < events.size(); ++i) {
+      const auto refine_start = std::chrono::steady_clock::now();
+      const uint64_t renders_before = source_model ? source_model->renders() : 0;
       if (refiner) estimates[i] = refiner->refine(events[i], std::move(estimates[i]));
-      if (each) each(i, estimates[i]);
+      const double seconds =
+          search_share + std::chrono::duration<double>(std::chrono::steady_clock::now() - refine_start).count();
+      if (each) each(i, estimates[i], seconds, source_model ? source_model->renders() - renders_before : 0);
       if (progress) progress(++done, total);
     }
     const auto end = std::chrono::steady_clock::now();
@@ -468,7 +478,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
       event_trial.push_back(trial);
     }
     if (!events.empty())
-      reconstruct(events, int(n), [&](size_t i, const std::vector<ReconstructedVertex>& estimate) {
+      reconstruct(events, int(n), [&](size_t i, const std::vector<ReconstructedVertex>& estimate, double, uint64_t) {
         if (points_journal) {
           json rows = json::array();
           for (const auto& v : estimate) rows.push_back(to_json(v));
@@ -522,9 +532,12 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
         const ClickSource source{psf.get(), volume_protocol::photons};
         sample_clicks(std::span(&source, 1), volume_rngs[index], e.clicks);
       }
-      reconstruct(events, 1, [&](size_t i, const std::vector<ReconstructedVertex>& estimate) {
+      reconstruct(events, 1, [&](size_t i, const std::vector<ReconstructedVertex>& estimate, double seconds,
+                                 uint64_t renders) {
         const size_t index = pending[first + i];
         VolumeEvent v;
+        v.seconds = seconds;
+        v.renders = double(renders);
         v.index = index;
         v.truth_mm = volume_positions[index];
         v.estimate = estimate.at(0);
@@ -609,7 +622,7 @@ void write_csv(const std::string& path, const std::function<void(std::ostream&)>
 void write_volume_events(const std::string& path, const std::vector<VolumeEvent>& events) {
   write_csv(path, [&](std::ostream& out) {
     out << "event,x_mm,y_mm,depth_mm,est_x_mm,est_y_mm,est_depth_mm,alpha,err3d_mm,crlb_x_mm,crlb_y_mm,crlb_z_mm,"
-           "flags,fit_pvalue\n";
+           "flags,fit_pvalue,seconds,renders\n";
     for (const auto& v : events) {
       const auto& e = v.estimate;
       out << v.index << ',' << format_number(v.truth_mm.x) << ',' << format_number(v.truth_mm.y) << ','
@@ -617,7 +630,7 @@ void write_volume_events(const std::string& path, const std::vector<VolumeEvent>
           << format_number(e.depth_mm) << ',' << format_number(e.alpha) << ','
           << format_number(error_3d_mm(e, v.truth_mm)) << ',' << format_number(v.crlb_mm.x) << ','
           << format_number(v.crlb_mm.y) << ',' << format_number(v.crlb_mm.z) << ',' << flags_to_string(e.flags) << ','
-          << csv_number(e.fit_pvalue) << '\n';
+          << csv_number(e.fit_pvalue) << ',' << csv_number(v.seconds) << ',' << csv_number(v.renders) << '\n';
     }
   });
 }

@@ -147,6 +147,9 @@ struct VolumeEvent {
   glm::dvec3 truth_mm{};
   ReconstructedVertex estimate;
   glm::dvec3 crlb_mm{};  // Poisson CRLB at the truth (x, y, depth)
+  // Its cost: its share of its batch's search plus its refinement, and the
+  // refinement's renders; NaN when not recorded (an older journal).
+  double seconds = NAN, renders = NAN;
 };
 
 struct Evaluation {

@@ -303,6 +303,8 @@ TEST_CASE("evaluation volume: a stopped run resumes from its journal, which must
     CHECK(b.estimate.alpha == doctest::Approx(a.estimate.alpha).epsilon(1e-12));
     CHECK(b.estimate.flags == a.estimate.flags);
     CHECK(std::isnan(b.estimate.fit_pvalue));  // not refined: NaN survives the journal (as null)
+    CHECK(b.seconds > 0);                      // its cost travels with it
+    CHECK(b.renders == 0);                     // the search alone renders nothing
   }
   CHECK(lines_of(journal).size() == 7);
 
@@ -391,6 +393,8 @@ TEST_CASE("evaluation volume with the refinement: thin-lens row, truth at 4x the
     INFO("event ", v.index, ": truth ", text(v.truth_mm), " estimate ", text(estimate), " CRLB ", text(v.crlb_mm),
          " p-value ", v.estimate.fit_pvalue);
     CHECK(v.estimate.refined);
+    CHECK(v.renders > 0);
+    CHECK(v.seconds > 0);
     CHECK(std::isfinite(v.estimate.fit_pvalue));
     CHECK(std::isfinite(v.estimate.crlb_3d_mm));
     const glm::dvec3 z = (estimate - v.truth_mm) / v.crlb_mm;
