@@ -271,8 +271,7 @@ TEST_CASE("evaluation volume: a stopped run resumes from its journal, which must
   auto& d = dictionary();
   prism::EvaluationOptions o = search_volume(5);
   const std::string dir = d.dir + "/journal";
-  fs::create_directories(dir);
-  o.journal_dir = dir;
+  o.journal_dir = dir;  // made by evaluate()
   const std::string journal = dir + "/volume-journal.jsonl";
   const auto& scene = d.reader->manifest().scene;
   const auto whole = prism::evaluate(prism::test::gpu(), scene, *d.reader, o);
@@ -326,8 +325,7 @@ TEST_CASE("evaluation protocol: a stopped run resumes from its journal with the 
   o.splat = prism::Splat::point;
   o.seed = 5;
   const std::string dir = d.dir + "/protocol-journal";
-  fs::create_directories(dir);
-  o.journal_dir = dir;
+  o.journal_dir = dir;  // made by evaluate()
   const std::string journal = dir + "/protocol-journal.jsonl";
   const auto& scene = d.reader->manifest().scene;
   const auto whole = prism::evaluate(prism::test::gpu(), scene, *d.reader, o);
