@@ -182,8 +182,13 @@ void rasterise_polygon(uint image_base, Dual pu[MAX_SIDES], Dual pv[MAX_SIDES], 
       row_lo = min(row_lo, seg_l[i].v);
       row_hi = max(row_hi, seg_r[i].v);
     }
+    if (!(row_lo < row_hi)) continue;  // no edge crosses this row
     float middle = 0.5f * (row_lo + row_hi);
-    for (int k = k_first; k <= k_last; ++k) {
+    // Only the columns the row's polygon touches: a sliver's box is mostly
+    // empty, and on a SIMD device every lane waits for the longest loop.
+    int k_lo = max(k_first, int(floor(row_lo)));
+    int k_hi = min(k_last, int(ceil(row_hi)) - 1);
+    for (int k = k_lo; k <= k_hi; ++k) {
       float c = float(k);
       if (c + 1.0f <= row_lo || c >= row_hi) continue;  // the row's polygon misses this pixel
       bool from_left = c + 0.5f <= middle;
