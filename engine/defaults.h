@@ -38,10 +38,13 @@ inline constexpr double detection_efficiency = 1.0;  // fill factor x PDE
 inline constexpr double dark_counts_per_pixel = 0.0; // expected dark counts per pixel per event
 inline constexpr double source_sigma_mm = 0.3;       // Gaussian source extent, per axis (LED die ~0.5 mm)
 inline constexpr double wavelength_nm = 570.0;       // effect diffraction: the calibration LED (DESIGN.md)
-// Effect diffraction: the Airy core approximated by a Gaussian of
-// sigma = airy_gaussian_factor * lambda * L / D (L: lens to sensor, D: lenslet
-// diameter; Zhang, Zerubia & Olivo-Marin, Appl. Opt. 46 (2007): 0.21 lambda / NA).
+// Effect diffraction: the Airy core's width as the sigma of its Gaussian
+// fit, sigma = airy_gaussian_factor * lambda * L / D (L: lens to sensor, D:
+// lenslet diameter; Zhang, Zerubia & Olivo-Marin, Appl. Opt. 46 (2007):
+// 0.21 lambda / NA). The kernels spread light over a uniform square of the
+// same variance, half side sqrt(3) sigma (shaders/common/blur.glsl says why).
 inline constexpr double airy_gaussian_factor = 0.42;
+inline constexpr double airy_square_half_side_per_sigma = 1.7320508075688772;  // sqrt(3)
 
 // Analysis defaults, chosen by the convergence study (README, "Convergence";
 // bench/bench_forward, six positions of the prototype). Footprint splat (box

@@ -206,7 +206,7 @@ struct ForwardVulkan::Impl {
     params.holder_bore_mm = float(s.effects.holder_bore_mm);
     params.source_sigma_mm = float(s.effects.source_sigma_mm);
     params.stratification = t.stratification;
-    params.airy_sigma_mm_times_diameter = float(s.airy_sigma_mm_times_diameter());
+    params.airy_half_side_mm_times_diameter = float(s.airy_half_side_mm_times_diameter());
     params.grid_w = grid.width;
     params.grid_h = grid.height;
     params.lens_count = uint32_t(layout.lenses.size());

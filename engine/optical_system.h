@@ -30,7 +30,7 @@ struct Effects {
   double dark_counts_per_pixel = defaults::dark_counts_per_pixel;
   bool source_extent = false;  // Gaussian source instead of a point
   double source_sigma_mm = defaults::source_sigma_mm;
-  bool diffraction = false;    // each lenslet's image blurred by its Airy core (a Gaussian)
+  bool diffraction = false;    // each lenslet's image blurred by its Airy core (a uniform square, blur.glsl)
   double wavelength_nm = defaults::wavelength_nm;
 };
 
@@ -61,12 +61,14 @@ struct OpticalSystem {
   // every lenslet image where its neighbour's was (a lattice alias):
   // (D + L) / L = 1 + 1 / magnification(d), D = d + working distance.
   double alias_scale(double depth_mm) const { return 1.0 + 1.0 / magnification(depth_mm); }
-  // Effect diffraction: the Gaussian sigma of a lenslet's Airy core on the
-  // sensor is this over the lenslet's diameter (mm^2; defaults.h).
-  double airy_sigma_mm_times_diameter() const {
-    return defaults::airy_gaussian_factor * effects.wavelength_nm * 1e-6 * lens_to_sensor_mm;
+  // Effect diffraction: the half side of the uniform square that stands for a
+  // lenslet's Airy core on the sensor is this over the lenslet's diameter
+  // (mm^2; defaults.h).
+  double airy_half_side_mm_times_diameter() const {
+    return defaults::airy_square_half_side_per_sigma * defaults::airy_gaussian_factor * effects.wavelength_nm * 1e-6 *
+           lens_to_sensor_mm;
   }
-  double airy_sigma_mm(size_t i) const { return airy_sigma_mm_times_diameter() / lenslets[i].diameter_mm; }
+  double airy_half_side_mm(size_t i) const { return airy_half_side_mm_times_diameter() / lenslets[i].diameter_mm; }
   double sensor_width_mm() const { return sensor_width_px * pixel_um * 1e-3; }
   double sensor_height_mm() const { return sensor_height_px * pixel_um * 1e-3; }
 };

@@ -10,7 +10,6 @@ using uint = unsigned int;
 #define PRISM_FN inline
 #include "common/optics.glsl"
 #include "common/footprint.glsl"
-#include "common/gauss.glsl"
 #undef PRISM_FN
 
 static_assert(sizeof(Lenslet) == 48, "Lenslet must match its std430 layout");

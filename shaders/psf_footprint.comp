@@ -45,7 +45,7 @@ void main() {
     k[3] = trace_corner(from, lens, aperture_corner(i + 1u, j + 1u, n, turn));
     float half_area = half_cell_area_mm2(lens.radius_mm, n);
     uint half_offset = 1u + 3u * ((i + j) & 1u);  // checkerboard halves, as ray_half
-    float blur_px = DIFFRACTION ? airy_sigma_px(lens) : 0.0f;
+    float blur_half_px = DIFFRACTION ? airy_half_side_px(lens) : 0.0f;
     for (uint t = 0u; t < 2u; ++t) {
       CellTriangle tri = cell_triangle(i, j, n, t);
       Corner a = k[tri.ab.x + 2u * tri.ab.y];
@@ -58,7 +58,7 @@ void main() {
       bool cut = !(a.ok && b.ok && c.ok);
       // Off the sensor, or off this band's rows (a large sensor is done in
       // bands), by more than a blur reaches.
-      float reach = DIFFRACTION ? GAUSS_REACH * (blur_px + (u_hi - u_lo) + (v_hi - v_lo)) : 0.0f;
+      float reach = DIFFRACTION ? blur_half_px : 0.0f;
       float band_lo = float(P.band_row0);
       float band_hi = float(min(P.band_row0 + P.band_rows, P.grid_h));
       bool off = a.ok && b.ok && c.ok &&
@@ -80,7 +80,7 @@ void main() {
         continue;
       }
       Dual w = d_scale(d_add(d_add(a.w, b.w), c.w), half_area / 3.0f);
-      rasterise_triangle(image_base, a, b, c, w, blur_px, half_offset);
+      rasterise_triangle(image_base, a, b, c, w, blur_half_px, half_offset);
     }
   }
 }

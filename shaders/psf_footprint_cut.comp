@@ -19,10 +19,10 @@ void main() {
     vec3 from;
     Lenslet lens;
     uint image_base, half_offset;
-    float blur_px;
-    listed_piece(cuts[e], t, from, lens, image_base, half_offset, blur_px);
+    float blur_half_px;
+    listed_piece(cuts[e], t, from, lens, image_base, half_offset, blur_half_px);
     int passed = int(t.a.ok) + int(t.b.ok) + int(t.c.ok);
     if (passed == 0 || passed == 3) continue;
-    rasterise_cut(image_base, from, lens, t.a, t.b, t.c, t.pa, t.pb, t.pc, t.area_mm2, blur_px, half_offset);
+    rasterise_cut(image_base, from, lens, t.a, t.b, t.c, t.pa, t.pb, t.pc, t.area_mm2, blur_half_px, half_offset);
   }
 }

@@ -17,7 +17,7 @@ layout(local_size_x = 64) in;
 
 // A piece not split further: clipped and rasterised, or listed for the cut
 // pass when some of its corners' rays are stopped.
-void give_piece(uvec4 entry, Piece t, uint image_base, float blur_px, uint half_offset) {
+void give_piece(uvec4 entry, Piece t, uint image_base, float blur_half_px, uint half_offset) {
   int passed = int(t.a.ok) + int(t.b.ok) + int(t.c.ok);
   if (passed == 0) return;
   if (passed < 3) {
@@ -27,7 +27,7 @@ void give_piece(uvec4 entry, Piece t, uint image_base, float blur_px, uint half_
   }
   // (Still large after the last split: at its centroid, in rasterise_clipped.)
   rasterise_clipped(image_base, t.a, t.b, t.c, d_scale(d_add(d_add(t.a.w, t.b.w), t.c.w), t.area_mm2 / 3.0f),
-                    blur_px, half_offset);
+                    blur_half_px, half_offset);
 }
 
 void main() {
@@ -39,11 +39,11 @@ void main() {
     vec3 from;
     Lenslet lens;
     uint image_base, half_offset;
-    float blur_px;
-    listed_piece(entry, t, from, lens, image_base, half_offset, blur_px);
+    float blur_half_px;
+    listed_piece(entry, t, from, lens, image_base, half_offset, blur_half_px);
     uint depth = piece_depth(entry.w);
     if (!is_split(t, int(depth))) {  // over the far edge only
-      give_piece(entry, t, image_base, blur_px, half_offset);
+      give_piece(entry, t, image_base, blur_half_px, half_offset);
       continue;
     }
     Corner ab = trace_corner(from, lens, 0.5f * (t.pa + t.pb));
@@ -58,7 +58,7 @@ void main() {
         uint at = atomicAdd(split_count, 1u);
         if (at < split_capacity) splits[at] = child_entry;
       } else {
-        give_piece(child_entry, child, image_base, blur_px, half_offset);
+        give_piece(child_entry, child, image_base, blur_half_px, half_offset);
       }
     }
   }

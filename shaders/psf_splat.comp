@@ -30,14 +30,13 @@ void main() {
                            SCINT_REFRACTION, HOLDER, SOURCE_EXTENT);
     uint half_offset = 1u + 3u * ray_half(sample_index, lenses[lens_index].strata);
     if (DIFFRACTION) {
-      // Effect diffraction: the ray's light as its lenslet's Airy core, a
-      // Gaussian, integrated over box pixels (the physical sensor's edges clip it).
+      // Effect diffraction: the ray's light blurred by its lenslet's Airy
+      // square over box pixels (blur.glsl; the sensor's far edges bound it).
       if (!hit.ok) continue;
       float inv_px = 1.0f / P.pixel_mm;
       Dual u = d_scale(d_addc(hit.x_mm, P.sensor_half_w_mm), inv_px);
       Dual v = d_scale(d_addc(hit.y_mm, P.sensor_half_h_mm), inv_px);
-      Dual s = d_const(airy_sigma_px(lenses[lens_index]));
-      deposit_gaussian(image_base, u, v, s, s, hit.weight, half_offset);
+      deposit_blurred_point(image_base, u, v, airy_half_side_px(lenses[lens_index]), hit.weight, half_offset);
       continue;
     }
     Splat sp = splat_bilinear(hit, P);

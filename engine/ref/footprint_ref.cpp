@@ -63,13 +63,50 @@ D polygon_area(const std::vector<Point2>& poly) {
   return abs(twice) * D(0.5);
 }
 
-// P(z0 < Z < z1) for the standard normal, from the tails on the side where
-// both lie, with its derivative.
-D normal_share(D z0, D z1) {
-  auto tail = [](double z) { return 0.5 * std::erfc(z / std::sqrt(2.0)); };
-  auto density = [](double z) { return std::exp(-0.5 * z * z) / std::sqrt(2 * M_PI); };
-  double v = z0.v >= 0 ? tail(z0.v) - tail(z1.v) : z1.v <= 0 ? tail(-z1.v) - tail(-z0.v) : 1 - tail(-z0.v) - tail(z1.v);
-  return D(std::max(v, 0.0), z1.d * density(z1.v) - z0.d * density(z0.v));
+// Signed area and first and mixed moments of a polygon (counter-clockwise
+// positive): A, integral of u, of v and of u v over it.
+struct Moments {
+  D area, u, v, uv;
+};
+Moments moments(const std::vector<Point2>& poly) {
+  Moments m{D(0.0), D(0.0), D(0.0), D(0.0)};
+  for (size_t i = 0; i < poly.size(); ++i) {
+    const Point2& a = poly[i];
+    const Point2& b = poly[(i + 1) % poly.size()];
+    const D cross = a.u * b.v - b.u * a.v;
+    m.area = m.area + cross * D(0.5);
+    m.u = m.u + (a.u + b.u) * cross * D(1.0 / 6);
+    m.v = m.v + (a.v + b.v) * cross * D(1.0 / 6);
+    m.uv = m.uv + (a.u * b.v + D(2.0) * a.u * a.v + D(2.0) * b.u * b.v + b.u * a.v) * cross * D(1.0 / 24);
+  }
+  return m;
+}
+
+// Effect diffraction, written apart from shaders/common/blur.glsl (same model:
+// the Airy core as a uniform square of half side h). Across pixel lines
+// [lo, hi] the blurred pixel takes from a point at x the share of
+// [x - h, x + h] inside [lo, hi]: linear between the four kinks lo +- h,
+// hi +- h. Its pieces, each as (x0, x1, a, b): share = a + b x on [x0, x1].
+struct Piece1 {
+  double x0, x1, a, b;
+};
+std::vector<Piece1> blurred_profile(double lo, double hi, double h) {
+  auto share = [&](double x) { return std::max(0.0, std::min(x + h, hi) - std::max(x - h, lo)) / (2 * h); };
+  double k[4] = {lo - h, lo + h, hi - h, hi + h};
+  std::sort(k, k + 4);
+  std::vector<Piece1> out;
+  for (int i = 0; i < 3; ++i) {
+    if (!(k[i + 1] > k[i])) continue;
+    const double f0 = share(k[i]), f1 = share(k[i + 1]), b = (f1 - f0) / (k[i + 1] - k[i]);
+    out.push_back({k[i], k[i + 1], f0 - b * k[i], b});
+  }
+  return out;
+}
+// The share at x (its piece chosen by x's value, or by `at` where given).
+D share_at(const std::vector<Piece1>& profile, D x, double at) {
+  for (const auto& p : profile)
+    if (at >= p.x0 && at <= p.x1) return D(p.a) + D(p.b) * x;
+  return D(0.0);
 }
 
 // `value` into pixel (col, row) if on the grid; its derivative to checkerboard half `half`.
@@ -82,15 +119,12 @@ void add_to_pixel(SparseImage& img, int col, int row, D value, int half) {
 
 }  // namespace
 
-void add_gaussian(SparseImage& img, D mu, D mv, D su, D sv, D weight, int half, double u_max, double v_max) {
-  const double reach = double(shared::GAUSS_REACH);
-  for (int row = std::max(0, int(std::floor(mv.v - reach * sv.v)));
-       row <= std::min(img.height - 1, int(std::floor(mv.v + reach * sv.v))); ++row) {
-    D fy = normal_share((D(double(row)) - mv) / sv, (D(std::min(row + 1.0, v_max)) - mv) / sv);
-    for (int col = std::max(0, int(std::floor(mu.v - reach * su.v)));
-         col <= std::min(img.width - 1, int(std::floor(mu.v + reach * su.v))); ++col) {
-      D fx = normal_share((D(double(col)) - mu) / su, (D(std::min(col + 1.0, u_max)) - mu) / su);
-      add_to_pixel(img, col, row, weight * fx * fy, half);
+void add_blurred_point(SparseImage& img, D u, D v, double h, D weight, int half, double u_max, double v_max) {
+  for (int row = std::max(0, int(std::floor(v.v - h))); row <= std::min(img.height - 1, int(std::floor(v.v + h))); ++row) {
+    const D fy = share_at(blurred_profile(row, std::min(row + 1.0, v_max), h), v, v.v);
+    for (int col = std::max(0, int(std::floor(u.v - h))); col <= std::min(img.width - 1, int(std::floor(u.v + h))); ++col) {
+      const D fx = share_at(blurred_profile(col, std::min(col + 1.0, u_max), h), u, u.v);
+      if (fx.v * fy.v > 0 || fx.v > 0 || fy.v > 0) add_to_pixel(img, col, row, weight * fx * fy, half);
     }
   }
 }
@@ -100,19 +134,74 @@ namespace {
 struct FootprintTarget {
   SparseImage& img;
   double u_max, v_max;  // the physical sensor's far edges, grid pixels
-  double blur_px = 0;   // effect diffraction: the lenslet's Airy-core sigma, grid pixels (0: off)
-  void gaussian(D mu, D mv, D su, D sv, D weight, int half) {
-    add_gaussian(img, mu, mv, su, sv, weight, half, u_max, v_max);
-  }
-  // Effect diffraction: the triangle as one Gaussian, its own variance plus the core's.
+  double blur_half_px = 0;  // effect diffraction: half side of the lenslet's Airy square, grid pixels (0: off)
+  // Effect diffraction: triangle (a, b, c) of uniform light, blurred. Each
+  // pixel in reach: the triangle clipped to each cell between the kinks of
+  // the pixel's blurred profiles across and along, where the blurred pixel
+  // is (a_u + b_u u)(a_v + b_v v), integrated exactly from the clipped
+  // polygon's moments.
   void blurred(const GridCorner& a, const GridCorner& b, const GridCorner& c, D weight, int half) {
-    const D mu = (a.u + b.u + c.u) * D(1.0 / 3), mv = (a.v + b.v + c.v) * D(1.0 / 3);
-    D var_u(blur_px * blur_px), var_v(blur_px * blur_px);
-    for (const GridCorner* k : {&a, &b, &c}) {
-      var_u = var_u + (k->u - mu) * (k->u - mu) * D(1.0 / 12);
-      var_v = var_v + (k->v - mv) * (k->v - mv) * D(1.0 / 12);
+    const double h = blur_half_px;
+    const std::vector<Point2> tri{{a.u, a.v}, {b.u, b.v}, {c.u, c.v}};
+    const D area = moments(tri).area;
+    const double lo_u = std::min({a.u.v, b.u.v, c.u.v}), hi_u = std::max({a.u.v, b.u.v, c.u.v});
+    const double lo_v = std::min({a.v.v, b.v.v, c.v.v}), hi_v = std::max({a.v.v, b.v.v, c.v.v});
+    for (int row = std::max(0, int(std::floor(lo_v - h))); row <= std::min(img.height - 1, int(std::floor(hi_v + h))); ++row) {
+      // Relative to the pixel's corner: the moments of a small polygon far
+      // from the origin would cancel their digits.
+      const auto along = blurred_profile(0.0, std::min(1.0, v_max - row), h);
+      for (int col = std::max(0, int(std::floor(lo_u - h))); col <= std::min(img.width - 1, int(std::floor(hi_u + h))); ++col) {
+        const auto across = blurred_profile(0.0, std::min(1.0, u_max - col), h);
+        std::vector<Point2> local;
+        for (const Point2& p : tri) local.push_back({p.u - D(double(col)), p.v - D(double(row))});
+        D light(0.0);
+        for (const auto& pu : across)
+          for (const auto& pv : along) {
+            auto poly = clip_half_plane(local, [&](const Point2& p) { return p.u - D(pu.x0); });
+            poly = clip_half_plane(poly, [&](const Point2& p) { return D(pu.x1) - p.u; });
+            poly = clip_half_plane(poly, [&](const Point2& p) { return p.v - D(pv.x0); });
+            poly = clip_half_plane(poly, [&](const Point2& p) { return D(pv.x1) - p.v; });
+            if (poly.size() < 3) continue;
+            const Moments m = moments(poly);
+            light = light + D(pu.a * pv.a) * m.area + D(pu.a * pv.b) * m.v + D(pu.b * pv.a) * m.u + D(pu.b * pv.b) * m.uv;
+          }
+        if (light.v != 0) add(col, row, weight * light / area, half);
+      }
     }
-    gaussian(mu, mv, sqrt(var_u), sqrt(var_v), weight, half);
+  }
+  // Effect diffraction: segment p -> q of uniform light, blurred: every
+  // crossing of a kink of a pixel's profiles splits it; Simpson's rule on
+  // each piece (exact: the product of two linear shares).
+  void blurred_segment(Point2 p, Point2 q, D weight, int half) {
+    const double h = blur_half_px;
+    const D du = q.u - p.u, dv = q.v - p.v;
+    for (int row = std::max(0, int(std::floor(std::min(p.v.v, q.v.v) - h)));
+         row <= std::min(img.height - 1, int(std::floor(std::max(p.v.v, q.v.v) + h))); ++row) {
+      for (int col = std::max(0, int(std::floor(std::min(p.u.v, q.u.v) - h)));
+           col <= std::min(img.width - 1, int(std::floor(std::max(p.u.v, q.u.v) + h))); ++col) {
+        const auto across = blurred_profile(col, std::min(col + 1.0, u_max), h);
+        const auto along = blurred_profile(row, std::min(row + 1.0, v_max), h);
+        std::vector<double> ts{0.0, 1.0};
+        for (const auto* prof : {&across, &along})
+          for (const auto& piece : *prof)
+            for (double k : {piece.x0, piece.x1}) {
+              const double from = prof == &across ? p.u.v : p.v.v, delta = prof == &across ? du.v : dv.v;
+              if (delta != 0 && (k - from) / delta > 0 && (k - from) / delta < 1) ts.push_back((k - from) / delta);
+            }
+        std::sort(ts.begin(), ts.end());
+        D light(0.0);
+        for (size_t i = 0; i + 1 < ts.size(); ++i) {
+          const double t0 = ts[i], t1 = ts[i + 1], tm = 0.5 * (t0 + t1);
+          if (!(t1 > t0)) continue;
+          const double um = p.u.v + tm * du.v, vm = p.v.v + tm * dv.v;
+          auto f = [&](double t) {
+            return share_at(across, p.u + D(t) * du, um) * share_at(along, p.v + D(t) * dv, vm);
+          };
+          light = light + (f(t0) + D(4.0) * f(tm) + f(t1)) * D((t1 - t0) / 6);
+        }
+        if (light.v != 0) add(col, row, weight * light, half);
+      }
+    }
   }
   void add(int col, int row, D value, int half) { add_to_pixel(img, col, row, value, half); }
   // `weight` spread uniformly along segment p -> q: each pixel gets the
@@ -142,18 +231,15 @@ struct FootprintTarget {
   }
   // `weight` spread uniformly over triangle (a, b, c), shared by box pixels.
   void triangle(const GridCorner& a, const GridCorner& b, const GridCorner& c, D weight, int half) {
-    if (blur_px > 0) {
-      blurred(a, b, c, weight, half);
-      return;
-    }
     const double lo_u = std::min({a.u.v, b.u.v, c.u.v}), hi_u = std::max({a.u.v, b.u.v, c.u.v});
     const double lo_v = std::min({a.v.v, b.v.v, c.v.v}), hi_v = std::max({a.v.v, b.v.v, c.v.v});
-    if (hi_u <= 0 || hi_v <= 0 || lo_u >= u_max || lo_v >= v_max) return;
+    const double reach = blur_half_px;
+    if (hi_u <= -reach || hi_v <= -reach || lo_u >= u_max + reach || lo_v >= v_max + reach) return;
     // Wholly inside one pixel (as the kernel: a cell imaged in focus can have
     // no area at all): all of it there, and moving it keeps it there (only
     // the weight's own derivative).
-    if (std::floor(lo_u) == std::floor(hi_u) && std::floor(lo_v) == std::floor(hi_v) && hi_u <= u_max &&
-        hi_v <= v_max) {
+    if (blur_half_px == 0 && std::floor(lo_u) == std::floor(hi_u) && std::floor(lo_v) == std::floor(hi_v) &&
+        hi_u <= u_max && hi_v <= v_max) {
       add(int(std::floor(lo_u)), int(std::floor(lo_v)), weight, half);
       return;
     }
@@ -168,7 +254,12 @@ struct FootprintTarget {
       if (l2 > longest) longest = l2, from = k;
     }
     if (!(area.v >= double(shared::THIN_TRIANGLE) * longest)) {
-      segment(tri[from], tri[(from + 1) % 3], weight, half);
+      if (blur_half_px > 0) blurred_segment(tri[from], tri[(from + 1) % 3], weight, half);
+      else segment(tri[from], tri[(from + 1) % 3], weight, half);
+      return;
+    }
+    if (blur_half_px > 0) {
+      blurred(a, b, c, weight, half);
       return;
     }
     for (int row = std::max(0, int(std::floor(lo_v))); row <= std::min(img.height - 1, int(std::floor(hi_v))); ++row)
@@ -203,7 +294,7 @@ SparseImage psf_footprint(const OpticalSystem& sys, const TraceSettings& setting
     const float turn = shared::strata_turn(uint32_t(l), settings.stratification);
     const double r = 0.5 * sys.lenslets[l].diameter_mm;
     const double half_cell_mm2 = 0.5 * M_PI * r * r / double(n * n);
-    target.blur_px = sys.effects.diffraction ? sys.airy_sigma_mm(l) / px : 0.0;
+    target.blur_half_px = sys.effects.diffraction ? sys.airy_half_side_mm(l) / px : 0.0;
     auto unit = [&](uint32_t i, uint32_t j) { return glm::dvec2(shared::aperture_corner(i, j, n, turn)); };
     auto trace = [&](const glm::dvec3& from, glm::dvec2 u) {
       return to_grid(trace_point(sys, settings, from, l, u, 1.0), half_w, half_h, px);
@@ -229,7 +320,10 @@ SparseImage psf_footprint(const OpticalSystem& sys, const TraceSettings& setting
         // still large given to its centroid.
         auto centroid = [&](const GridCorner& a, const GridCorner& b, const GridCorner& c, D weight) {
           const double cu = (a.u.v + b.u.v + c.u.v) / 3, cv = (a.v.v + b.v.v + c.v.v) / 3;
-          if (cu >= 0 && cv >= 0 && cu < target.u_max && cv < target.v_max) target.add(int(cu), int(cv), weight, half);
+          if (target.blur_half_px > 0)
+            add_blurred_point(img, D(cu), D(cv), target.blur_half_px, weight, half, target.u_max, target.v_max);
+          else if (cu >= 0 && cv >= 0 && cu < target.u_max && cv < target.v_max)
+            target.add(int(cu), int(cv), weight, half);
         };
         auto large = [](const GridCorner* k) {
           double lo_u = 1e300, hi_u = -1e300, lo_v = 1e300, hi_v = -1e300;

@@ -247,12 +247,12 @@ SparseImage psf(const OpticalSystem& sys, const TraceSettings& settings, const g
       // Checkerboard half of the strata; each half estimates the whole gradient.
       const int half = int(shared::ray_half(k, strata));
       if (sys.effects.diffraction) {
-        // The ray's light as its lenslet's Airy core over box pixels.
+        // The ray's light blurred by its lenslet's Airy square over box pixels.
         if (!h.ok) continue;
-        const double s = sys.airy_sigma_mm(l) / grid.pixel_mm;
-        add_gaussian(img, D((h.x_mm + half_w) / grid.pixel_mm, h.dx / grid.pixel_mm),
-                     D((h.y_mm + half_h) / grid.pixel_mm, h.dy / grid.pixel_mm), D(s), D(s), D(h.weight, h.dweight),
-                     half, 2 * half_w / grid.pixel_mm, 2 * half_h / grid.pixel_mm);
+        add_blurred_point(img, D((h.x_mm + half_w) / grid.pixel_mm, h.dx / grid.pixel_mm),
+                          D((h.y_mm + half_h) / grid.pixel_mm, h.dy / grid.pixel_mm),
+                          sys.airy_half_side_mm(l) / grid.pixel_mm, D(h.weight, h.dweight), half,
+                          2 * half_w / grid.pixel_mm, 2 * half_h / grid.pixel_mm);
         continue;
       }
       if (!h.ok || std::abs(h.x_mm) > half_w || std::abs(h.y_mm) > half_h) continue;

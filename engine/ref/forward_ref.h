@@ -57,10 +57,12 @@ SampleHit trace_sample(const OpticalSystem& sys, const TraceSettings& settings, 
 // `area_mm2` of aperture there (the footprint's corners: footprint_ref.cpp).
 SampleHit trace_point(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& centre, size_t lens,
                       glm::dvec2 u, double area_mm2);
-// Effect diffraction: `weight` as a Gaussian (mean (mu, mv), sigmas (su, sv),
-// grid pixels) over box pixels within GAUSS_REACH sigmas, clipped at the
-// sensor's far edges (u_max, v_max); derivatives to checkerboard half `half`.
-void add_gaussian(SparseImage& img, D mu, D mv, D su, D sv, D weight, int half, double u_max, double v_max);
+// Effect diffraction: `weight` at point (u, v) (grid pixels) blurred by a
+// uniform square of half side h (the Airy core, shaders/common/blur.glsl):
+// each box pixel gets the square's share in it, the sensor's far edges
+// (u_max, v_max) bounding the last column and row; derivatives to
+// checkerboard half `half`.
+void add_blurred_point(SparseImage& img, D u, D v, double h, D weight, int half, double u_max, double v_max);
 // Effect source_extent: the source point of sample `sample` (shared sampling code).
 glm::dvec3 source_offset(uint32_t lens, uint32_t sample, double sigma, uint32_t seed);
 

@@ -19,18 +19,18 @@ const int CUT_STEPS = 8;  // the cut within 1/256 of the cell edge: boundary cel
 
 // `weight` spread over triangle (a, b, c), clipped to u <= u_max, v <= v_max
 // (light beyond is lost; the rest keeps the whole triangle's light per area).
-void rasterise_clipped(uint image_base, Corner a, Corner b, Corner c, Dual weight, float blur_px, uint half_offset) {
+void rasterise_clipped(uint image_base, Corner a, Corner b, Corner c, Dual weight, float blur_half_px, uint half_offset) {
   if (is_large(a, b, c)) {  // a piece no further split (footprint.glsl): at its centroid
-    deposit_at_centroid(image_base, a, b, c, weight, half_offset);
+    deposit_at_centroid(image_base, a, b, c, weight, blur_half_px, half_offset);
     return;
   }
-  if (DIFFRACTION) {  // the Gaussian's box integrals clip at the far edges themselves
-    blur_triangle(image_base, a, b, c, weight, blur_px, half_offset);
+  if (DIFFRACTION) {  // the blurred pixels end at the far edges themselves
+    blur_triangle(image_base, a, b, c, weight, blur_half_px, half_offset);
     return;
   }
   Dual area = triangle_area(a.u, a.v, b.u, b.v, c.u, c.v);
   if (is_thin(a, b, c, area)) {
-    rasterise_thin(image_base, a, b, c, weight, sensor_u_max(), sensor_v_max(), half_offset);
+    rasterise_thin(image_base, a, b, c, weight, sensor_u_max(), sensor_v_max(), 0.0f, half_offset);
     return;
   }
   // Sutherland-Hodgman against the two far edges: at most 5 vertices.
@@ -76,7 +76,7 @@ float twice_area(vec2 a, vec2 b, vec2 c) { return abs((b.x - a.x) * (c.y - a.y) 
 // by bisection along a-b and a-c from the odd corner out, with its share of
 // `area_mm2` of aperture.
 void rasterise_cut(uint image_base, vec3 from, Lenslet lens, Corner a, Corner b, Corner c, vec2 pa, vec2 pb, vec2 pc,
-                   float area_mm2, float blur_px, uint half_offset) {
+                   float area_mm2, float blur_half_px, uint half_offset) {
   int passed = int(a.ok) + int(b.ok) + int(c.ok);
   // The odd one out first, cyclic order kept: a stopped with b, c through
   // (passed == 2), or a through with b, c stopped (passed == 1).
@@ -120,16 +120,16 @@ void rasterise_cut(uint image_base, vec3 from, Lenslet lens, Corner a, Corner b,
   if (!(whole > 0.0f)) return;
   if (odd_ok) {
     float part = area_mm2 * twice_area(pa, cut_p0, cut_p1) / whole;
-    rasterise_clipped(image_base, a, cut0, cut1, d_scale(d_add(d_add(a.w, cut0.w), cut1.w), part / 3.0f), blur_px,
+    rasterise_clipped(image_base, a, cut0, cut1, d_scale(d_add(d_add(a.w, cut0.w), cut1.w), part / 3.0f), blur_half_px,
                       half_offset);
     return;
   }
   // Quad cut0, b, c, cut1 as two triangles, each with its own aperture area.
   float part1 = area_mm2 * twice_area(cut_p0, pb, pc) / whole;
   float part2 = area_mm2 * twice_area(cut_p0, pc, cut_p1) / whole;
-  rasterise_clipped(image_base, cut0, b, c, d_scale(d_add(d_add(cut0.w, b.w), c.w), part1 / 3.0f), blur_px,
+  rasterise_clipped(image_base, cut0, b, c, d_scale(d_add(d_add(cut0.w, b.w), c.w), part1 / 3.0f), blur_half_px,
                     half_offset);
-  rasterise_clipped(image_base, cut0, c, cut1, d_scale(d_add(d_add(cut0.w, c.w), cut1.w), part2 / 3.0f), blur_px,
+  rasterise_clipped(image_base, cut0, c, cut1, d_scale(d_add(d_add(cut0.w, c.w), cut1.w), part2 / 3.0f), blur_half_px,
                     half_offset);
 }
 
@@ -167,7 +167,7 @@ bool is_split(Piece t, int depth) {
 // split along the entry's path (piece_code); `from` is the cell's source
 // point.
 void listed_piece(uvec4 entry, out Piece t, out vec3 from, out Lenslet lens, out uint image_base,
-                  out uint half_offset, out float blur_px) {
+                  out uint half_offset, out float blur_half_px) {
   uint s = entry.x;
   DesignRange design = designs[source_design[P.source_offset + s]];
   lens = lenses[entry.y];
@@ -180,7 +180,7 @@ void listed_piece(uvec4 entry, out Piece t, out vec3 from, out Lenslet lens, out
   uint depth = piece_depth(entry.w);
   image_base = s * uint(P.grid_w) * uint(P.band_rows) * PIXEL_FLOATS;
   half_offset = 1u + 3u * ((i + j) & 1u);
-  blur_px = DIFFRACTION ? airy_sigma_px(lens) : 0.0f;
+  blur_half_px = DIFFRACTION ? airy_half_side_px(lens) : 0.0f;
   float turn = strata_turn(in_design, P.stratification);
   from = cell_source(sources[P.source_offset + s].xyz, in_design, cell);
   CellTriangle tri = cell_triangle(i, j, n, piece_triangle(entry.w));

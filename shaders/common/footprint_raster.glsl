@@ -119,37 +119,57 @@ Dual mean_left_of(Dual xl, Dual xr, float c) {
   return d_div(d_addc(d_sub(xr, d_const(c)), -0.5f), dx);
 }
 
+// The bounding box (u_lo, u_hi, v_lo, v_hi) of polygon (pu, pv)[0..n).
+vec4 polygon_box(Dual pu[MAX_SIDES], Dual pv[MAX_SIDES], int n) {
+  vec4 box = vec4(pu[0].v, pu[0].v, pv[0].v, pv[0].v);
+  for (int i = 1; i < n; ++i) box = vec4(min(box.x, pu[i].v), max(box.y, pu[i].v), min(box.z, pv[i].v), max(box.w, pv[i].v));
+  return box;
+}
+
+// Polygon (pu, pv)[0..n) moved to the pixel corner (col0, row0) at or
+// below its box (u_lo, u_hi, v_lo, v_hi) widened by `reach`, so that
+// differences are formed on small numbers; returns (col0, row0).
+ivec2 to_origin(inout Dual pu[MAX_SIDES], inout Dual pv[MAX_SIDES], int n, vec4 box, float reach) {
+  ivec2 origin = ivec2(int(floor(box.x - reach)), int(floor(box.z - reach)));
+  for (int i = 0; i < n; ++i) {
+    pu[i] = d_addc(pu[i], -float(origin.x));
+    pv[i] = d_addc(pv[i], -float(origin.y));
+  }
+  return origin;
+}
+
+// The rows 0..rows - 1 after row0 that lie in this band, first and last.
+ivec2 band_rows(int row0, int rows) {
+  return ivec2(max(0, max(P.band_row0, 0) - row0), min(rows - 1, min(P.band_row0 + P.band_rows, P.grid_h) - 1 - row0));
+}
+
+// The part [ta, tb] of t in [0, 1] where v0 + t dv lies in [lo, hi] (ta > tb: none).
+vec2 part_within(float v0, float dv, float lo, float hi) {
+  if (dv == 0.0f) return v0 >= lo && v0 <= hi ? vec2(0.0f, 1.0f) : vec2(1.0f, 0.0f);
+  float s0 = (lo - v0) / dv;
+  float s1 = (hi - v0) / dv;
+  return vec2(max(0.0f, min(s0, s1)), min(1.0f, max(s0, s1)));
+}
+
 // `weight` spread uniformly over the convex polygon (pu, pv)[0..n) (grid
 // pixels), whose signed area is `area` (the light per image area is
 // weight / |area| also where the polygon is a part of a larger triangle:
 // pass that triangle's area). Each pixel of the band gets its exact share.
 void rasterise_polygon(uint image_base, Dual pu[MAX_SIDES], Dual pv[MAX_SIDES], int n, Dual weight, Dual area,
                        uint half_offset) {
-  float u_lo = pu[0].v;
-  float u_hi = pu[0].v;
-  float v_lo = pv[0].v;
-  float v_hi = pv[0].v;
-  for (int i = 1; i < n; ++i) {
-    u_lo = min(u_lo, pu[i].v);
-    u_hi = max(u_hi, pu[i].v);
-    v_lo = min(v_lo, pv[i].v);
-    v_hi = max(v_hi, pv[i].v);
-  }
-  // Relative to the box origin, so that differences are formed on small numbers.
-  int col0 = int(floor(u_lo));
-  int row0 = int(floor(v_lo));
-  for (int i = 0; i < n; ++i) {
-    pu[i] = d_addc(pu[i], -float(col0));
-    pv[i] = d_addc(pv[i], -float(row0));
-  }
+  vec4 box = polygon_box(pu, pv, n);
+  ivec2 origin = to_origin(pu, pv, n, box, 0.0f);
+  int col0 = origin.x;
+  int row0 = origin.y;
+  float u_hi = box.y;
+  float v_hi = box.w;
   Dual scale = d_neg(d_div(weight, area));
   int rows = int(floor(v_hi)) - row0 + 1;
   int cols = int(floor(u_hi)) - col0 + 1;
-  int r_first = max(0, max(P.band_row0, 0) - row0);
-  int r_last = min(rows - 1, min(P.band_row0 + P.band_rows, P.grid_h) - 1 - row0);
+  ivec2 band = band_rows(row0, rows);
   int k_first = max(0, -col0);
   int k_last = min(cols - 1, P.grid_w - 1 - col0);
-  for (int r = r_first; r <= r_last; ++r) {
+  for (int r = band.x; r <= band.y; ++r) {
     // Each edge's part within the row: its x range and signed dy.
     Dual seg_l[MAX_SIDES];
     Dual seg_r[MAX_SIDES];
@@ -245,15 +265,109 @@ void rasterise_segment(uint image_base, Dual x0, Dual y0, Dual x1, Dual y1, Dual
   }
 }
 
-// A thin triangle's light along its longest edge (see THIN_TRIANGLE).
+// Effect diffraction (blur.glsl): `weight` spread uniformly over the convex
+// polygon (pu, pv)[0..n) of signed area `area`, blurred by the Airy square of
+// half side h; each box pixel within its reach gets its exact share. By
+// Green's theorem the polygon's light in a pixel is weight / area times the
+// sum over its edges of the integral of integral(u) profile(v) dv; a column
+// left of the row's middle takes the integral from the right, so that edges
+// far from it add zeros rather than terms that cancel.
+void blur_polygon(uint image_base, Dual pu[MAX_SIDES], Dual pv[MAX_SIDES], int n, Dual weight, Dual area, float h,
+                  uint half_offset) {
+  vec4 box = polygon_box(pu, pv, n);
+  ivec2 origin = to_origin(pu, pv, n, box, h);
+  int col0 = origin.x;
+  int row0 = origin.y;
+  float u_max = sensor_u_max() - float(col0);
+  float v_max = sensor_v_max() - float(row0);
+  Dual scale = d_div(weight, area);
+  int rows = int(floor(box.w + h)) - row0 + 1;
+  ivec2 band = band_rows(row0, rows);
+  for (int r = band.x; r <= band.y; ++r) {
+    float rlo = float(r);
+    float rhi = min(float(r + 1), v_max);
+    // The polygon's extent along the row's reach [rlo - h, rhi + h].
+    float row_lo = 1e30f;
+    float row_hi = -1e30f;
+    for (int i = 0; i < n; ++i) {
+      int j = (i + 1 == n) ? 0 : i + 1;
+      float y0 = pv[i].v;
+      float y1 = pv[j].v;
+      vec2 part = part_within(y0, y1 - y0, rlo - h, rhi + h);
+      if (part.x > part.y) continue;
+      float xa = pu[i].v + part.x * (pu[j].v - pu[i].v);
+      float xb = pu[i].v + part.y * (pu[j].v - pu[i].v);
+      row_lo = min(row_lo, min(xa, xb));
+      row_hi = max(row_hi, max(xa, xb));
+    }
+    if (!(row_lo <= row_hi)) continue;
+    float middle = 0.5f * (row_lo + row_hi);
+    int k_first = max(int(floor(row_lo - h)), -col0);
+    int k_last = min(int(floor(row_hi + h)), P.grid_w - 1 - col0);
+    for (int k = k_first; k <= k_last; ++k) {
+      float clo = float(k);
+      float chi = min(float(k + 1), u_max);
+      int mode = float(k) + 0.5f <= middle ? BLUR_EDGE_RIGHT : BLUR_EDGE;
+      Dual light = d_const(0.0f);
+      for (int i = 0; i < n; ++i) {
+        int j = (i + 1 == n) ? 0 : i + 1;
+        Dual dv = d_sub(pv[j], pv[i]);
+        if (dv.v == 0.0f || max(pv[i].v, pv[j].v) <= rlo - h || min(pv[i].v, pv[j].v) >= rhi + h) continue;
+        Dual du = d_sub(pu[j], pu[i]);
+        light = d_add(light, d_mul(blurred_path(pu[i], pv[i], du, dv, clo, chi, rlo, rhi, h, mode), dv));
+      }
+      if (light.v != 0.0f || light.d != vec3(0.0f))
+        deposit(image_base, col0 + k, row0 + r, d_mul(scale, light), half_offset);
+    }
+  }
+}
+
+// Effect diffraction: `weight` spread uniformly along segment (x0, y0) ->
+// (x1, y1) (a cell folded flat, THIN_TRIANGLE) and blurred by the Airy square.
+void blur_segment(uint image_base, Dual x0, Dual y0, Dual x1, Dual y1, Dual weight, float h, uint half_offset) {
+  int col0 = int(floor(min(x0.v, x1.v) - h));
+  int row0 = int(floor(min(y0.v, y1.v) - h));
+  Dual u0 = d_addc(x0, -float(col0));
+  Dual v0 = d_addc(y0, -float(row0));
+  Dual du = d_sub(x1, x0);
+  Dual dv = d_sub(y1, y0);
+  float u_max = sensor_u_max() - float(col0);
+  float v_max = sensor_v_max() - float(row0);
+  int rows = int(floor(max(y0.v, y1.v) + h)) - row0 + 1;
+  ivec2 band = band_rows(row0, rows);
+  for (int r = band.x; r <= band.y; ++r) {
+    float rlo = float(r);
+    float rhi = min(float(r + 1), v_max);
+    // The segment's part within the row's reach, and its columns.
+    vec2 part = part_within(v0.v, dv.v, rlo - h, rhi + h);
+    if (part.x > part.y) continue;
+    float xa = u0.v + part.x * du.v;
+    float xb = u0.v + part.y * du.v;
+    int k_first = max(int(floor(min(xa, xb) - h)), -col0);
+    int k_last = min(int(floor(max(xa, xb) + h)), P.grid_w - 1 - col0);
+    for (int k = k_first; k <= k_last; ++k) {
+      Dual share = blurred_path(u0, v0, du, dv, float(k), min(float(k + 1), u_max), rlo, rhi, h, BLUR_LIGHT);
+      if (share.v != 0.0f || share.d != vec3(0.0f))
+        deposit(image_base, col0 + k, row0 + r, d_mul(weight, share), half_offset);
+    }
+  }
+}
+
+// A thin triangle's light along its longest edge (see THIN_TRIANGLE); with
+// diffraction blurred by the Airy square (half side blur_half_px).
 void rasterise_thin(uint image_base, Corner a, Corner b, Corner c, Dual weight, float u_max, float v_max,
-                    uint half_offset) {
+                    float blur_half_px, uint half_offset) {
   float ab = (b.u.v - a.u.v) * (b.u.v - a.u.v) + (b.v.v - a.v.v) * (b.v.v - a.v.v);
   float bc = (c.u.v - b.u.v) * (c.u.v - b.u.v) + (c.v.v - b.v.v) * (c.v.v - b.v.v);
   float ca = (a.u.v - c.u.v) * (a.u.v - c.u.v) + (a.v.v - c.v.v) * (a.v.v - c.v.v);
-  if (ab >= bc && ab >= ca) rasterise_segment(image_base, a.u, a.v, b.u, b.v, weight, u_max, v_max, half_offset);
-  else if (bc >= ca) rasterise_segment(image_base, b.u, b.v, c.u, c.v, weight, u_max, v_max, half_offset);
-  else rasterise_segment(image_base, c.u, c.v, a.u, a.v, weight, u_max, v_max, half_offset);
+  Corner p = a;
+  Corner q = b;
+  if (!(ab >= bc && ab >= ca)) {
+    p = bc >= ca ? b : c;
+    q = bc >= ca ? c : a;
+  }
+  if (DIFFRACTION) blur_segment(image_base, p.u, p.v, q.u, q.v, weight, blur_half_px, half_offset);
+  else rasterise_segment(image_base, p.u, p.v, q.u, q.v, weight, u_max, v_max, half_offset);
 }
 
 // Whether the image of triangle (a, b, c), over its corners that got through,
@@ -269,10 +383,16 @@ bool is_large(Corner a, Corner b, Corner c) {
   return max(u_hi - u_lo, v_hi - v_lo) > LARGE_TRIANGLE_PX;
 }
 
-// All of `weight` in the pixel of the centroid of (a, b, c), if on the sensor.
-void deposit_at_centroid(uint image_base, Corner a, Corner b, Corner c, Dual weight, uint half_offset) {
+// All of `weight` in the pixel of the centroid of (a, b, c), if on the
+// sensor; with diffraction blurred around it (half side blur_half_px).
+void deposit_at_centroid(uint image_base, Corner a, Corner b, Corner c, Dual weight, float blur_half_px,
+                         uint half_offset) {
   float cu = (a.u.v + b.u.v + c.u.v) / 3.0f;
   float cv = (a.v.v + b.v.v + c.v.v) / 3.0f;
+  if (DIFFRACTION) {
+    deposit_blurred_point(image_base, d_const(cu), d_const(cv), blur_half_px, weight, half_offset);
+    return;
+  }
   if (cu >= 0.0f && cv >= 0.0f && cu < sensor_u_max() && cv < sensor_v_max())
     deposit(image_base, int(floor(cu)), int(floor(cv)), weight, half_offset);
 }
@@ -285,27 +405,6 @@ bool is_thin(Corner a, Corner b, Corner c, Dual area) {
   return !(abs(area.v) >= THIN_TRIANGLE * max(ab, max(bc, ca)));
 }
 
-// Effect diffraction: `weight` spread over triangle (a, b, c) and blurred by
-// the lenslet's Airy core (sigma blur_px), as one Gaussian: its mean the
-// centroid, its variance the triangle's own (uniform light over it: the sum
-// of the corners' squared offsets over 12) plus the core's. It tends to the
-// exactly blurred image as the cells shrink (second order in their size), and
-// it is smooth where a sharp geometric edge would leave a sliver of light in
-// a pixel with a large derivative (whose g^2 / b the CRLB would follow).
-void blur_triangle(uint image_base, Corner a, Corner b, Corner c, Dual weight, float blur_px, uint half_offset) {
-  Dual mu = d_scale(d_add(d_add(a.u, b.u), c.u), 1.0f / 3.0f);
-  Dual mv = d_scale(d_add(d_add(a.v, b.v), c.v), 1.0f / 3.0f);
-  Dual au = d_sub(a.u, mu);
-  Dual bu = d_sub(b.u, mu);
-  Dual cu = d_sub(c.u, mu);
-  Dual av = d_sub(a.v, mv);
-  Dual bv = d_sub(b.v, mv);
-  Dual cv = d_sub(c.v, mv);
-  Dual var_u = d_addc(d_scale(d_add(d_add(d_mul(au, au), d_mul(bu, bu)), d_mul(cu, cu)), 1.0f / 12.0f), blur_px * blur_px);
-  Dual var_v = d_addc(d_scale(d_add(d_add(d_mul(av, av), d_mul(bv, bv)), d_mul(cv, cv)), 1.0f / 12.0f), blur_px * blur_px);
-  deposit_gaussian(image_base, mu, mv, d_sqrt(var_u), d_sqrt(var_v), weight, half_offset);
-}
-
 // Triangle (a, b, c) as the first three vertices of a polygon.
 void triangle_polygon(Corner a, Corner b, Corner c, inout Dual pu[MAX_SIDES], inout Dual pv[MAX_SIDES]) {
   pu[0] = a.u;
@@ -316,12 +415,39 @@ void triangle_polygon(Corner a, Corner b, Corner c, inout Dual pu[MAX_SIDES], in
   pv[2] = c.v;
 }
 
+// Effect diffraction: `weight` spread over triangle (a, b, c) and blurred by
+// the lenslet's Airy square (half side h, grid pixels); a triangle folded
+// flat, along its longest edge.
+void blur_triangle(uint image_base, Corner a, Corner b, Corner c, Dual weight, float h, uint half_offset) {
+  float u_lo = min(min(a.u.v, b.u.v), c.u.v);
+  float u_hi = max(max(a.u.v, b.u.v), c.u.v);
+  float v_lo = min(min(a.v.v, b.v.v), c.v.v);
+  float v_hi = max(max(a.v.v, b.v.v), c.v.v);
+  int col = int(floor(u_lo - h));
+  int row = int(floor(v_lo - h));
+  if (u_hi + h <= min(float(col + 1), sensor_u_max()) && v_hi + h <= min(float(row + 1), sensor_v_max())) {
+    // Blurred, still inside one pixel: all of it there.
+    deposit(image_base, col, row, weight, half_offset);
+    return;
+  }
+  Dual area = triangle_area(a.u, a.v, b.u, b.v, c.u, c.v);
+  if (is_thin(a, b, c, area)) {
+    rasterise_thin(image_base, a, b, c, weight, 0.0f, 0.0f, h, half_offset);
+    return;
+  }
+  Dual pu[MAX_SIDES];
+  Dual pv[MAX_SIDES];
+  triangle_polygon(a, b, c, pu, pv);
+  blur_polygon(image_base, pu, pv, 3, weight, area, h, half_offset);
+}
+
 // `weight` spread uniformly over triangle (a, b, c), every pixel given its
 // exact share (the caller has checked it lies within the sensor's far edges),
-// or with diffraction blurred (blur_px, blur_triangle).
-void rasterise_triangle(uint image_base, Corner a, Corner b, Corner c, Dual weight, float blur_px, uint half_offset) {
+// or with diffraction blurred (blur_half_px, blur_triangle).
+void rasterise_triangle(uint image_base, Corner a, Corner b, Corner c, Dual weight, float blur_half_px,
+                        uint half_offset) {
   if (DIFFRACTION) {
-    blur_triangle(image_base, a, b, c, weight, blur_px, half_offset);
+    blur_triangle(image_base, a, b, c, weight, blur_half_px, half_offset);
     return;
   }
   int col = int(floor(a.u.v));
@@ -335,7 +461,7 @@ void rasterise_triangle(uint image_base, Corner a, Corner b, Corner c, Dual weig
   }
   Dual area = triangle_area(a.u, a.v, b.u, b.v, c.u, c.v);
   if (is_thin(a, b, c, area)) {
-    rasterise_thin(image_base, a, b, c, weight, 1e30f, 1e30f, half_offset);
+    rasterise_thin(image_base, a, b, c, weight, 1e30f, 1e30f, 0.0f, half_offset);
     return;
   }
   Dual pu[MAX_SIDES];

@@ -61,7 +61,7 @@ struct TraceParams {
   uint source_count;          // sources in this dispatch
   float source_sigma_mm;      // effect: Gaussian extent of the source (per axis)
   uint stratification;        // 0: the default strata; another value: other jitter (point) and cells turned (footprint)
-  float airy_sigma_mm_times_diameter;  // effect diffraction: sigma of a lenslet's Airy core times its diameter (mm^2)
+  float airy_half_side_mm_times_diameter;  // effect diffraction: half side of a lenslet's Airy square times its diameter (mm^2)
   uint cell_first;            // footprint: the cells of this pass, [cell_first, cell_first + cell_count)
   uint cell_count;
   uint split_first;           // footprint split pass: its level's list entries, [split_first, split_end)

@@ -1,11 +1,12 @@
 // What every splat kernel shares (GLSL only: buffers and atomics): the
 // specialisation constants (lens model, effects, derivatives), the trace
 // parameters, the buffers, and how light is added to the image of a source:
-// at one pixel, or as a Gaussian over box pixels (effect diffraction).
+// at one pixel, or blurred by the Airy square over box pixels (effect
+// diffraction, blur.glsl).
 #ifndef PRISM_SPLAT_IMAGE_GLSL
 #define PRISM_SPLAT_IMAGE_GLSL
 
-#include "gauss.glsl"
+#include "blur.glsl"
 #include "optics.glsl"
 
 // Effects are compile-time: a scene that does not name one compiles it out.
@@ -57,25 +58,27 @@ void deposit(uint image_base, int col, int row, Dual value, uint half_offset) {
   atomicAdd(images[i + half_offset + 2u], 2.0f * value.d.z);
 }
 
-// Effect diffraction: lenslet `lens`'s Airy-core sigma in grid pixels.
-float airy_sigma_px(Lenslet lens) { return P.airy_sigma_mm_times_diameter / (2.0f * lens.radius_mm) / P.pixel_mm; }
+// Effect diffraction: the half side of lenslet `lens`'s Airy square, grid pixels.
+float airy_half_side_px(Lenslet lens) {
+  return P.airy_half_side_mm_times_diameter / (2.0f * lens.radius_mm) / P.pixel_mm;
+}
 
-// `weight` as a Gaussian (mean (mu, mv), sigmas (su, sv), grid pixels): each
-// box pixel within GAUSS_REACH sigmas gets its integral over the pixel (the
-// sensor's far edges clip the last column and row).
-void deposit_gaussian(uint image_base, Dual mu, Dual mv, Dual su, Dual sv, Dual weight, uint half_offset) {
+// `weight` at point (u, v) (grid pixels) blurred by a square of half side h:
+// each box pixel gets the square's share inside it (the sensor's far edges
+// bound the last column and row; light beyond is lost).
+void deposit_blurred_point(uint image_base, Dual u, Dual v, float h, Dual weight, uint half_offset) {
   float u_max = sensor_u_max();
   float v_max = sensor_v_max();
-  int c0 = max(int(floor(mu.v - GAUSS_REACH * su.v)), 0);
-  int c1 = min(int(floor(mu.v + GAUSS_REACH * su.v)), P.grid_w - 1);
-  int r0 = max(int(floor(mv.v - GAUSS_REACH * sv.v)), max(P.band_row0, 0));
-  int r1 = min(int(floor(mv.v + GAUSS_REACH * sv.v)), min(P.band_row0 + P.band_rows, P.grid_h) - 1);
+  int c0 = max(int(floor(u.v - h)), 0);
+  int c1 = min(int(floor(u.v + h)), P.grid_w - 1);
+  int r0 = max(int(floor(v.v - h)), max(P.band_row0, 0));
+  int r1 = min(int(floor(v.v + h)), min(P.band_row0 + P.band_rows, P.grid_h) - 1);
   for (int row = r0; row <= r1; ++row) {
-    Dual fy = gaussian_share(mv, sv, float(row), min(float(row + 1), v_max));
+    Dual fy = blurred_pixel(v, float(row), min(float(row + 1), v_max), h);
     if (fy.v == 0.0f && fy.d == vec3(0.0f)) continue;
     Dual wy = d_mul(weight, fy);
     for (int col = c0; col <= c1; ++col) {
-      Dual fx = gaussian_share(mu, su, float(col), min(float(col + 1), u_max));
+      Dual fx = blurred_pixel(u, float(col), min(float(col + 1), u_max), h);
       if (fx.v != 0.0f || fx.d != vec3(0.0f)) deposit(image_base, col, row, d_mul(wy, fx), half_offset);
     }
   }

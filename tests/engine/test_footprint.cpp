@@ -133,7 +133,7 @@ TEST_CASE("footprint splat: Vulkan equals the CPU reference on real lenses, cut 
                {"scintillator refraction", face, {1.3, -0.7, 25.0}, 8, 0, true},
                {"extended source", extent, {1.3, -0.7, 25.0}, 8, 0, true},
                {"detection efficiency", efficiency, {1.3, -0.7, 25.0}, 8, 0, true},
-               {"diffraction (each triangle as a Gaussian)", airy, {1.3, -0.7, 25.0}, 8, 0, true},
+               {"diffraction (the Airy square)", airy, {1.3, -0.7, 25.0}, 8, 0, true},
                {"another stratification", plain, {1.3, -0.7, 25.0}, 8, 3, true},
                {"at the sensor's edge (partial last pixels)", plain, {-25.0, 0.0, 5.0}, 16, 0, false}};
   for (const auto& k : cases) {
