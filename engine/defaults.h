@@ -68,6 +68,10 @@ inline constexpr unsigned sweep_rays_per_lenslet = 1024;        // footprint cel
 inline constexpr unsigned sweep_rays_per_lenslet_point = 4096;  // point rays
 inline constexpr unsigned sweep_binning = 32;                   // 221 um analysis pixels
 inline constexpr double crlb_convergence_tol = 0.01;       // relative change of the 3D CRLB over 4x the rays (cells)
+// Analysis pixels finer than this see the real lenses' caustics: their
+// geometric CRLB need not settle with the cells (27.6 um: 4.5% between 16384
+// and 65536; 110 um: 0.5%; README "Convergence"), and `prism crlb` says so.
+inline constexpr double caustic_pixel_mm = 0.06;
 
 // Dictionary grid (prism dictionary build): lateral nodes every 5 mm over
 // the volume, as the paper's 11 x 11. Depth planes: the paper's 5 mm steps

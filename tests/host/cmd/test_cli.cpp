@@ -83,6 +83,21 @@ TEST_CASE("prism crlb checks every row against a quarter of the cells and flags 
   std::filesystem::remove_all(dir);
 }
 
+TEST_CASE("prism crlb says when real lenses at fine pixels need the diffraction effect to settle") {
+  // Real lenses at 27.6 um from few cells: the caustics' slivers keep the
+  // geometric CRLB moving, and the note names the effect; thin lenses there
+  // settle and get no note.
+  auto real = prism::test::run_prism("crlb --scene prototype --depth-mm 10 --rays 256 --binning 4");
+  INFO(real.output);
+  REQUIRE(real.status == 0);
+  REQUIRE(real.output.find("  moving") != std::string::npos);
+  CHECK(real.output.find("\"effects\": [\"diffraction\"]") != std::string::npos);
+  auto thin = prism::test::run_prism("crlb --scene prototype --lens-model thin --depth-mm 10 --rays 256 --binning 4");
+  INFO(thin.output);
+  REQUIRE(thin.status == 0);
+  CHECK(thin.output.find("diffraction") == std::string::npos);
+}
+
 TEST_CASE("prism psf writes an OpenEXR that OpenEXR's own tools read, and a PNG preview") {
   std::string dir = temp_dir();
   auto r = prism::test::run_prism("psf --scene prototype --source-mm 1,2,20 --rays 1024 --binning 16 --out " + dir + "/p.exr");
