@@ -124,7 +124,7 @@ void add_blurred_point(SparseImage& img, D u, D v, double h, D weight, int half,
     const D fy = share_at(blurred_profile(row, std::min(row + 1.0, v_max), h), v, v.v);
     for (int col = std::max(0, int(std::floor(u.v - h))); col <= std::min(img.width - 1, int(std::floor(u.v + h))); ++col) {
       const D fx = share_at(blurred_profile(col, std::min(col + 1.0, u_max), h), u, u.v);
-      if (fx.v * fy.v > 0 || fx.v > 0 || fy.v > 0) add_to_pixel(img, col, row, weight * fx * fy, half);
+      if (fx.v > 0 || fy.v > 0) add_to_pixel(img, col, row, weight * fx * fy, half);
     }
   }
 }
