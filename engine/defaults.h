@@ -111,6 +111,13 @@ inline constexpr int refine_lattice_scan_depths = 3;  // the best voted depths t
 inline constexpr int refine_ladder_starts = 2;
 inline constexpr int refine_ladder_rungs = 4;          // per side and direction
 inline constexpr double refine_ladder_step_mm = 0.75;
+// Each rung's image is also scored moved by up to this many click-grid pixels
+// (the source moved laterally to match): near the face a rung 0.75 mm off in
+// depth images a few pixels away from the source's, and unmoved it scores as
+// badly as a wrong one. Of the 345 first events of the real-lens acceptance
+// run, three ended 0.4-0.8 mm off with the truth's basin 17-71 lower in NLL;
+// with 2 pixels all three reach it.
+inline constexpr int refine_ladder_reach_px = 2;
 inline constexpr int fit_pvalue_draws = 1000;      // Monte Carlo events per goodness-of-fit p-value
 inline constexpr double fit_pvalue_flag = 0.01;    // below it a vertex is flagged poor_fit
 

@@ -363,6 +363,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
       {"refine", {{"model", describe(o.model, scene)}, {"iterations", rs.iterations}, {"aliases", rs.aliases},
                   {"search_starts", rs.search_starts}, {"alias_starts", rs.alias_starts}, {"rescue", rs.rescue},
                   {"lattice_scan", rs.lattice_scan}, {"ladder_starts", rs.ladder_starts},
+                  {"ladder_reach_px", rs.ladder_reach_px},
                   {"pvalue_draws", rs.pvalue_draws}}}};
   const std::string on_mismatch = "rerun with the same options, or without --resume to start over";
   // A journal of an earlier run is resumed only when asked for.

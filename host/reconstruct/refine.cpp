@@ -315,9 +315,10 @@ Refiner::Refiner(SourceModel& model, const Scene& scene, const AnalysisGrid& cli
       grid_(clicks),
       lattice_mm_(lattice_vectors(scene.optics)),
       rescue_lattice_mm_(lattice_vectors(scene.optics, defaults::refine_rescue_alias_pitches)) {
-  if (s_.iterations < 1 || s_.alias_starts < 0 || s_.search_starts < 0 || s_.ladder_starts < 0 || s_.pvalue_draws < 1)
+  if (s_.iterations < 1 || s_.alias_starts < 0 || s_.search_starts < 0 || s_.ladder_starts < 0 || s_.ladder_reach_px < 0 ||
+      s_.pvalue_draws < 1)
     throw std::invalid_argument(
-        "refinement: iterations and p-value draws must be >= 1, search, alias and ladder starts >= 0");
+        "refinement: iterations and p-value draws must be >= 1, search, alias and ladder starts and the ladder's reach >= 0");
 }
 
 // Goodness of fit: T = sum over pixels of the binary NLL, observed against
@@ -485,7 +486,7 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
             const glm::dvec3 a = f.theta[k] + u * (sign * j * defaults::refine_ladder_step_mm);
             if (inside(a)) cand.push_back(a);
           }
-      probe_best(k, cand, s_.ladder_starts);
+      probe_best(k, cand, s_.ladder_starts, s_.ladder_reach_px);
     }
   }
 
