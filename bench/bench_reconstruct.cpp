@@ -6,7 +6,10 @@
 // one start or all (runners-up and lattice aliases). Memory on the device and the host for each. Writes a CSV and a
 // plot of error against time per event.
 //
-//   bench_reconstruct [--device D] [--dictionary DIR] [--out DIR] [--events-per-position N]
+//   bench_reconstruct [--device D] [--dictionary DIR] [--out DIR] [--events-per-position N] [--groups G,...]
+//
+// --groups runs only those groups of rows (backend, tier, layout, step,
+// precision, K, refine); the ratios print where their rows ran.
 //
 // Without --dictionary it builds (or resumes) the paper's 1210-PSF grid at
 // 16 x 16 binning, 4096 rays per lenslet, in /tmp. Events: the ray-traced
@@ -78,6 +81,7 @@ struct Config {
   // Continuous refinement with the scene's model on the device (refine.h):
   // 0 none; 1 from the search's answer only; 2 with the runners-up and aliases.
   int refine = 0;
+  ScanLayout layout = ScanLayout::automatic;  // the sparse kernel's layout (engine/support_scan.h)
 };
 
 Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, const std::vector<Event>& events,
@@ -87,6 +91,7 @@ Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, c
   s.vertices = c.vertices;
   s.search_level = c.scan_level;
   s.scan_step_px = c.step;
+  s.scan_layout = c.layout;
   DictionaryService service(reader, device ? &ctx : nullptr, c.scan_level, {}, c.half);
   Row r;
   r.group = c.group;
@@ -139,6 +144,7 @@ bool same_vertices(const Row& a, const Row& b) {
 int main(int argc, char** argv) {
   std::string device, dict_dir, out_dir = "bench-reconstruct";
   int per_position = 8;
+  std::string only;  // --groups: comma-separated, empty for all
   for (int i = 1; i < argc; ++i) {
     std::string a = argv[i];
     auto value = [&]() -> std::string {
@@ -152,9 +158,10 @@ int main(int argc, char** argv) {
     else if (a == "--dictionary") dict_dir = value();
     else if (a == "--out") out_dir = value();
     else if (a == "--events-per-position") per_position = std::max(2, std::stoi(value()));
+    else if (a == "--groups") only = "," + value() + ",";
     else {
       std::fprintf(stderr, "usage: bench_reconstruct [--device D] [--dictionary DIR] [--out DIR] "
-                           "[--events-per-position N]\n");
+                           "[--events-per-position N] [--groups backend,tier,layout,step,precision,K,refine]\n");
       return a == "--help" || a == "-h" ? 0 : 2;
     }
   }
@@ -220,7 +227,10 @@ int main(int argc, char** argv) {
 
   using B = ReconstructionBackend;
   std::vector<Row> rows;
+  rows.reserve(64);  // rows are referred to by reference below
+  const Row not_run;
   auto run = [&](const Config& c, const std::vector<Event>& ev, const std::vector<Truth>& tr) -> const Row& {
+    if (!only.empty() && only.find("," + c.group + ",") == std::string::npos) return not_run;
     rows.push_back(measure(ctx, reader, c, ev, tr));
     print(rows.back());
     return rows.back();
@@ -230,10 +240,19 @@ int main(int argc, char** argv) {
   const Row dense = run({"backend", "dense baseline (device)", B::dense, 2, 1, false, 1, 3}, few, few_truth);
   const Row sparse = run({"backend", "sparse vulkan", B::vulkan, 2, 1, false, 1, 3}, few, few_truth);
   // 2. The sparse path: tier, step, precision, K.
+  std::map<int, const Row*> tier;
   for (int level : {1, 2, 3, 4})
-    run({"tier", "scan level " + std::to_string(level) + " (" + std::to_string(int(m.pixel_mm(level) * 1e3)) + " um)",
-         B::vulkan, level, 1, false, 1, 3},
-        single, single_truth);
+    tier[level] = &run({"tier", "scan level " + std::to_string(level) + " (" + std::to_string(int(m.pixel_mm(level) * 1e3)) + " um)",
+                        B::vulkan, level, 1, false, 1, 3},
+                       single, single_truth);
+  // The kernel's layouts (engine/support_scan.h): the tier rows ran the
+  // default for this device; these force workgroups throughout (a GPU's).
+  std::map<int, const Row*> workgroups;
+  for (int level : {2, 3, 4}) {
+    Config c{"layout", "level " + std::to_string(level) + ", workgroup layout", B::vulkan, level, 1, false, 1, 3};
+    c.layout = ScanLayout::group;
+    workgroups[level] = &run(c, single, single_truth);
+  }
   for (int step : {2, 3}) run({"step", "level 2, shift step " + std::to_string(step), B::vulkan, 2, step, false, 1, 3}, single, single_truth);
   run({"step", "level 1, shift step 2", B::vulkan, 1, 2, false, 1, 3}, single, single_truth);
   run({"precision", "level 2, half dictionary", B::vulkan, 2, 1, true, 1, 3}, single, single_truth);
@@ -250,7 +269,8 @@ int main(int argc, char** argv) {
   run({"K", "K = 2 + refine, all starts", B::vulkan, 2, 1, false, 2, 1, 2}, few_pairs, few_pair_truth);
   // The refinement's model per source: device against the double reference.
   double device_s = 0, reference_s = 0;
-  {
+  const bool refine_rows = only.empty() || only.find(",refine,") != std::string::npos;
+  if (refine_rows) {
     auto t = refine_trace_settings(unsigned(m.base_binning));
     auto dev = make_scene_model(m.scene, t, &ctx), ref_model = make_scene_model(m.scene, t, nullptr);
     std::vector<double> d, c;
@@ -267,16 +287,26 @@ int main(int argc, char** argv) {
     reference_s = bench::median(c);
   }
 
-  std::printf("\nratios (same %zu events, same vertices chosen: cpu %s, dense %s):\n", few.size(),
-              same_vertices(cpu, sparse) ? "yes" : "NO", same_vertices(dense, sparse) ? "yes" : "NO");
-  std::printf("  sparse vulkan vs cpu reference:  %.1fx faster\n", cpu.seconds_per_event / sparse.seconds_per_event);
-  std::printf("  sparse vulkan vs dense baseline: %.1fx faster\n", dense.seconds_per_event / sparse.seconds_per_event);
-  std::printf("  refinement (one start) vs search alone: %.1fx the time, mean error %.2f -> %.2f mm, median %.2f -> %.2f mm\n",
-              refined_one.seconds_per_event / sparse.seconds_per_event, sparse.err_mean_mm, refined_one.err_mean_mm,
-              sparse.err_median_mm, refined_one.err_median_mm);
-  std::printf("  refinement (all starts) vs one start: %.1fx the time, mean error %.2f -> %.2f mm\n",
-              refined.seconds_per_event / refined_one.seconds_per_event, refined_one.err_mean_mm, refined.err_mean_mm);
-  std::printf("  refinement model per source (footprint, %u cells per lenslet, median of %zu positions): device %.3f s, "
+  auto ran = [](const Row& r) { return r.events > 0; };
+  if (ran(cpu) && ran(dense) && ran(sparse)) {
+    std::printf("\nratios (same %zu events, same vertices chosen: cpu %s, dense %s):\n", few.size(),
+                same_vertices(cpu, sparse) ? "yes" : "NO", same_vertices(dense, sparse) ? "yes" : "NO");
+    std::printf("  sparse vulkan vs cpu reference:  %.1fx faster\n", cpu.seconds_per_event / sparse.seconds_per_event);
+    std::printf("  sparse vulkan vs dense baseline: %.1fx faster\n", dense.seconds_per_event / sparse.seconds_per_event);
+  }
+  for (auto [level, w] : workgroups)
+    if (ran(*w) && ran(*tier[level]))
+      std::printf("  level %d, this device's layout vs workgroups throughout: %.2fx faster, same vertices %s\n", level,
+                  w->seconds_per_event / tier[level]->seconds_per_event, same_vertices(*w, *tier[level]) ? "yes" : "NO");
+  if (ran(sparse) && ran(refined_one))
+    std::printf("  refinement (one start) vs search alone: %.1fx the time, mean error %.2f -> %.2f mm, median %.2f -> %.2f mm\n",
+                refined_one.seconds_per_event / sparse.seconds_per_event, sparse.err_mean_mm, refined_one.err_mean_mm,
+                sparse.err_median_mm, refined_one.err_median_mm);
+  if (ran(refined) && ran(refined_one))
+    std::printf("  refinement (all starts) vs one start: %.1fx the time, mean error %.2f -> %.2f mm\n",
+                refined.seconds_per_event / refined_one.seconds_per_event, refined_one.err_mean_mm, refined.err_mean_mm);
+  if (refine_rows)
+    std::printf("  refinement model per source (footprint, %u cells per lenslet, median of %zu positions): device %.3f s, "
               "double reference %.3f s (%.1fx)\n",
               defaults::refine_rays_per_lenslet, positions.size(), device_s, reference_s, reference_s / device_s);
   std::printf("scan = share of the time in the support scans (the rest: refinement from disk tiles, weights, "

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <map>
 #include <string>
 
 #include "engine/vk/error.h"
@@ -34,18 +35,38 @@ constexpr uint64_t kCpuLoopBudget = 32768;
 struct SupportScanVulkan::Impl {
   vk::Context& ctx;
   ScanKernel which;
-  vk::Kernel kernel;
-  Impl(vk::Context& c, ScanKernel k, bool half)
-      : ctx(c),
-        which(k),
-        kernel(c, k == ScanKernel::sparse ? "support_scan" : "support_scan_dense",
-               k == ScanKernel::sparse ? std::span<const uint32_t>(spv_support_scan, std::size(spv_support_scan))
-                                       : std::span<const uint32_t>(spv_support_scan_dense, std::size(spv_support_scan_dense)),
-               k == ScanKernel::sparse ? 7 : 5, sizeof(shared::ScanParams), {half ? 1u : 0u}) {}
+  bool half;
+  ScanLayout layout;
+  std::map<std::pair<bool, bool>, std::unique_ptr<vk::Kernel>> kernels;  // by (serial scan, serial fit)
+  Impl(vk::Context& c, ScanKernel k, bool h, ScanLayout l) : ctx(c), which(k), half(h), layout(l) {}
+  vk::Kernel& kernel(bool serial_scan, bool serial_fit) {
+    auto& k = kernels[{serial_scan, serial_fit}];
+    if (k) return *k;
+    if (which == ScanKernel::dense)
+      k = std::make_unique<vk::Kernel>(
+          ctx, "support_scan_dense",
+          std::span<const uint32_t>(spv_support_scan_dense, std::size(spv_support_scan_dense)), 5,
+          sizeof(shared::ScanParams), std::vector<uint32_t>{half ? 1u : 0u});
+    else
+      k = std::make_unique<vk::Kernel>(
+          ctx, "support_scan", std::span<const uint32_t>(spv_support_scan, std::size(spv_support_scan)), 7,
+          sizeof(shared::ScanParams), std::vector<uint32_t>{half ? 1u : 0u, serial_scan ? 1u : 0u, serial_fit ? 1u : 0u});
+    return *k;
+  }
+  // The layouts of a run (ScanLayout): on a CPU device the fits are serial,
+  // and the scan where its PSFs average fewer shifts than a workgroup has
+  // invocations (measured on llvmpipe: README "Performance").
+  std::pair<bool, bool> serial(double mean_shifts, uint64_t group) const {
+    if (which == ScanKernel::dense || layout == ScanLayout::group) return {false, false};
+    if (layout == ScanLayout::serial) return {true, true};
+    if (!ctx.is_cpu()) return {false, false};
+    return {mean_shifts < double(group), true};
+  }
 };
 
-SupportScanVulkan::SupportScanVulkan(vk::Context& ctx, ScanKernel kernel, bool half)
-    : impl_(std::make_unique<Impl>(ctx, kernel, half)) {}
+SupportScanVulkan::SupportScanVulkan(vk::Context& ctx, ScanKernel kernel, bool half, ScanLayout layout)
+    : impl_(std::make_unique<Impl>(ctx, kernel, half, layout)) {}
+
 SupportScanVulkan::~SupportScanVulkan() = default;
 
 std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span<const ScanEvent> events,
@@ -56,6 +77,7 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
   std::vector<ScanResult> out(n_events * n_psf);
   last_kernel_ms_ = 0;
   last_device_bytes_ = 0;
+  last_fallbacks_ = 0;
   if (n_events == 0 || n_psf == 0) return out;
   if (level.width > 65535 || level.height > 65535)
     throw vk::Error("support scan: a scan level of " + std::to_string(level.width) + " x " +
@@ -102,9 +124,16 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
   }
 
   int max_half = 0;
-  for (const ScanPsf& psf : level.psfs) max_half = std::max(max_half, psf.radius_px / s.step_px);
+  double mean_shifts = 0;
+  for (const ScanPsf& psf : level.psfs) {
+    const int h = psf.radius_px / s.step_px;
+    max_half = std::max(max_half, h);
+    mean_shifts += double(2 * h + 1) * double(2 * h + 1) / double(n_psf);
+  }
   const uint64_t max_shifts = uint64_t(2 * max_half + 1) * uint64_t(2 * max_half + 1);
   const uint64_t group = 64;  // scan.glsl's GROUP
+  const auto [serial_scan, serial_fit] = impl_->serial(mean_shifts, group);
+  vk::Kernel& kernel = impl_->kernel(serial_scan, serial_fit);
 
   std::vector<ScanOut> raw(batch * n_psf);
   for (size_t e0 = 0; e0 < n_events; e0 += batch) {
@@ -173,7 +202,8 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
         if (clicks > kCpuLoopBudget)
           throw vk::Error("support scan: an event with " + std::to_string(clicks) + " clicks on the scan level needs " +
                           "more loop iterations per invocation than " + ctx.describe() + " runs; scan a coarser level");
-        block = group * std::max<uint64_t>(1, kCpuLoopBudget / clicks);
+        // Serial: one invocation scores the whole block.
+        block = (serial_scan ? 1 : group) * std::max<uint64_t>(1, kCpuLoopBudget / clicks);
       }
       block = std::min(block, max_shifts);
     }
@@ -186,25 +216,38 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
     vk::Stream stream(ctx, 2 * uint32_t(ranges.size()) + 2);
     p.event_first = 0;
     p.event_count = uint32_t(ne);
-    for (uint32_t phase : {0u, 1u}) {
+    auto record = [&](vk::Stream& st, vk::Kernel& k, uint32_t phase, bool serial) {
       p.phase = phase;
       for (const Range& r : ranges) {
         p.psf_first = r.first;
         p.psf_count = r.count;
         const vk::Buffer* chunk = level.chunks.at(r.chunk);
+        // A workgroup per (PSF, event[, block]), or one invocation when serial.
+        const uint32_t x = serial ? (r.count + uint32_t(group) - 1) / uint32_t(group) : r.count;
         const uint32_t z = phase == 0 ? uint32_t(blocks) : 1u;
         if (dense)
-          stream.dispatch(impl_->kernel, {chunk, &psfs, b_images.get(), &results, &block_best}, &p, r.count,
-                          uint32_t(ne), z);
+          st.dispatch(k, {chunk, &psfs, b_images.get(), &results, &block_best}, &p, x, uint32_t(ne), z);
         else
-          stream.dispatch(impl_->kernel,
-                          {chunk, &psfs, b_events.get(), b_clicks.get(), b_rates.get(), &results, &block_best}, &p,
-                          r.count, uint32_t(ne), z);
+          st.dispatch(k, {chunk, &psfs, b_events.get(), b_clicks.get(), b_rates.get(), &results, &block_best}, &p,
+                      x, uint32_t(ne), z);
       }
-      stream.barrier();
-    }
+      st.barrier();
+    };
+    record(stream, kernel, 0, serial_scan);
+    record(stream, kernel, 1, serial_fit);
     last_kernel_ms_ += stream.submit();
     results.download(raw.data(), ne * n_psf * sizeof(ScanOut));
+    const bool unfinished = std::any_of(raw.begin(), raw.begin() + long(ne * n_psf),
+                                        [](const ScanOut& o) { return o.newton == shared::FIT_UNFINISHED; });
+    if (serial_fit && unfinished) {
+      // A serial fit ran out of loop budget: this batch's weights again in
+      // workgroups (the blocks' bests are still on the device).
+      vk::Stream again(ctx, uint32_t(ranges.size()) + 1);
+      record(again, impl_->kernel(serial_scan, false), 1, false);
+      last_kernel_ms_ += again.submit();
+      results.download(raw.data(), ne * n_psf * sizeof(ScanOut));
+      ++last_fallbacks_;
+    }
     for (size_t i = 0; i < ne * n_psf; ++i) {
       const ScanOut& o = raw[i];
       out[e0 * n_psf + i] = {glm::ivec2(o.shift_x, o.shift_y), o.score, o.nll, o.alpha, o.newton, o.shifts};

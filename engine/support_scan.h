@@ -79,9 +79,17 @@ struct ScanSettings {
 
 enum class ScanKernel { sparse, dense };
 
+// The sparse kernel's layout on the device: a workgroup per (event, PSF),
+// its invocations splitting the shifts (phase 0) and the clicks (the weight
+// fit, phase 1), or one invocation per (event, PSF). automatic: on a CPU
+// device (llvmpipe) serial fits, and a serial scan where the PSFs average
+// fewer shifts than a workgroup has invocations (shaders/support_scan.comp
+// says why); workgroups elsewhere. The same results either way.
+enum class ScanLayout { automatic, group, serial };
+
 class SupportScanVulkan {
  public:
-  SupportScanVulkan(vk::Context& ctx, ScanKernel kernel, bool half);
+  SupportScanVulkan(vk::Context& ctx, ScanKernel kernel, bool half, ScanLayout layout = ScanLayout::automatic);
   ~SupportScanVulkan();
 
   // results[e * psfs + m]. Events go to the device in batches whose buffers
@@ -90,12 +98,15 @@ class SupportScanVulkan {
 
   double last_kernel_ms() const { return last_kernel_ms_; }
   uint64_t last_device_bytes() const { return last_device_bytes_; }  // event and result buffers of the last run
+  // Batches of the last run whose serial fits ran out of loop budget and were fitted again in workgroups.
+  uint64_t last_fallbacks() const { return last_fallbacks_; }
 
  private:
   struct Impl;
   std::unique_ptr<Impl> impl_;
   double last_kernel_ms_ = 0;
   uint64_t last_device_bytes_ = 0;
+  uint64_t last_fallbacks_ = 0;
 };
 
 }  // namespace prism

@@ -8,6 +8,18 @@
 //   f(alpha) = alpha S - sum_clicks [lambda_c + log(1 - exp(-lambda_c))],
 //   lambda_c = background_c + alpha P_c.
 // Work per (event, PSF) is shifts x clicks, never shifts x pixels.
+//
+// Two layouts per phase (SERIAL_SCAN, SERIAL_FIT): a workgroup per (event, PSF) whose 64 invocations
+// split the shifts (phase 0) or the clicks (phase 1) and meet in
+// shared-memory reductions, or one invocation per (event, PSF) running over
+// them alone. On a CPU device (llvmpipe) a workgroup barrier is dear and
+// most of the 64 invocations sit idle through a coarse level's few shifts
+// and the Newton steps, so the second is several times faster there (but
+// not for the many shifts of a fine level, where the workgroup's invocations
+// read neighbouring values of one PSF and share the cache). Its
+// blocks of shifts are sized by the launcher to the loop budget; a weight
+// fit that would pass the budget stops and says so, and the launcher fits
+// that batch again in workgroups.
 #version 460
 #extension GL_GOOGLE_include_directive : require
 #define PRISM_FN
@@ -24,6 +36,10 @@ layout(std430, binding = 4) readonly buffer Rates { vec2 rate_weight[]; };
 layout(std430, binding = 5) writeonly buffer Out { ScanOut results[]; };       // [event][PSF]
 
 uint first_click, click_count, p_base;
+ScanPsf psf;
+int n;        // the shift lattice's half width
+uint shifts;  // shifts in it
+uint row;     // e * psf_total + m: this (event, PSF)'s results
 ivec2 best_shift;
 float best_mass;
 
@@ -32,84 +48,129 @@ ivec2 click_at(uint c) {
   return ivec2(int(v & 0xffffu), int(v >> 16u));
 }
 
+// The serial layout: one invocation per (event, PSF), no sums across the
+// workgroup. A weight fit's click iterations are counted against
+// FIT_BUDGET, under llvmpipe's limit on one invocation's loop iterations
+// (65535, all loops together; the Newton and backtracking loops' own
+// iterations and the blocks' are the rest).
+layout(constant_id = 1) const uint SERIAL_SCAN = 0u;  // phase 0 in one invocation per (event, PSF, block)
+layout(constant_id = 2) const uint SERIAL_FIT = 0u;   // phase 1 in one invocation per (event, PSF)
+const uint FIT_BUDGET = 30000u;
+uint spent = 0u;
+bool exhausted = false;
+// The weight fit's loops over the clicks (phase 1 only).
+uint lane() { return SERIAL_FIT == 1u ? 0u : gl_LocalInvocationID.x; }
+uint lanes() { return SERIAL_FIT == 1u ? 1u : GROUP; }
+vec2 lanes_sum2(vec2 v) { return SERIAL_FIT == 1u ? v : group_sum2(v); }
+// False once a pass over the clicks would pass the budget (serial only).
+bool within_budget() {
+  if (SERIAL_FIT == 0u) return true;
+  exhausted = exhausted || spent + click_count > FIT_BUDGET;
+  spent += exhausted ? 0u : click_count;
+  return !exhausted;
+}
+
 float objective(float alpha) {
+  // Past the budget: +inf ends the backtracking, and with it the fit.
+  if (!within_budget()) return 1.0f / 0.0f;
   float part = 0.0f;
-  for (uint c = gl_LocalInvocationID.x; c < click_count; c += GROUP) {
+  for (uint c = lane(); c < click_count; c += lanes()) {
     ivec2 q = click_at(c) - best_shift;
     float lambda = rate_weight[first_click + c].x + alpha * psf_value(p_base, q.x, q.y);
     part += lambda + log_click(lambda);
   }
-  return alpha * best_mass - group_sum(part);
+  return alpha * best_mass - lanes_sum2(vec2(part, 0.0f)).x;
 }
 
 vec2 slope_curvature(float alpha) {
+  // Past the budget: a zero slope ends the fit.
+  if (!within_budget()) return vec2(0.0f, 1.0f);
   vec2 part = vec2(0.0f);
-  for (uint c = gl_LocalInvocationID.x; c < click_count; c += GROUP) {
+  for (uint c = lane(); c < click_count; c += lanes()) {
     ivec2 q = click_at(c) - best_shift;
     float p = psf_value(p_base, q.x, q.y);
     float lambda = rate_weight[first_click + c].x + alpha * p;
     part += vec2(p * click_weight(lambda), p * p * click_curvature(lambda));
   }
-  vec2 s = group_sum2(part);
+  vec2 s = lanes_sum2(part);
   return vec2(best_mass - s.x, s.y);
 }
 
-void main() {
-  uint m = P.psf_first + gl_WorkGroupID.x;
+// The (event, PSF) of this invocation: its workgroup's, or in the serial
+// layout its own (false past the dispatch's PSFs).
+bool locate(bool serial) {
+  uint m = P.psf_first + (serial ? gl_GlobalInvocationID.x : gl_WorkGroupID.x);
+  if (serial && m >= P.psf_first + P.psf_count) return false;
   uint e = P.event_first + gl_WorkGroupID.y;
-  ScanPsf psf = psfs[m];
+  psf = psfs[m];
   uvec2 ec = event_clicks[e];
   first_click = ec.x;
   click_count = ec.y;
   p_base = psf.p_word;
+  n = lattice_half(psf.radius);
+  shifts = uint((2 * n + 1) * (2 * n + 1));
+  row = e * P.psf_total + m;
+  return true;
+}
 
-  int n = lattice_half(psf.radius);
-  uint shifts = uint((2 * n + 1) * (2 * n + 1));
-  uint row = e * P.psf_total + m;
-
-  if (P.phase == 0u) {
-    // Score this block's shifts; each invocation keeps its best.
-    uint j0 = gl_WorkGroupID.z * P.block_shifts, j1 = min(j0 + P.block_shifts, shifts);
-    float best = 1.0f / 0.0f;
-    uint arg = 0xffffffffu;
-    for (uint j = j0 + gl_LocalInvocationID.x; j < j1; j += GROUP) {
-      ivec2 sh = lattice_shift(j, n);
-      float score = mass_shifted(psf.sat_word, sh.x, sh.y);
-      for (uint c = 0u; c < click_count; ++c) {
-        ivec2 q = click_at(c) - sh;
-        score -= rate_weight[first_click + c].y * psf_value(p_base, q.x, q.y);
-      }
-      if (score < best) {
-        best = score;
-        arg = j;
-      }
+// Phase 0: score this block's shifts; each invocation keeps its best (the
+// lowest index among equals: strict <, in increasing order).
+void score_block() {
+  const bool serial = SERIAL_SCAN == 1u;
+  // Branches on specialisation constants only: a barrier never follows a
+  // return that the compiler cannot prove uniform (llvmpipe got the first
+  // workgroup's reduction wrong when it could not).
+  if (!locate(serial)) return;
+  uint j0 = gl_WorkGroupID.z * P.block_shifts, j1 = min(j0 + P.block_shifts, shifts);
+  float best = 1.0f / 0.0f;
+  uint arg = 0xffffffffu;
+  for (uint j = j0 + (serial ? 0u : gl_LocalInvocationID.x); j < j1; j += (serial ? 1u : GROUP)) {
+    ivec2 sh = lattice_shift(j, n);
+    float score = mass_shifted(psf.sat_word, sh.x, sh.y);
+    for (uint c = 0u; c < click_count; ++c) {
+      ivec2 q = click_at(c) - sh;
+      score -= rate_weight[first_click + c].y * psf_value(p_base, q.x, q.y);
     }
-    uint j = group_argmin(best, arg);
-    if (gl_LocalInvocationID.x == 0u) block_best[row * P.blocks + gl_WorkGroupID.z] = BlockBest(group_min_score, j);
+    if (score < best) {
+      best = score;
+      arg = j;
+    }
+  }
+  if (!serial) {
+    arg = group_argmin(best, arg);
+    best = group_min_score;
+  }
+  if (serial || gl_LocalInvocationID.x == 0u) block_best[row * P.blocks + gl_WorkGroupID.z] = BlockBest(best, arg);
+}
+
+void main() {
+  if (P.phase == 0u) {
+    score_block();
     return;
   }
+  if (!locate(SERIAL_FIT == 1u)) return;
 
   float best_score;
   best_shift = lattice_shift(best_of_blocks(row, best_score), n);
   best_mass = mass_shifted(psf.sat_word, best_shift.x, best_shift.y);
 
   // The weight at that shift.
-  float reached = 0.0f;
-  for (uint c = gl_LocalInvocationID.x; c < click_count; c += GROUP) {
+  spent = click_count + P.blocks;
+  vec2 reached = vec2(0.0f);
+  for (uint c = lane(); c < click_count; c += lanes()) {
     ivec2 q = click_at(c) - best_shift;
-    reached += psf_value(p_base, q.x, q.y) > 0.0f ? 1.0f : 0.0f;
+    reached.x += psf_value(p_base, q.x, q.y) > 0.0f ? 1.0f : 0.0f;
   }
-  reached = group_sum(reached);
-  WeightFit fit = fit_weight(initial_alpha(reached, best_mass));
+  WeightFit fit = fit_weight(initial_alpha(lanes_sum2(reached).x, best_mass));
 
-  if (gl_LocalInvocationID.x == 0u) {
+  if (lane() == 0u) {
     ScanOut o;
     o.shift_x = best_shift.x;
     o.shift_y = best_shift.y;
     o.score = best_score;
     o.nll = fit.f;
     o.alpha = fit.alpha;
-    o.newton = fit.iterations;
+    o.newton = exhausted ? FIT_UNFINISHED : fit.iterations;
     o.shifts = shifts;
     o.pad = 0u;
     results[row] = o;

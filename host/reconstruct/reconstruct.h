@@ -48,6 +48,8 @@ struct ReconstructionSettings {
   int min_clicks = 3;            // fewer clicks than this in the event sets few_clicks (3D needs more)
   int scan_step_px = 1;          // the scan tries shifts on multiples of this (search-level pixels); the
                                  // candidates are then re-searched +-(step - 1) around their best
+  ScanLayout scan_layout = ScanLayout::automatic;  // device layout of the scan's weight fits (engine/support_scan.h);
+                                              // the same results either way
 };
 
 enum class ReconstructionBackend { cpu, vulkan, dense };
@@ -104,6 +106,7 @@ struct ReconstructionTimings {
   double host_s = 0;         // everything else: gradients, refinement, weights, descent, depth
   uint64_t scans = 0;        // events x passes scanned
   uint64_t scan_device_bytes = 0;  // peak event/result buffers of one scan call
+  uint64_t scan_fallbacks = 0;     // device batches whose serial weight fits ran out of loop budget
 };
 
 // Reconstructs batches of events with one backend. The events of a batch go

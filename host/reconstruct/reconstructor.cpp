@@ -95,7 +95,8 @@ Reconstructor::Reconstructor(DictionaryService& dictionary, int click_level, Rec
   for (size_t i = 0; i < scan_level_.psfs.size(); ++i)
     scan_level_.psfs[i].radius_px = detail::scan_radius_px(m, s_.tau_mm, i, Ls);
   device_ = std::make_unique<SupportScanVulkan>(
-      *ctx, backend_ == ReconstructionBackend::dense ? ScanKernel::dense : ScanKernel::sparse, scan_level_.half);
+      *ctx, backend_ == ReconstructionBackend::dense ? ScanKernel::dense : ScanKernel::sparse, scan_level_.half,
+      s_.scan_layout);
 }
 
 Reconstructor::~Reconstructor() = default;
@@ -127,6 +128,7 @@ std::vector<std::vector<SupportScore>> Reconstructor::first_scan(std::span<const
   for (size_t i : active) inputs.push_back(fits[i].scan_input(backend_ == ReconstructionBackend::dense));
   ScanSettings scan{s_.scan_step_px, s_.newton_iterations, s_.alpha_max};
   auto results = device_->run(scan_level_, inputs, scan);
+  timings_.scan_fallbacks += device_->last_fallbacks();
   for (size_t j = 0; j < active.size(); ++j) out[active[j]] = to_scores(results, j, d_.manifest().grid.size());
   return out;
 }
@@ -168,6 +170,7 @@ std::vector<std::vector<ReconstructedVertex>> Reconstructor::run(std::span<const
     auto results = device_->run(scan_level_, inputs, scan);
     auto c = clock::now();
     timings_.scan_kernel_ms += device_->last_kernel_ms();
+    timings_.scan_fallbacks += device_->last_fallbacks();
     timings_.scan_device_bytes = std::max(timings_.scan_device_bytes, device_->last_device_bytes());
     for (size_t j = 0; j < active.size(); ++j) fits[active[j]].add_vertex(to_scores(results, j, n_psf));
     timings_.scan_s += seconds(b, c);

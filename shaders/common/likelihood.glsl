@@ -67,6 +67,9 @@ PRISM_FN float nll_lower_bound(float mass, float reached, float reached_p, float
   return unreached_nll + alpha * (mass - reached_p) - reached_background - reached * log_click(b + alpha * p);
 }
 
+// ScanOut.newton of a serial weight fit that ran out of loop budget (support_scan.comp).
+const uint FIT_UNFINISHED = 0xffffffffu;
+
 // Push constants of both support-scan kernels (std430, 60 bytes).
 struct ScanParams {
   uint psf_first;     // dictionary entry of the first PSF in this dispatch (its chunk)

@@ -44,7 +44,7 @@ struct ScanOut {
   float score;  // <g, P(shifted)> = S - sum_clicks w P (sparse) or the dense sum
   float nll;    // the NLL of this vertex against the event's background, at alpha
   float alpha;  // expected photons, projected Newton on alpha >= 0
-  uint newton;  // Newton iterations taken
+  uint newton;  // Newton iterations taken; FIT_UNFINISHED: the serial fit ran out of loop budget
   uint shifts;  // shifts tried
   uint pad;
 };

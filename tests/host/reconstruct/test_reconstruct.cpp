@@ -531,12 +531,23 @@ TEST_CASE("support scan on the device: sparse, dense and half agree with the CPU
   prism::DictionaryService cpu_service(*small_dictionary().reader, nullptr, 2, {});
   prism::Reconstructor cpu(cpu_service, 0, st);
   auto ref = cpu.first_scan(events);
-  for (auto [backend, half] : {std::pair{B::vulkan, false}, std::pair{B::vulkan, true}, std::pair{B::dense, false}}) {
-    DeviceRun d(backend, st, half);
+  // The sparse kernel in workgroups throughout (what a GPU runs), serial
+  // throughout, where the 1e4-photon event (6325 clicks) runs out of the
+  // serial fit's loop budget and its batch falls back, and this device's
+  // choice (on lavapipe at tau 6: the shifts in workgroups, the fits serial).
+  using L = prism::ScanLayout;
+  for (auto [backend, half, layout] : {std::tuple{B::vulkan, false, L::group}, std::tuple{B::vulkan, false, L::serial},
+                                       std::tuple{B::vulkan, true, L::serial}, std::tuple{B::vulkan, false, L::automatic},
+                                       std::tuple{B::dense, false, L::group}}) {
+    auto sl = st;
+    sl.scan_layout = layout;
+    DeviceRun d(backend, sl, half);
     auto got = d.reconstructor.first_scan(events);
     REQUIRE(got.size() == events.size());
+    if (layout == L::serial) CHECK(d.reconstructor.timings().scan_fallbacks == 1);
     for (size_t i = 0; i < events.size(); ++i) {
-      const std::string name = std::string(to_string(backend)) + (half ? " half" : "");
+      const std::string name = std::string(to_string(backend)) + (half ? " half" : "") +
+                               (layout == L::serial ? " serial" : layout == L::automatic ? " automatic layout" : "");
       CAPTURE(name);
       CAPTURE(i);
       CAPTURE(events[i].clicks.size());
