@@ -16,22 +16,6 @@ double click_curvature(double lambda) {
 
 double click_weight(double lambda) { return 1.0 / -std::expm1(-lambda); }
 
-double nll_lower_bound(const ClickSums& c, double alpha_max) {
-  if (!(c.reached > 0)) return c.unreached_nll;  // alpha = 0 is optimal: S >= 0 and no click gains
-  const double n = c.reached, p = c.reached_p / n, b = c.reached_background / n;
-  // h(alpha) = unreached + alpha S + n g(b + alpha p), with the alpha terms
-  // gathered: alpha S and n x nearly cancel where the clicks hold all the mass.
-  auto h = [&](double alpha) {
-    return c.unreached_nll + alpha * (c.mass - c.reached_p) - c.reached_background - n * log_click(b + alpha * p);
-  };
-  // h'(alpha) = S - n p e^x / (e^x - 1) = 0 at e^x = S / (S - n p), i.e.
-  // x = -log(1 - n p / S); S >= n p, so the optimum is finite unless equal.
-  const double r = n * p / c.mass;
-  const double x = r < 1 ? -std::log1p(-r) : INFINITY;
-  const double alpha = std::clamp((x - b) / p, 0.0, alpha_max);
-  return h(alpha);
-}
-
 double fit_weights(std::span<const std::vector<double>* const> p, std::span<const double> s,
                    std::span<const double> background, std::vector<double>& alpha, int max_iterations,
                    double alpha_max) {

@@ -30,23 +30,6 @@ double fit_weights(std::span<const std::vector<double>* const> p, std::span<cons
                    std::span<const double> background, std::vector<double>& alpha, int max_iterations,
                    double alpha_max);
 
-// What a lower bound on one candidate's NLL needs from its clicks at one
-// shift (the NLL of fit_weights with K = 1, alpha free in [0, alpha_max]).
-struct ClickSums {
-  double mass = 0;               // S: the candidate's on-sensor mass
-  double reached = 0;            // clicks with P_c > 0
-  double reached_p = 0;          // sum of P_c over them
-  double reached_background = 0; // sum of background_c over them
-  double unreached_nll = 0;      // sum of -background_c - log(1 - exp(-background_c)) over the others
-};
-// Over every alpha: with g(x) = -x - log(1 - exp(-x)), convex and falling,
-// NLL(alpha) = alpha S + sum_c g(b_c + alpha P_c) >= unreached_nll +
-// alpha S + n g(mean b + alpha mean P) (Jensen over the n reached clicks),
-// whose minimum over alpha has a closed form. Equal when every reached click
-// has the same P and b. Lets a search skip the weight fit of a candidate
-// that cannot beat one already fitted (issue 12).
-double nll_lower_bound(const ClickSums& c, double alpha_max);
-
 // A start for Newton when a weight has none: the clicks the PSF reaches over
 // its on-sensor mass, within [1e-3, alpha_max].
 double initial_alpha(std::span<const double> p, double s, double alpha_max);

@@ -48,25 +48,6 @@ PRISM_FN float click_curvature(float lambda) {
   return exp(-lambda) / p / p;
 }
 
-// A lower bound on one candidate's NLL alpha S + sum_c g(b_c + alpha P_c)
-// over every alpha in [0, alpha_max], from sums over its clicks at one shift:
-// g(x) = -x - log(1 - exp(-x)); the unreached clicks' g(b_c), and Jensen over the `reached` ones
-// (mean P and mean b): engine/ref/likelihood_ref.h derives it. In float it
-// may exceed the exact minimum by rounding: compare it with a relative
-// tolerance.
-PRISM_FN float nll_lower_bound(float mass, float reached, float reached_p, float reached_background,
-                               float unreached_nll, float alpha_max) {
-  if (!(reached > 0.0f)) return unreached_nll;
-  float p = reached_p / reached, b = reached_background / reached;
-  // The optimum: x = b + alpha p = -log(1 - r), r = n p / S <= 1 (a series
-  // below 1e-3, where 1 - r would lose digits).
-  float r = reached_p / max(mass, 1e-30f);
-  float x = r >= 1.0f ? 3.0e38f : (r < 1e-3f ? r * (1.0f + r * (0.5f + r / 3.0f)) : -log(1.0f - r));
-  float alpha = clamp((x - b) / max(p, 1e-30f), 0.0f, alpha_max);
-  // alpha S - n x gathered (they nearly cancel where the clicks hold all the mass).
-  return unreached_nll + alpha * (mass - reached_p) - reached_background - reached * log_click(b + alpha * p);
-}
-
 // ScanOut.newton of a serial weight fit that ran out of loop budget (support_scan.comp).
 const uint FIT_UNFINISHED = 0xffffffffu;
 

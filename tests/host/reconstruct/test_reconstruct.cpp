@@ -12,12 +12,10 @@
 #include <fstream>
 #include <functional>
 #include <numeric>
-#include <random>
 #include <sstream>
 
 #include "compare.h"
 #include "engine/ref/likelihood_ref.h"
-#include "engine/support_scan.h"
 #include "host/dictionary/build.h"
 #include "host/events/simulate.h"
 #include "host/reconstruct/match.h"
@@ -144,59 +142,6 @@ TEST_CASE("reconstruction NLL pieces: log(1 - exp(-lambda)) and its curvature st
   // The naive form loses everything below lambda ~ 1e-16; this one is log(lambda).
   CHECK(prism::ref::log_click(1e-20) == doctest::Approx(std::log(1e-20)).epsilon(1e-12));
   CHECK(prism::ref::click_curvature(1e-4) == doctest::Approx(1e8).epsilon(1e-6));
-}
-
-TEST_CASE("a candidate's NLL lower bound never exceeds its fitted NLL (double and the kernels' float)") {
-  // Hard inputs: P from 1e-9 to 0.3 with unreached clicks, backgrounds from
-  // the dark rate to several photons (a second vertex's clicks), the weight
-  // held at a small alpha_max, S equal to the clicks' sum (optimum at the
-  // bound), one click.
-  std::mt19937_64 rng(12);
-  std::uniform_real_distribution<double> u(0, 1);
-  int cases = 0;
-  for (int trial = 0; trial < 400; ++trial) {
-    const size_t clicks = trial % 50 == 0 ? 1 : 1 + size_t(u(rng) * 150);
-    std::vector<double> p(clicks), b(clicks);
-    for (size_t c = 0; c < clicks; ++c) {
-      p[c] = u(rng) < 0.2 ? 0.0 : std::pow(10.0, -9 + 8.5 * u(rng));
-      b[c] = trial % 3 == 0 ? 1e-6 : std::pow(10.0, -6 + 6.7 * u(rng));
-    }
-    const double sum_p = std::accumulate(p.begin(), p.end(), 0.0);
-    const double mass = trial % 7 == 0 ? sum_p : sum_p + std::pow(10.0, -3 + 3 * u(rng));
-    const double alpha_max = trial % 5 == 0 ? 10.0 : 1e6;
-    if (!(mass > 0)) continue;
-    prism::ref::ClickSums sums;
-    sums.mass = mass;
-    for (size_t c = 0; c < clicks; ++c)
-      if (p[c] > 0) sums.reached += 1, sums.reached_p += p[c], sums.reached_background += b[c];
-      else sums.unreached_nll += -b[c] - prism::ref::log_click(b[c]);
-    std::vector<double> alpha{prism::ref::initial_alpha(p, mass, alpha_max)};
-    const std::vector<double>* cols[] = {&p};
-    const double fitted = prism::ref::fit_weights(cols, std::span<const double>(&mass, 1), b, alpha, 200, alpha_max);
-    const double bound = prism::ref::nll_lower_bound(sums, alpha_max);
-    const float bound_f = prism::shared::nll_lower_bound(float(sums.mass), float(sums.reached), float(sums.reached_p),
-                                                         float(sums.reached_background), float(sums.unreached_nll),
-                                                         float(alpha_max));
-    CAPTURE(trial);
-    CAPTURE(fitted);
-    CAPTURE(bound);
-    CAPTURE(bound_f);
-    CHECK(bound <= fitted + 1e-9 * (1 + std::abs(fitted)));
-    CHECK(double(bound_f) <= fitted + 1e-5 * (1 + std::abs(fitted)));
-    CHECK(double(bound_f) == doctest::Approx(bound).epsilon(1e-5).scale(1 + std::abs(bound)));
-    ++cases;
-  }
-  CHECK(cases > 350);
-  // Tight where Jensen is: every reached click alike.
-  for (double b : {1e-6, 0.3}) {
-    std::vector<double> p(40, 2e-3), bg(40, b);
-    const double mass = 0.5;
-    prism::ref::ClickSums sums{mass, 40, 40 * 2e-3, 40 * b, 0};
-    std::vector<double> alpha{10};
-    const std::vector<double>* cols[] = {&p};
-    const double fitted = prism::ref::fit_weights(cols, std::span<const double>(&mass, 1), bg, alpha, 200, 1e6);
-    CHECK(prism::ref::nll_lower_bound(sums, 1e6) == doctest::Approx(fitted).epsilon(1e-9));
-  }
 }
 
 TEST_CASE("reconstruction: one forward-model vertex off the grid, 25 trials at 100 and 1000 photons") {
