@@ -8,8 +8,8 @@
 //
 //   bench_reconstruct [--device D] [--dictionary DIR] [--out DIR] [--events-per-position N] [--groups G,...]
 //
-// --groups runs only those groups of rows (backend, tier, layout, step,
-// precision, K, refine); the ratios print where their rows ran.
+// --groups runs only those groups of rows (backend, tier, coarse, layout,
+// step, precision, K, refine); the ratios print where their rows ran.
 //
 // Without --dictionary it builds (or resumes) the paper's 1210-PSF grid at
 // 16 x 16 binning, 4096 rays per lenslet, in /tmp. Events: the ray-traced
@@ -82,6 +82,7 @@ struct Config {
   // 0 none; 1 from the search's answer only; 2 with the runners-up and aliases.
   int refine = 0;
   ScanLayout layout = ScanLayout::automatic;  // the sparse kernel's layout (engine/support_scan.h)
+  double carry_margin_nll = ReconstructionSettings{}.carry_margin_nll;  // coarse to fine (reconstruct.h)
 };
 
 Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, const std::vector<Event>& events,
@@ -92,6 +93,7 @@ Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, c
   s.search_level = c.scan_level;
   s.scan_step_px = c.step;
   s.scan_layout = c.layout;
+  s.carry_margin_nll = c.carry_margin_nll;
   DictionaryService service(reader, device ? &ctx : nullptr, c.scan_level, {}, c.half);
   Row r;
   r.group = c.group;
@@ -161,7 +163,7 @@ int main(int argc, char** argv) {
     else if (a == "--groups") only = "," + value() + ",";
     else {
       std::fprintf(stderr, "usage: bench_reconstruct [--device D] [--dictionary DIR] [--out DIR] "
-                           "[--events-per-position N] [--groups backend,tier,layout,step,precision,K,refine]\n");
+                           "[--events-per-position N] [--groups backend,tier,coarse,layout,step,precision,K,refine]\n");
       return a == "--help" || a == "-h" ? 0 : 2;
     }
   }
@@ -245,6 +247,15 @@ int main(int argc, char** argv) {
     tier[level] = &run({"tier", "scan level " + std::to_string(level) + " (" + std::to_string(int(m.pixel_mm(level) * 1e3)) + " um)",
                         B::vulkan, level, 1, false, 1, 3},
                        single, single_truth);
+  // Coarse to fine: the tier rows above carry every PSF within the NLL
+  // margin from a coarse scan down to level 2 and rank them again there;
+  // these carry the 8 best of the coarse scan alone (the margin 0).
+  std::map<int, const Row*> fixed8;
+  for (int level : {3, 4}) {
+    Config c{"coarse", "level " + std::to_string(level) + ", 8 best carried", B::vulkan, level, 1, false, 1, 3};
+    c.carry_margin_nll = 0;
+    fixed8[level] = &run(c, single, single_truth);
+  }
   // The kernel's layouts (engine/support_scan.h): the tier rows ran the
   // default for this device; these force workgroups throughout (a GPU's).
   std::map<int, const Row*> workgroups;
@@ -294,6 +305,13 @@ int main(int argc, char** argv) {
     std::printf("  sparse vulkan vs cpu reference:  %.1fx faster\n", cpu.seconds_per_event / sparse.seconds_per_event);
     std::printf("  sparse vulkan vs dense baseline: %.1fx faster\n", dense.seconds_per_event / sparse.seconds_per_event);
   }
+  for (auto [level, f] : fixed8)
+    if (ran(*f) && ran(*tier[level]) && ran(*tier[2]))
+      std::printf("  level %d coarse to fine (margin %.0f) vs exhaustive level 2: %.1fx faster, error mean %.2f vs %.2f mm, "
+                  "median %.2f vs %.2f mm (8 best carried alone: %.2f / %.2f mm)\n",
+                  level, ReconstructionSettings{}.carry_margin_nll, tier[2]->seconds_per_event / tier[level]->seconds_per_event,
+                  tier[level]->err_mean_mm, tier[2]->err_mean_mm, tier[level]->err_median_mm, tier[2]->err_median_mm,
+                  f->err_mean_mm, f->err_median_mm);
   for (auto [level, w] : workgroups)
     if (ran(*w) && ran(*tier[level]))
       std::printf("  level %d, this device's layout vs workgroups throughout: %.2fx faster, same vertices %s\n", level,

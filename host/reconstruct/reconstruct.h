@@ -42,6 +42,14 @@ struct ReconstructionSettings {
   double dark_rate = 1e-6;       // background expected counts per click-level pixel: keeps the NLL finite at
                                  // clicks no PSF reaches and is the gradient floor at lambda = 0 (see .cpp)
   int refine_candidates = 8;     // PSFs carried from the coarse scan (ranked by coarse NLL) to the click level
+  // Coarse to fine: with the scan on a level coarser than select_level, every
+  // PSF within carry_margin_nll of the scan's best NLL (at least
+  // refine_candidates, at most carry_max) is carried down to select_level
+  // (+-1 pixel re-searched per level) and ranked again there by its NLL; the
+  // refine_candidates best go on to the clicks. -1: the clicks' level + 2.
+  int select_level = -1;
+  double carry_margin_nll = 50;  // measured: README "Reconstruction", coarse to fine
+  int carry_max = 512;
   int newton_iterations = 60;    // cap per weight solve (projected Newton with backtracking)
   int descent_rounds = 12;       // cap on rounds of the joint local descent after each new vertex
   double alpha_max = 1e6;        // upper bound on a weight, expected photons; reaching it sets alpha_at_bound

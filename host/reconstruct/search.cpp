@@ -4,6 +4,8 @@
 // the click grid, the shift doubled and +-1 pixel re-searched at each level
 // (first +-(step - 1) on the search level when the scan skipped shifts), with
 // the same shift search as the reference scan; the lowest click-level NLL wins.
+// Coarse to fine (a scan coarser than select_level): every PSF within the
+// carry margin goes down to select_level first and is ranked again there.
 // The binary model is exact at any level: a block clicks when any of its
 // pixels does, with rate the block's sum.
 #include <algorithm>
@@ -19,11 +21,22 @@ namespace prism::detail {
 
 Vertex EventFit::refine(std::vector<SupportScore> scored, std::vector<Vertex>& runners_up) {
   const int Ls = search_level_, step = std::max(1, s_.scan_step_px);
-  size_t keep = std::min(scored.size(), size_t(std::max(1, s_.refine_candidates)));
-  std::partial_sort(scored.begin(), scored.begin() + long(keep), scored.end(),
-                    [](const SupportScore& a, const SupportScore& b) {
-                      return a.nll < b.nll || (a.nll == b.nll && a.psf < b.psf);
-                    });
+  const int Lf = std::clamp(s_.select_level < 0 ? level_ + 2 : s_.select_level, level_, Ls);
+  auto by_nll = [](const SupportScore& a, const SupportScore& b) {
+    return a.nll < b.nll || (a.nll == b.nll && a.psf < b.psf);
+  };
+  const size_t keep = std::min(scored.size(), size_t(std::max(1, s_.refine_candidates)));
+  // Coarse to fine: every PSF within the margin of the scan's best goes down
+  // to the select level, where the candidates are ranked again.
+  size_t carry = keep;
+  if (Lf < Ls && !scored.empty()) {
+    const double best = std::min_element(scored.begin(), scored.end(), by_nll)->nll;
+    const size_t within = size_t(std::count_if(scored.begin(), scored.end(), [&](const SupportScore& c) {
+      return c.nll <= best + s_.carry_margin_nll;
+    }));
+    carry = std::clamp(within, keep, std::max(keep, std::min(scored.size(), size_t(std::max(1, s_.carry_max)))));
+  }
+  std::partial_sort(scored.begin(), scored.begin() + long(carry), scored.end(), by_nll);
   // The gradient's click weights per level, shared by the candidates.
   std::map<int, std::vector<double>> weights;
   auto weights_at = [&](int l) -> const std::vector<double>& {
@@ -37,17 +50,34 @@ Vertex EventFit::refine(std::vector<SupportScore> scored, std::vector<Vertex>& r
     LevelSource source(*this, level);
     return ref::best_shift(source, psf, clicks_at(level), weights_at(level), center, reach);
   };
+  // Down to the select level, each shift doubled and re-searched +-1 pixel.
+  std::vector<SupportScore> selected;
+  for (size_t j = 0; j < carry; ++j) {
+    SupportScore c = scored[j];
+    if (step > 1) c.shift = search(c.psf, Ls, c.shift, step - 1);
+    for (int l = Ls - 1; l >= Lf; --l) c.shift = search(c.psf, l, c.shift * 2, 1);
+    selected.push_back(c);
+  }
+  if (Lf < Ls) {
+    // Ranked again by the NLL at the select level, the weight refitted there.
+    const auto background = rates(Lf, vs_);
+    for (SupportScore& c : selected) {
+      const auto v = values_at(c.psf, Lf, c.shift);
+      const std::vector<double> p(v.begin(), v.end());
+      c.nll = fit_one(p, sensor_mass(c.psf, Lf, c.shift), background, c.alpha);
+    }
+    std::stable_sort(selected.begin(), selected.end(), by_nll);
+    selected.resize(keep);
+  }
   auto background_click = rates(level_, vs_);
   std::vector<std::pair<double, Vertex>> tried;
-  for (size_t j = 0; j < keep; ++j) {
-    size_t m = scored[j].psf;
-    Shift sh = scored[j].shift;
-    if (step > 1) sh = search(m, Ls, sh, step - 1);
-    for (int l = Ls - 1; l >= level_; --l) sh = search(m, l, sh * 2, 1);
-    const Column& c = column(m, sh);
-    double alpha = scored[j].alpha;
-    double f = fit_one(c.p, c.s, background_click, alpha);
-    tried.push_back({f, {m, sh, alpha}});
+  for (const SupportScore& c : selected) {
+    Shift sh = c.shift;
+    for (int l = Lf - 1; l >= level_; --l) sh = search(c.psf, l, sh * 2, 1);
+    const Column& col = column(c.psf, sh);
+    double alpha = c.alpha;
+    double f = fit_one(col.p, col.s, background_click, alpha);
+    tried.push_back({f, {c.psf, sh, alpha}});
   }
   std::stable_sort(tried.begin(), tried.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
   runners_up.clear();

@@ -12,6 +12,7 @@
 #include <fstream>
 #include <functional>
 #include <numeric>
+#include <random>
 #include <sstream>
 
 #include "compare.h"
@@ -168,6 +169,31 @@ TEST_CASE("reconstruction: one forward-model vertex off the grid, 25 trials at 1
     CHECK(t1000.mean_alpha == doctest::Approx(1000).epsilon(0.35));
   }
   prism::test::check_validation_clean();
+}
+
+TEST_CASE("reconstruction coarse to fine: a scan on level 4 carried by its NLL margin finds level 2's answer") {
+  // Level 4 (16 x 16 click pixels per scan pixel) ranks the PSFs coarsely;
+  // every PSF within the margin goes down to level 2 and is ranked again
+  // there, as the exhaustive scan of level 2 ranks them.
+  std::vector<prism::Event> events;
+  std::mt19937_64 rng(5);
+  std::uniform_real_distribution<double> u(0, 1);
+  for (uint64_t i = 0; i < 12; ++i)
+    events.push_back(make_event({{{-6 + 12 * u(rng), -6 + 12 * u(rng), 19 + 17 * u(rng)}, 100}}, 83, i));
+  auto coarse = settings(1);
+  coarse.search_level = 4;
+  prism::DictionaryService level4(*small_dictionary().reader, nullptr, 4, {});
+  int same = 0;
+  for (const auto& e : events) {
+    auto exhaustive = run(e, settings(1));
+    auto carried = prism::reconstruct(e, 0, level4, coarse);
+    CAPTURE(e.id);
+    REQUIRE(exhaustive.size() == 1);
+    REQUIRE(carried.size() == 1);
+    same += exhaustive[0].psf == carried[0].psf && exhaustive[0].shift_px == carried[0].shift_px;
+  }
+  CAPTURE(same);
+  CHECK(same >= 11);
 }
 
 TEST_CASE("reconstruction: two vertices at distinct places, K = 2") {
