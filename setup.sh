@@ -57,7 +57,7 @@ prism=./build/host/prism
 $prism dictionary build --scene prototype --out out/prototype-dictionary --binning 16 --rays 4096 --splat point
 $prism simulate --scene prototype --vertex 1,1,31,100 --events 1000 --binning 16 --seed 1 --out out/events.events
 $prism reconstruct --dictionary out/prototype-dictionary --events out/events.events --vertices 1 --out out/vertices.csv --model none
-# Continuous refinement with the scene's forward model costs ~50 s per event
+# Continuous refinement with the scene's forward model costs ~20 s per event
 # on a CPU device (README "Reconstruction"): 20 events.
 $prism evaluate --dictionary out/prototype-dictionary --experiments volume --volume-events 20 --volume-x-mm -15,15 \
   --volume-y-mm -15,15 --volume-depth-mm 2,48 --model scene --out out/volume
