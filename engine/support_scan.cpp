@@ -55,7 +55,7 @@ struct SupportScanVulkan::Impl {
   }
   // The layouts of a run (ScanLayout): on a CPU device the fits are serial,
   // and the scan where its PSFs average fewer shifts than a workgroup has
-  // invocations (measured on llvmpipe: README "Performance").
+  // invocations (measured on llvmpipe: README "Reconstruction", kernel layout).
   std::pair<bool, bool> serial(double mean_shifts, uint64_t group) const {
     if (which == ScanKernel::dense || layout == ScanLayout::group) return {false, false};
     if (layout == ScanLayout::serial) return {true, true};

@@ -9,17 +9,17 @@
 //   lambda_c = background_c + alpha P_c.
 // Work per (event, PSF) is shifts x clicks, never shifts x pixels.
 //
-// Two layouts per phase (SERIAL_SCAN, SERIAL_FIT): a workgroup per (event, PSF) whose 64 invocations
-// split the shifts (phase 0) or the clicks (phase 1) and meet in
-// shared-memory reductions, or one invocation per (event, PSF) running over
-// them alone. On a CPU device (llvmpipe) a workgroup barrier is dear and
-// most of the 64 invocations sit idle through a coarse level's few shifts
-// and the Newton steps, so the second is several times faster there (but
-// not for the many shifts of a fine level, where the workgroup's invocations
-// read neighbouring values of one PSF and share the cache). Its
-// blocks of shifts are sized by the launcher to the loop budget; a weight
-// fit that would pass the budget stops and says so, and the launcher fits
-// that batch again in workgroups.
+// Two layouts per phase (SERIAL_SCAN, SERIAL_FIT): a workgroup per (event,
+// PSF) whose 64 invocations split the shifts (phase 0) or the clicks
+// (phase 1) and meet in shared-memory reductions, or one invocation per
+// (event, PSF) running over them alone. On a CPU device (llvmpipe) a
+// workgroup barrier is dear and most of the 64 invocations sit idle through
+// a coarse level's few shifts and the Newton steps, so the second is several
+// times faster there (but not for the many shifts of a fine level, where the
+// workgroup's invocations read neighbouring values of one PSF and share the
+// cache). Its blocks of shifts are sized by the launcher to the loop budget;
+// a weight fit that would pass the budget stops and says so, and the
+// launcher fits that batch again in workgroups.
 #version 460
 #extension GL_GOOGLE_include_directive : require
 #define PRISM_FN
