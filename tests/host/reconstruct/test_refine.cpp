@@ -302,34 +302,32 @@ TEST_CASE("refinement hazards with several vertices: 0.5 mm apart, a lattice ali
   prism::test::check_validation_clean();
 }
 
-TEST_CASE("refinement: the ladder's rungs, moved by whole pixels, reach the truth's basin near the face") {
+TEST_CASE("refinement: the ladder's rungs, moved by whole pixels, take a near-face local optimum to the truth's basin") {
   // A start 0.76 mm off converges 0.3 mm from the source at depth 4 in a
-  // local optimum ~100 worse in NLL. The ladder's rungs pass near the truth
-  // but image a few pixels from the event's clicks: scored unmoved, the wrong
-  // ones win (README "Reconstruction", defaults::refine_ladder_reach_px).
+  // local optimum ~100 worse in NLL; the ladder, its rungs scored with their
+  // images moved by up to 2 pixels, must leave it for the truth's basin.
+  // (On this thin row the unmoved rungs reach it in some runs and not in
+  // others: the renders' float sums come in another order each run. On the
+  // real lenses they did not, for three events of the acceptance run: README
+  // "Reconstruction", defaults::refine_ladder_reach_px.)
   const glm::dvec3 at(0.6, 0.3, 4.0);
   auto e = make_event({{at, 100}}, 102);
   const prism::RefineSettings none{.aliases = false, .rescue = false, .lattice_scan = false, .ladder_starts = 0};
   auto from_truth = refine(e, {row(at, 100)}, true, none);
   auto stuck = refine(e, {row(at + glm::dvec3(0.3, 0, -0.7), 100)}, true, none);
-  auto ladder = [&](int reach_px) {
-    prism::RefineSettings rs = none;
-    rs.ladder_starts = prism::defaults::refine_ladder_starts;
-    rs.ladder_reach_px = reach_px;
-    const auto& v = stuck[0];
-    return refine(e, {row({v.x_mm, v.y_mm, v.depth_mm}, v.alpha)}, true, rs)[0];
-  };
-  auto error_mm = [&](const prism::ReconstructedVertex& v) { return glm::length(glm::dvec3(v.x_mm, v.y_mm, v.depth_mm) - at); };
-  const auto unmoved = ladder(0), moved = ladder(prism::defaults::refine_ladder_reach_px);
+  prism::RefineSettings rs = none;
+  rs.ladder_starts = prism::defaults::refine_ladder_starts;
+  rs.ladder_reach_px = prism::defaults::refine_ladder_reach_px;
+  const auto& v = stuck[0];
+  const auto moved = refine(e, {row({v.x_mm, v.y_mm, v.depth_mm}, v.alpha)}, true, rs)[0];
+  const double error_mm = glm::length(glm::dvec3(moved.x_mm, moved.y_mm, moved.depth_mm) - at);
   CAPTURE(from_truth[0].nll);
   CAPTURE(stuck[0].nll);
-  CAPTURE(unmoved.nll);
   CAPTURE(moved.nll);
-  CAPTURE(error_mm(unmoved));
-  CAPTURE(error_mm(moved));
+  CAPTURE(error_mm);
   CHECK(stuck[0].nll > from_truth[0].nll + 20);  // the start's own optimum is a worse one
-  CHECK(unmoved.nll > from_truth[0].nll + 20);   // the unmoved rungs do not leave it for the truth's
-  CHECK(moved.nll < from_truth[0].nll + 1);      // the moved ones do
-  CHECK(error_mm(moved) < 0.05);
+  CHECK(moved.nll < from_truth[0].nll + 1);      // the ladder leaves it
+  CHECK(error_mm < 0.05);
   prism::test::check_validation_clean();
 }
+
