@@ -51,6 +51,7 @@ struct Row {
   double err_mean_mm = 0, err_median_mm = 0;
   double scan_share = 0;         // of the time, the support scans
   uint64_t device_bytes = 0, host_peak_bytes = 0;
+  uint64_t rss_bytes = 0;  // the process's peak RSS after this row (monotone over the run)
   std::vector<std::vector<ReconstructedVertex>> out;
 };
 
@@ -120,6 +121,7 @@ Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, c
   r.seconds_per_event = bench::median(per_event);
   r.scan_share = bench::median(share);
   r.host_peak_bytes = service.stats().host_peak_bytes;
+  r.rss_bytes = bench::peak_rss_bytes();
   auto e = errors(r.out, truth);
   r.err_mean_mm = std::accumulate(e.begin(), e.end(), 0.0) / double(e.size());
   r.err_median_mm = bench::median(e);
@@ -127,9 +129,10 @@ Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, c
 }
 
 void print(const Row& r) {
-  std::printf("%-10s %-26s %6zu %10.2f %10.1f %9.3f %9.3f %7.0f%% %10.1f %10.1f\n", r.group.c_str(), r.name.c_str(),
+  std::printf("%-10s %-26s %6zu %10.2f %10.1f %9.3f %9.3f %7.0f%% %10.1f %10.1f %10.1f\n", r.group.c_str(), r.name.c_str(),
               r.events, r.seconds_per_event * 1e3, 1.0 / r.seconds_per_event, r.err_mean_mm, r.err_median_mm,
-              100 * r.scan_share, double(r.device_bytes) / (1 << 20), double(r.host_peak_bytes) / (1 << 20));
+              100 * r.scan_share, double(r.device_bytes) / (1 << 20), double(r.host_peak_bytes) / (1 << 20),
+              double(r.rss_bytes) / (1 << 20));
   std::fflush(stdout);
 }
 
@@ -224,8 +227,8 @@ int main(int argc, char** argv) {
   std::printf("# events: forward model at %zu off-grid positions, 100 photons (pairs: 125 + 125); times: medians of "
               "3 repeats; error: 3D, against the truth\n\n",
               positions.size());
-  std::printf("%-10s %-26s %6s %10s %10s %9s %9s %8s %10s %10s\n", "group", "configuration", "events", "ms/event",
-              "events/s", "err mean", "err med", "scan", "device MiB", "host MiB");
+  std::printf("%-10s %-26s %6s %10s %10s %9s %9s %8s %10s %10s %10s\n", "group", "configuration", "events", "ms/event",
+              "events/s", "err mean", "err med", "scan", "device MiB", "host MiB", "RSS MiB");
 
   using B = ReconstructionBackend;
   std::vector<Row> rows;
@@ -329,16 +332,19 @@ int main(int argc, char** argv) {
               defaults::refine_rays_per_lenslet, positions.size(), device_s, reference_s, reference_s / device_s);
   std::printf("scan = share of the time in the support scans (the rest: refinement from disk tiles, weights, "
               "descent, depth, on the host). device MiB: resident scan level + event/result buffers; host MiB: "
-              "peak of summed-area tables and tile cache.\n");
+              "peak of summed-area tables and tile cache; RSS MiB: the process's peak resident set so far (it "
+              "only grows: a row's own peak shows where it rises).\n");
 
   fs::create_directories(out_dir);
   {
     std::ofstream csv(out_dir + "/reconstruct.csv");
-    csv << "group,configuration,events,ms_per_event,events_per_s,err_mean_mm,err_median_mm,scan_share,device_mib,host_mib\n";
+    csv << "group,configuration,events,ms_per_event,events_per_s,err_mean_mm,err_median_mm,scan_share,device_mib,host_mib,"
+           "peak_rss_mib\n";
     for (const auto& r : rows)
       csv << r.group << ',' << r.name << ',' << r.events << ',' << r.seconds_per_event * 1e3 << ','
           << 1 / r.seconds_per_event << ',' << r.err_mean_mm << ',' << r.err_median_mm << ',' << r.scan_share << ','
-          << double(r.device_bytes) / (1 << 20) << ',' << double(r.host_peak_bytes) / (1 << 20) << '\n';
+          << double(r.device_bytes) / (1 << 20) << ',' << double(r.host_peak_bytes) / (1 << 20) << ','
+          << double(r.rss_bytes) / (1 << 20) << '\n';
   }
   std::map<std::string, Series> groups;
   std::vector<std::string> order;

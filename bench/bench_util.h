@@ -2,13 +2,23 @@
 // the machine and the device so every figure says where it was measured.
 #pragma once
 #include <algorithm>
+#include <cstdint>
 #include <chrono>
 #include <fstream>
 #include <string>
 #include <thread>
 #include <vector>
 
+#include <sys/resource.h>
+
 namespace prism::bench {
+
+// The process's peak resident set so far, bytes (Linux reports KiB).
+inline uint64_t peak_rss_bytes() {
+  rusage u{};
+  getrusage(RUSAGE_SELF, &u);
+  return uint64_t(u.ru_maxrss) * 1024;
+}
 
 inline double median(std::vector<double> v) {
   std::sort(v.begin(), v.end());
