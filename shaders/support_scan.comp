@@ -62,6 +62,7 @@ bool exhausted = false;
 uint lane() { return SERIAL_FIT == 1u ? 0u : gl_LocalInvocationID.x; }
 uint lanes() { return SERIAL_FIT == 1u ? 1u : GROUP; }
 vec2 lanes_sum2(vec2 v) { return SERIAL_FIT == 1u ? v : group_sum2(v); }
+float lanes_sum(float v) { return SERIAL_FIT == 1u ? v : group_sum(v); }
 // False once a pass over the clicks would pass the budget (serial only).
 bool within_budget() {
   if (SERIAL_FIT == 0u) return true;
@@ -79,7 +80,7 @@ float objective(float alpha) {
     float lambda = rate_weight[first_click + c].x + alpha * psf_value(p_base, q.x, q.y);
     part += lambda + log_click(lambda);
   }
-  return alpha * best_mass - lanes_sum2(vec2(part, 0.0f)).x;
+  return alpha * best_mass - lanes_sum(part);
 }
 
 vec2 slope_curvature(float alpha) {
@@ -156,12 +157,12 @@ void main() {
 
   // The weight at that shift.
   spent = click_count + P.blocks;
-  vec2 reached = vec2(0.0f);
+  float reached = 0.0f;
   for (uint c = lane(); c < click_count; c += lanes()) {
     ivec2 q = click_at(c) - best_shift;
-    reached.x += psf_value(p_base, q.x, q.y) > 0.0f ? 1.0f : 0.0f;
+    reached += psf_value(p_base, q.x, q.y) > 0.0f ? 1.0f : 0.0f;
   }
-  WeightFit fit = fit_weight(initial_alpha(lanes_sum2(reached).x, best_mass));
+  WeightFit fit = fit_weight(initial_alpha(lanes_sum(reached), best_mass));
 
   if (lane() == 0u) {
     ScanOut o;

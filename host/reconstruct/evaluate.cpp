@@ -367,9 +367,9 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
                   {"pvalue_draws", rs.pvalue_draws}}}};
   // Coarse to fine only where the scan is coarser than the select level (a
   // journal of the exhaustive scan keeps its header).
-  const int select_level = s.select_level < 0 ? o.level + 2 : s.select_level;
-  if (s.search_level > select_level)
-    run["search"]["carry"] = {{"select_level", select_level}, {"margin_nll", s.carry_margin_nll}, {"max", s.carry_max}};
+  if (s.search_level > select_level(s, o.level))
+    run["search"]["carry"] = {{"select_level", select_level(s, o.level)}, {"margin_nll", s.carry_margin_nll},
+                              {"max", s.carry_max}};
   const std::string on_mismatch = "rerun with the same options, or without --resume to start over";
   // A journal of an earlier run is resumed only when asked for.
   auto open_journal = [&](std::optional<Journal>& j, const std::string& name, const json& header,

@@ -106,6 +106,9 @@ int click_level(const DictionaryManifest& m, const EventFileHeader& h, const std
 // fewer pixels per shift), capped at the coarsest stored. Every command and
 // benchmark that picks a search level for the user takes it from here.
 int default_search_level(const DictionaryManifest& m, int click_level);
+// The level a coarse-to-fine search ranks its carried PSFs on:
+// settings.select_level, or the clicks' level + 2 when it is -1.
+int select_level(const ReconstructionSettings& s, int click_level);
 
 // Where the time of a batch went.
 struct ReconstructionTimings {

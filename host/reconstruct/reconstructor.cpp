@@ -46,6 +46,10 @@ int default_search_level(const DictionaryManifest& m, int click_level) {
   return std::min(click_level + 2, m.levels - 1);
 }
 
+int select_level(const ReconstructionSettings& s, int click_level) {
+  return s.select_level < 0 ? click_level + 2 : s.select_level;
+}
+
 namespace {
 // The device's results of event j as scores.
 std::vector<SupportScore> to_scores(const std::vector<ScanResult>& results, size_t j, size_t n_psf) {

@@ -21,7 +21,7 @@ namespace prism::detail {
 
 Vertex EventFit::refine(std::vector<SupportScore> scored, std::vector<Vertex>& runners_up) {
   const int Ls = search_level_, step = std::max(1, s_.scan_step_px);
-  const int Lf = std::clamp(s_.select_level < 0 ? level_ + 2 : s_.select_level, level_, Ls);
+  const int Lf = std::clamp(select_level(s_, level_), level_, Ls);
   auto by_nll = [](const SupportScore& a, const SupportScore& b) {
     return a.nll < b.nll || (a.nll == b.nll && a.psf < b.psf);
   };
@@ -34,7 +34,7 @@ Vertex EventFit::refine(std::vector<SupportScore> scored, std::vector<Vertex>& r
     const size_t within = size_t(std::count_if(scored.begin(), scored.end(), [&](const SupportScore& c) {
       return c.nll <= best + s_.carry_margin_nll;
     }));
-    carry = std::clamp(within, keep, std::max(keep, std::min(scored.size(), size_t(std::max(1, s_.carry_max)))));
+    carry = std::clamp(within, keep, std::max(keep, size_t(std::max(1, s_.carry_max))));
   }
   std::partial_sort(scored.begin(), scored.begin() + long(carry), scored.end(), by_nll);
   // The gradient's click weights per level, shared by the candidates.
