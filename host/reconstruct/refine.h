@@ -58,6 +58,9 @@ struct SourceImage {
   // P and its gradient at `index` (zero where the image holds nothing).
   const ModelPixel* find(uint32_t index) const;
 };
+// `image` convolved with a Gaussian of `sigma_px` click-grid pixels (P and its
+// gradient alike; what falls off the grid is lost); `image` itself for 0.
+SourceImage blurred(const SourceImage& image, double sigma_px, const AnalysisGrid& grid);
 
 // The continuous model: the scene's forward model on the click grid, on the
 // device or the double CPU reference.
@@ -112,9 +115,11 @@ struct RefineSettings {
   int alias_starts = defaults::refine_alias_starts;    // lattice aliases probed per vertex (best by first NLL)
   bool rescue = true;  // a poor fit also tries the aliases out to defaults::refine_rescue_alias_pitches
   bool lattice_scan = true;  // p < defaults::refine_lattice_scan_pvalue: also the sites the clicks vote for
+  double lattice_scan_depth_mm = defaults::refine_lattice_scan_depth_mm;  // and for any vertex shallower than this
   int ladder_starts = defaults::refine_ladder_starts;  // ladder points probed per vertex (0: no ladder)
   int ladder_reach_px = defaults::refine_ladder_reach_px;  // each rung's image also scored moved by up to this
                                                           // many click-grid pixels
+  bool continuation = true;  // refit from the estimate with blurred images, then sharp (refine.cpp)
   int pvalue_draws = defaults::fit_pvalue_draws; // Monte Carlo events per goodness-of-fit p-value
   double dark_rate = ReconstructionSettings{}.dark_rate;
   double alpha_max = ReconstructionSettings{}.alpha_max;
@@ -129,8 +134,9 @@ struct RefineBounds {
 struct RefineStats {
   uint64_t events = 0, starts = 0, iterations = 0;
   uint64_t rescues = 0;  // events whose poor fit sent them to the far aliases
-  uint64_t lattice_scans = 0;   // events whose poor or marginal fit had the clicks' votes counted
+  uint64_t lattice_scans = 0;   // events whose poor or marginal fit, or shallow vertex, had the clicks' votes counted
   uint64_t lattice_depths = 0;  // voted depths scanned
+  uint64_t continuations = 0, continuations_kept = 0;  // blurred refits, and those that lowered the NLL
   double seconds = 0;
 };
 

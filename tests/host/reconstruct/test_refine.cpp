@@ -313,7 +313,8 @@ TEST_CASE("refinement: the ladder's rungs, moved by whole pixels, take a near-fa
   // unmoved ones did not (README "Reconstruction", defaults::refine_ladder_reach_px).
   const glm::dvec3 at(0.6, 0.3, 4.0);
   auto e = make_event({{at, 100}}, 102);
-  const prism::RefineSettings none{.aliases = false, .rescue = false, .lattice_scan = false, .ladder_starts = 0};
+  const prism::RefineSettings none{.aliases = false, .rescue = false, .lattice_scan = false, .ladder_starts = 0,
+                                   .continuation = false};
   auto from_truth = refine(e, {row(at, 100)}, true, none);
   auto stuck = refine(e, {row(at + glm::dvec3(0.3, 0, -0.7), 100)}, true, none);
   prism::RefineSettings rs = none;
@@ -333,3 +334,97 @@ TEST_CASE("refinement: the ladder's rungs, moved by whole pixels, take a near-fa
   prism::test::check_validation_clean();
 }
 
+TEST_CASE("refinement: a shallow estimate on a wrong site that fits as well as expected still gets the lattice scan") {
+  // 40 photons at depth 2.5 started two pitches off: without the rescue the
+  // fit settles on that site and the model finds nothing wrong with it (p
+  // well above the lattice scan's trigger); its depth alone sends it to the
+  // scan, which finds the source (defaults::refine_lattice_scan_depth_mm).
+  const auto& o = small_scene().optics;
+  const glm::dvec3 at(0.6, 0.3, 2.5);
+  const glm::dvec3 alias = at + glm::dvec3(2 * prism::defaults::lenslet_pitch_mm * o.alias_scale(at.z), 0, 0);
+  auto e = make_event({{at, 40}}, 101);
+  prism::RefineSettings by_pvalue{.rescue = false};
+  by_pvalue.lattice_scan_depth_mm = 0;
+  const auto stuck = refine(e, {row(alias, 40)}, true, by_pvalue)[0];
+  const auto found = refine(e, {row(alias, 40)}, true, {.rescue = false})[0];
+  auto error_mm = [&](const prism::ReconstructedVertex& r) { return glm::length(glm::dvec3(r.x_mm, r.y_mm, r.depth_mm) - at); };
+  CAPTURE(error_mm(stuck));
+  CAPTURE(stuck.fit_pvalue);
+  CAPTURE(error_mm(found));
+  CHECK(error_mm(stuck) > 3);
+  CHECK(stuck.fit_pvalue > prism::defaults::refine_lattice_scan_pvalue);
+  CHECK(error_mm(found) < 5 * found.crlb_3d_mm);
+  CHECK(found.nll < stuck.nll - 20);
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("refinement: the continuation crosses the cliffs that hard-edged images make in the likelihood") {
+  // 100 photons at depth 4.5: the NLL has two optima 0.05 mm apart (4 depth
+  // CRLBs), 9.7 apart, with a cliff between them where an image edge passes
+  // a click. Started on the worse one, the local fit stays; refitted through
+  // blurred images it crosses to the better.
+  const glm::dvec3 at(0.6, 0.3, 4.5);
+  auto e = make_event({{at, 100}}, 111);
+  prism::RefineSettings none{.aliases = false, .search_starts = 0, .rescue = false, .lattice_scan = false, .ladder_starts = 0};
+  none.continuation = false;
+  prism::RefineSettings continued = none;
+  continued.continuation = true;
+  const glm::dvec3 worse(0.6075, 0.3099, 4.5511);
+  for (bool on_device : {true, false}) {
+    CAPTURE(on_device);
+    const auto stays = refine(e, {row(worse, 71.5)}, on_device, none)[0];
+    const auto crossed = refine(e, {row(worse, 71.5)}, on_device, continued)[0];
+    auto error_mm = [&](const prism::ReconstructedVertex& r) { return glm::length(glm::dvec3(r.x_mm, r.y_mm, r.depth_mm) - at); };
+    CAPTURE(error_mm(stays));
+    CAPTURE(stays.nll);
+    CAPTURE(error_mm(crossed));
+    CAPTURE(crossed.nll);
+    CHECK(error_mm(stays) > 0.03);
+    CHECK(crossed.nll < stays.nll - 5);
+    CHECK(error_mm(crossed) < 0.5 * error_mm(stays));
+  }
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("refinement: blurred images keep their light and their gradients' sums, and lose what falls off the grid") {
+  const auto& g = grid();
+  auto image_at = [&](int col, int row) {
+    prism::SourceImage s;
+    s.photons = 50;
+    s.pixels.push_back({uint32_t(row * g.width + col), 0.25, glm::dvec3(1, -2, 3)});
+    s.pixels.push_back({uint32_t(row * g.width + col + 1), 0.75, glm::dvec3(-1, 0, 0.5)});
+    return s;
+  };
+  auto sums = [](const prism::SourceImage& s) {
+    double p = 0;
+    glm::dvec3 grad(0);
+    for (const auto& m : s.pixels) p += m.p, grad += m.g;
+    return std::pair{p, grad};
+  };
+  const auto middle = image_at(g.width / 2, g.height / 2);
+  const auto same = prism::blurred(middle, 0, g);
+  REQUIRE(same.pixels.size() == 2);
+  CHECK(same.pixels[1].p == 0.75);
+  const auto b = prism::blurred(middle, 1.0, g);
+  CHECK(b.pixels.size() > 20);
+  CHECK(b.photons == 50);
+  for (size_t i = 1; i < b.pixels.size(); ++i) CHECK(b.pixels[i - 1].index < b.pixels[i].index);  // sorted for find()
+  auto [p, grad] = sums(b);
+  CHECK(p == doctest::Approx(1.0).epsilon(1e-12));
+  CHECK(glm::length(grad - glm::dvec3(0, -2, 3.5)) < 1e-12);
+  // Symmetric about the pair's centre: the brightest pixel stays the 0.75 one.
+  const auto* top = b.find(uint32_t(g.height / 2 * g.width + g.width / 2 + 1));
+  REQUIRE(top != nullptr);
+  for (const auto& m : b.pixels) CHECK(m.p <= top->p);
+  // In the corner what lands at negative columns or rows is lost: per axis
+  // the share of the 1-D taps (sigma 1, radius 3) at offsets >= -col.
+  double taps[7], total = 0;
+  for (int d = -3; d <= 3; ++d) total += taps[d + 3] = std::exp(-0.5 * d * d);
+  auto kept = [&](int col) {
+    double k = 0;
+    for (int d = -col; d <= 3; ++d) k += taps[d + 3];
+    return k / total;
+  };
+  const auto corner = prism::blurred(image_at(0, 0), 1.0, g);
+  CHECK(sums(corner).first == doctest::Approx(0.25 * kept(0) * kept(0) + 0.75 * kept(1) * kept(0)).epsilon(1e-12));
+}
