@@ -84,6 +84,16 @@ inline constexpr double caustic_pixel_mm = 0.06;
 inline constexpr double dictionary_depth_planes_mm[] = {0,  1,  2,  3,  4,    5,  6,    7,  8,  9,  10, 11,
                                                         12, 13.5, 15, 17.5, 20, 25, 30, 35, 40, 45, 50};
 
+// The support scan's default level (host/reconstruct/reconstruct.h,
+// default_search_level): the finest whose shifts over all PSFs, per click of
+// an event, stay within this. The default 2783-PSF dictionary at 110 um
+// clicks holds 1.1e6 / 3.3e5 / 1.2e5 / 4.8e4 on levels 2..5, which took
+// 215 / 67 / 24 / 32 ms per event on 300 volume events (llvmpipe, 2 threads;
+// coarse to fine, README "Reconstruction"): coarser than level 4 the scan
+// gains little and more PSFs must be carried down. The 1210-PSF one gets
+// level 3 (5.8e4; level 4 was 1.3x faster there, level 2 2.8x slower).
+inline constexpr double search_shifts_per_click = 1.5e5;
+
 // Continuous refinement of reconstructed vertices (host/reconstruct/refine.h):
 // the scene's forward model, footprint splat, at this many cells per lenslet
 // (1% L1 from 16384 cells on the prototype at 110 um; README "Reconstruction").

@@ -68,6 +68,10 @@ void run(EvaluateArgs a) {
     throw std::runtime_error("--binning " + std::to_string(binning) + ": the dictionary stores binnings " +
                              std::to_string(m.base_binning) + " x 2^k only; choose one of those");
 
+  if (o.settings.search_level >= 0 && (o.settings.search_level < o.level || o.settings.search_level >= m.levels))
+    throw std::runtime_error("--level " + std::to_string(o.settings.search_level) + ": choose a level from " +
+                             std::to_string(o.level) + " (the clicks' own) to " + std::to_string(m.levels - 1) +
+                             " (the coarsest in " + a.dictionary + ")");
   o.volume_x_mm = range_of(a.volume_x, "--volume-x-mm");
   o.volume_y_mm = range_of(a.volume_y, "--volume-y-mm");
   o.volume_depth_mm = range_of(a.volume_depth, "--volume-depth-mm");
@@ -194,6 +198,9 @@ void add_evaluate(CLI::App& app) {
                 "reconstruction backend: vulkan (sparse scan on the device), dense (the paper's dense correlation "
                 "on the device), cpu (the double-precision reference)")
       ->capture_default_str()->check(CLI::IsMember({"vulkan", "dense", "cpu"}));
+  c->add_option("--level", a->options.settings.search_level,
+                "dictionary level of the support scan (default: as `prism reconstruct`, coarse to fine from a "
+                "level chosen by a budget of shifts per click)");
   c->add_option("--precision", a->precision, "device backends: the scan level's values as float or half")
       ->capture_default_str()->check(CLI::IsMember({"float", "half"}));
   c->add_option("--device", a->device, "Vulkan device for the reconstruction, the event truth and the CRLB (see "

@@ -174,9 +174,10 @@ void add_reconstruct(CLI::App& app) {
   c->add_option("--scan-step", a->settings.scan_step_px, "the scan tries shifts on multiples of this (pixels of the "
                  "scan level); the best candidates are re-searched around theirs")
       ->capture_default_str()->check(CLI::Range(1, 64));
-  c->add_option("--level", a->level, "dictionary level of the scan over all PSFs (default: clicks' level + 2); a "
-                 "coarser one is searched coarse to fine: every PSF within --carry-margin of its best NLL goes down "
-                 "to the clicks' level + 2 and is ranked again there");
+  c->add_option("--level", a->level, "dictionary level of the scan over all PSFs (default: the finest from the clicks' level + 2 up "
+                 "whose shifts over all PSFs stay within a budget per click; level 4 for the default dictionary at "
+                 "110 um clicks); one coarser than the clicks' level + 2 is searched coarse to fine: every PSF "
+                 "within --carry-margin of its best NLL goes down to the clicks' level + 2 and is ranked again there");
   c->add_option("--carry-margin", a->settings.carry_margin_nll,
                 "coarse to fine: NLL margin of the PSFs carried from a coarse scan (0: its 8 best alone)")
       ->capture_default_str()->check(CLI::NonNegativeNumber);

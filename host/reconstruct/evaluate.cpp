@@ -332,7 +332,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
 
   ForwardTruth truth(ctx, scene, t, 64);
   ReconstructionSettings s = o.settings;
-  if (s.search_level < 0) s.search_level = default_search_level(m, o.level);
+  if (s.search_level < 0) s.search_level = default_search_level(m, o.level, s.tau_mm);
   const bool on_device = o.backend != ReconstructionBackend::cpu;
   DictionaryService service(dictionary, on_device ? &ctx : nullptr, s.search_level, {}, o.device_half);
   std::map<int, std::unique_ptr<Reconstructor>> reconstructors;  // per K

@@ -104,7 +104,7 @@ struct EvaluationOptions {
   unsigned stratification = 1;  // forward truth: other strata than the dictionary's (0) by default
   uint64_t seed = 1;
   bool quick = false;          // few points per experiment (use with few trials)
-  ReconstructionSettings settings;  // search_level -1: level + 2, capped at the coarsest
+  ReconstructionSettings settings;  // search_level -1: default_search_level()
   ReconstructionBackend backend = ReconstructionBackend::vulkan;
   bool device_half = false;    // device backends: the scan level as half floats
   RefineModel model = RefineModel::scene;

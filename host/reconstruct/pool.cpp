@@ -12,7 +12,7 @@ ReconstructionPool::ReconstructionPool(const DictionaryReader& reader, int click
                                        const PoolOptions& o)
     : settings_(s) {
   const auto& m = reader.manifest();
-  if (settings_.search_level < 0) settings_.search_level = default_search_level(m, click_level);
+  if (settings_.search_level < 0) settings_.search_level = default_search_level(m, click_level, settings_.tau_mm);
   if (settings_.search_level < click_level || settings_.search_level >= m.levels)
     throw std::invalid_argument("search level " + std::to_string(settings_.search_level) + ": choose a level from " +
                                 std::to_string(click_level) + " (the clicks' own) to " + std::to_string(m.levels - 1) +

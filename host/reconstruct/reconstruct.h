@@ -102,10 +102,16 @@ struct ReconstructedVertex {
 int click_level(const DictionaryManifest& m, const EventFileHeader& h, const std::string& events_path,
                 const std::string& dictionary_dir);
 
-// The default level of the support scan: two levels above the clicks (16 x
-// fewer pixels per shift), capped at the coarsest stored. Every command and
-// benchmark that picks a search level for the user takes it from here.
-int default_search_level(const DictionaryManifest& m, int click_level);
+// The default level of the support scan: the finest from the select level
+// (the clicks' + 2) up whose shift lattices, summed over the PSFs, hold at
+// most defaults::search_shifts_per_click shifts (scan_shifts); a level
+// coarser than the select level is searched coarse to fine. Capped at the
+// coarsest stored. Every command and benchmark that picks a search level for
+// the user takes it from here.
+int default_search_level(const DictionaryManifest& m, int click_level, double tau_mm);
+// The shifts one event's scan scores per click on `level`: every PSF's
+// lattice within +-tau_mm (times its depth's magnification) summed.
+double scan_shifts(const DictionaryManifest& m, int level, double tau_mm);
 // The level a coarse-to-fine search ranks its carried PSFs on:
 // settings.select_level, or the clicks' level + 2 when it is -1.
 int select_level(const ReconstructionSettings& s, int click_level);

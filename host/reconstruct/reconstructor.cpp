@@ -4,6 +4,7 @@
 #include <chrono>
 #include <cmath>
 
+#include "engine/defaults.h"
 #include "host/reconstruct/event_fit.h"
 #include "host/reconstruct/reconstruct.h"
 
@@ -42,8 +43,22 @@ int click_level(const DictionaryManifest& m, const EventFileHeader& h, const std
                         "); simulate with one of those or build a dictionary with that base binning");
 }
 
-int default_search_level(const DictionaryManifest& m, int click_level) {
-  return std::min(click_level + 2, m.levels - 1);
+double scan_shifts(const DictionaryManifest& m, int level, double tau_mm) {
+  double shifts = 0;
+  for (size_t psf = 0; psf < m.grid.size(); ++psf) {
+    const double side = 2.0 * detail::scan_radius_px(m, tau_mm, psf, level) + 1.0;
+    shifts += side * side;
+  }
+  return shifts;
+}
+
+int default_search_level(const DictionaryManifest& m, int click_level, double tau_mm) {
+  // The scan's work is shifts x clicks and so is the carried PSFs' (each
+  // re-searched on every finer level): the clicks scale both alike, so the
+  // budget is per click.
+  int level = std::min(select_level(ReconstructionSettings{}, click_level), m.levels - 1);
+  while (level + 1 < m.levels && scan_shifts(m, level, tau_mm) > defaults::search_shifts_per_click) ++level;
+  return level;
 }
 
 int select_level(const ReconstructionSettings& s, int click_level) {

@@ -196,6 +196,39 @@ TEST_CASE("reconstruction coarse to fine: a scan on level 4 carried by its NLL m
   CHECK(same >= 11);
 }
 
+TEST_CASE("reconstruction's default scan level: the finest from the clicks' + 2 within the shift budget, any binning") {
+  prism::DictionaryManifest m;
+  m.scene = prism::builtin_scene("prototype");
+  m.grid = prism::DictionaryGrid::fine_near_face();
+  m.base_binning = 16;
+  m.width = 419, m.height = 298;
+  m.levels = 10;
+  const double tau = prism::ReconstructionSettings{}.tau_mm;
+  const double budget = prism::defaults::search_shifts_per_click;
+  for (int l = 1; l < m.levels; ++l) CHECK(prism::scan_shifts(m, l, tau) <= prism::scan_shifts(m, l - 1, tau));
+  // The default 2783-PSF grid: level 4 (1.77 mm), the first within budget.
+  const int level = prism::default_search_level(m, 0, tau);
+  CHECK(level == 4);
+  CHECK(prism::scan_shifts(m, level, tau) <= budget);
+  CHECK(prism::scan_shifts(m, level - 1, tau) > budget);
+  // Never finer than the select level, never coarser than stored.
+  CHECK(prism::default_search_level(m, 3, tau) == 5);
+  m.levels = 4;
+  CHECK(prism::default_search_level(m, 0, tau) == 3);
+  // Clicks at the sensor's own 6.9 um pixels: the same 1.77 mm scan pixels.
+  m.base_binning = 1;
+  m.width = 419 * 16, m.height = 298 * 16;
+  m.levels = 14;
+  CHECK(prism::default_search_level(m, 0, tau) == 8);
+  CHECK(m.pixel_mm(8) == doctest::Approx(1.7664));
+  // The paper's 1210-PSF grid has fewer near-face planes, so fewer shifts: level 3.
+  m.base_binning = 16;
+  m.width = 419, m.height = 298;
+  m.levels = 10;
+  m.grid = prism::DictionaryGrid::paper();
+  CHECK(prism::default_search_level(m, 0, tau) == 3);
+}
+
 TEST_CASE("reconstruction: two vertices at distinct places, K = 2") {
   const glm::dvec3 a(-3, 2, 22), b(3, -2, 33);
   int good = 0;
