@@ -112,12 +112,16 @@ inline constexpr double refine_rescue_alias_pitches = 2.0;
 // ordinary events fall below it at most 5% of the time (the p-value is
 // conservative): 6 of 500 thin-lens and 0 of 60 real-lens volume events.
 inline constexpr double refine_lattice_scan_pvalue = 0.05;
-// An estimate shallower than this gets the lattice scan whatever its fit:
-// near the face a source put on a wrong site 2-4 pitches away fits as well
-// as the model expects (p 0.14-0.79). In the volume runs (500 thin-lens,
-// 355 real-lens events) such failures had estimates at depths 3.3-8.6 mm,
-// but for one put at 27 mm (README "Reconstruction").
-inline constexpr double refine_lattice_scan_depth_mm = 10.0;
+// Near the face: an estimate shallower than this gets the lattice scan
+// whatever its fit, and the continuation. There a source put on a wrong site
+// 2-4 pitches away fits as well as the model expects (p 0.14-0.79): in the
+// volume runs (500 thin-lens, 355 real-lens events) such failures had
+// estimates at depths 3.3-8.6 mm, but for one put at 27 mm. And there the
+// images are sharpest and the CRLB smallest (~0.01 mm), so the cliffs that
+// their hard edges make in the likelihood hold a local fit several CRLBs
+// off; on ten events deeper than 10 mm the continuation changed no NLL by
+// 0.1 and cost 25-65 renders each (README "Reconstruction").
+inline constexpr double refine_near_face_mm = 10.0;
 inline constexpr int refine_lattice_scan_depths = 3;  // the best voted depths tried, while the fit stays below it and improves
 // The ladder: after the other starts, points every 0.75 mm up to 3 mm along
 // the estimate's weakest direction and along depth, the best 2 probed. On 60
@@ -134,9 +138,10 @@ inline constexpr double refine_ladder_step_mm = 0.75;
 // run, three ended 0.4-0.8 mm off with the truth's basin 17-71 lower in NLL;
 // with 2 pixels all three reach it.
 inline constexpr int refine_ladder_reach_px = 2;
-// The continuation after the last start: the estimate refitted with the
-// model's images blurred by these Gaussian sigmas (click-grid pixels) in
-// turn, then sharp, and kept if better (host/reconstruct/refine.cpp).
+// The continuation after the last start, near the face: the estimate
+// refitted with the model's images blurred by these Gaussian sigmas
+// (click-grid pixels) in turn, then sharp, and kept if better
+// (host/reconstruct/refine.cpp).
 inline constexpr double refine_continuation_blur_px[] = {1.0, 0.5};
 inline constexpr double refine_blur_radius_sigmas = 2.5;  // the blur kernel's half-width
 inline constexpr int fit_pvalue_draws = 1000;      // Monte Carlo events per goodness-of-fit p-value

@@ -534,9 +534,12 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
       probe_best(k, aliases(k, rescue_lattice_mm_, [](glm::dvec3) { return true; }), s_.alias_starts);
     pvalue = fit_pvalue(f, event.id);
   }
-  bool near_face = false;
-  for (size_t k = 0; k < f.K; ++k) near_face = near_face || f.theta[k].z < s_.lattice_scan_depth_mm;
-  if ((pvalue < defaults::refine_lattice_scan_pvalue || near_face) && s_.lattice_scan && !lattice_mm_.empty()) {
+  auto near_face = [&] {
+    bool any = false;
+    for (size_t k = 0; k < f.K; ++k) any = any || f.theta[k].z < s_.near_face_mm;
+    return any;
+  };
+  if ((pvalue < defaults::refine_lattice_scan_pvalue || near_face()) && s_.lattice_scan && !lattice_mm_.empty()) {
     // The lattice scan: near the face the search can miss the source's
     // depth altogether (click_geometry.h). The clicks' votes give a depth
     // and one site of the alias lattice, a few tenths of a mm off: fitted
@@ -598,7 +601,7 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
   // of a mm apart, which a local step cannot see across. Fitted again with
   // the images blurred (the cliffs become slopes), then less, then not, from
   // the estimate; kept if the unblurred NLL is lower.
-  if (s_.continuation) {
+  if (s_.continuation && near_face()) {
     Fit g = f;
     for (double sigma : defaults::refine_continuation_blur_px) {
       g.blur_px = sigma;

@@ -115,11 +115,12 @@ struct RefineSettings {
   int alias_starts = defaults::refine_alias_starts;    // lattice aliases probed per vertex (best by first NLL)
   bool rescue = true;  // a poor fit also tries the aliases out to defaults::refine_rescue_alias_pitches
   bool lattice_scan = true;  // p < defaults::refine_lattice_scan_pvalue: also the sites the clicks vote for
-  double lattice_scan_depth_mm = defaults::refine_lattice_scan_depth_mm;  // and for any vertex shallower than this
+  double near_face_mm = defaults::refine_near_face_mm;  // a vertex shallower gets the lattice scan whatever
+                                                       // its fit, and the continuation
   int ladder_starts = defaults::refine_ladder_starts;  // ladder points probed per vertex (0: no ladder)
   int ladder_reach_px = defaults::refine_ladder_reach_px;  // each rung's image also scored moved by up to this
                                                           // many click-grid pixels
-  bool continuation = true;  // refit from the estimate with blurred images, then sharp (refine.cpp)
+  bool continuation = true;  // near the face: refit from the estimate with blurred images, then sharp (refine.cpp)
   int pvalue_draws = defaults::fit_pvalue_draws; // Monte Carlo events per goodness-of-fit p-value
   double dark_rate = ReconstructionSettings{}.dark_rate;
   double alpha_max = ReconstructionSettings{}.alpha_max;

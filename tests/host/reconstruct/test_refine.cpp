@@ -338,13 +338,13 @@ TEST_CASE("refinement: a shallow estimate on a wrong site that fits as well as e
   // 40 photons at depth 2.5 started two pitches off: without the rescue the
   // fit settles on that site and the model finds nothing wrong with it (p
   // well above the lattice scan's trigger); its depth alone sends it to the
-  // scan, which finds the source (defaults::refine_lattice_scan_depth_mm).
+  // scan, which finds the source (defaults::refine_near_face_mm).
   const auto& o = small_scene().optics;
   const glm::dvec3 at(0.6, 0.3, 2.5);
   const glm::dvec3 alias = at + glm::dvec3(2 * prism::defaults::lenslet_pitch_mm * o.alias_scale(at.z), 0, 0);
   auto e = make_event({{at, 40}}, 101);
   prism::RefineSettings by_pvalue{.rescue = false};
-  by_pvalue.lattice_scan_depth_mm = 0;
+  by_pvalue.near_face_mm = 0;
   const auto stuck = refine(e, {row(alias, 40)}, true, by_pvalue)[0];
   const auto found = refine(e, {row(alias, 40)}, true, {.rescue = false})[0];
   auto error_mm = [&](const prism::ReconstructedVertex& r) { return glm::length(glm::dvec3(r.x_mm, r.y_mm, r.depth_mm) - at); };
