@@ -8,6 +8,7 @@
 
 #include "host/cmd/commands.h"
 #include "host/cmd/options.h"
+#include "host/reconstruct/ambiguity.h"
 #include "host/util/format.h"
 #include "host/util/image_io.h"
 #include "host/util/plot.h"
@@ -15,6 +16,16 @@
 namespace prism::cmd {
 
 namespace {
+
+constexpr double kConfusionFloor = 1e-9;  // the confusion plot's log axis starts here
+
+// out/crlb.png -> out/crlb-ambiguity.png
+std::string ambiguity_plot_path(const std::string& plot) {
+  const auto dot = plot.find_last_of('.');
+  const auto slash = plot.find_last_of('/');
+  if (dot == std::string::npos || (slash != std::string::npos && dot < slash)) return plot + "-ambiguity";
+  return plot.substr(0, dot) + "-ambiguity" + plot.substr(dot);
+}
 
 struct CrlbArgs {
   std::vector<std::string> scenes{"prototype"};
@@ -24,6 +35,8 @@ struct CrlbArgs {
   std::string csv, plot;
   double converge = 0;
   unsigned max_rays = 1u << 20;
+  bool ambiguity = false;
+  double separation_mm = AmbiguitySettings{}.min_separation_mm;
   ForwardOptions fw;
 };
 
@@ -71,10 +84,21 @@ void run(const CrlbArgs& a) {
                 g0.pixel_mm * 1e3, scenes.front().optics.pixel_um);
   else
     std::printf("# CRLB at the sensor's native %.1f um pixels\n", scenes.front().optics.pixel_um);
-  std::printf("%-14s %-4s %7s %7s %7s %9s %10s %10s %10s %10s %8s %7s  %s\n", "scene", "lens", "x_mm", "y_mm", "depth",
-              "photons", "crlb_x", "crlb_y", "crlb_z", "crlb_3d", "rays", "change", "flag");
+  AmbiguitySettings as;
+  as.min_separation_mm = a.separation_mm;
+  if (a.ambiguity)
+    std::printf("# ambiguity: binary sensor (dark rate %s per pixel), the closest impostor at least %s mm away "
+                "(lattice aliases to 2 pitches, depth moves, the best %d refined; photons fitted), scene model at %u "
+                "cells per lenslet; alias_kl in nats at the row's photons, p_confusion per event "
+                "(host/reconstruct/ambiguity.h)\n",
+                format_number(as.dark_rate).c_str(), format_number(as.min_separation_mm).c_str(), as.refined,
+                refine_trace_settings(t0.binning).rays_per_lenslet);
+  std::printf("%-14s %-4s %7s %7s %7s %9s %10s %10s %10s %10s %8s %7s  %s%s\n", "scene", "lens", "x_mm", "y_mm", "depth",
+              "photons", "crlb_x", "crlb_y", "crlb_z", "crlb_3d", "rays", "change", "flag",
+              a.ambiguity ? "  alias_kl alias_x alias_y alias_z p_confusion" : "");
 
   std::vector<CrlbRow> all;
+  std::vector<Ambiguity> ambiguities;  // beside `all`, with --ambiguity
   for (const auto& scene : scenes) {
     TraceSettings t = a.fw.settings(scene);
     auto start = std::chrono::steady_clock::now();
@@ -93,11 +117,28 @@ void run(const CrlbArgs& a) {
       if (r.crlb.flag == "ok" && !(r.change <= tol)) r.crlb.flag = "moving";
     double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
     std::fprintf(stderr, " %.2f s\n", s);
-    for (const auto& r : rows) {
-      std::printf("%-14s %-4s %7.2f %7.2f %7.2f %9.2f %10s %10s %10s %10s %8u %7s  %s\n", r.scene.c_str(),
+    std::unique_ptr<SourceModel> model;
+    if (a.ambiguity) model = make_scene_model(scene, refine_trace_settings(t.binning), ctx.get());
+    for (size_t i = 0; i < rows.size(); ++i) {
+      const auto& r = rows[i];
+      std::string extra;
+      if (model) {
+        std::fprintf(stderr, "prism crlb: %s ambiguity at depth %s (%zu of %zu) ...", scene.name.c_str(),
+                     format_number(r.theta.z).c_str(), i + 1, rows.size());
+        const auto t_start = std::chrono::steady_clock::now();
+        const Ambiguity amb = ambiguity(*model, scene, r.theta, r.photons, as);
+        std::fprintf(stderr, " %.1f s\n", std::chrono::duration<double>(std::chrono::steady_clock::now() - t_start).count());
+        ambiguities.push_back(amb);
+        char buf[160];
+        std::snprintf(buf, sizeof buf, "  %8s %7.2f %7.2f %7.2f %11s", format_number(amb.kl).c_str(), amb.impostor_mm.x,
+                      amb.impostor_mm.y, amb.impostor_mm.z, format_number(amb.p_confusion).c_str());
+        extra = buf;
+      }
+      std::printf("%-14s %-4s %7.2f %7.2f %7.2f %9.2f %10s %10s %10s %10s %8u %7s  %s%s\n", r.scene.c_str(),
                   to_string(r.lens_model), r.theta.x, r.theta.y, r.theta.z, r.photons, format_number(r.crlb.x_mm).c_str(),
                   format_number(r.crlb.y_mm).c_str(), format_number(r.crlb.depth_mm).c_str(), format_number(r.crlb.r3_mm).c_str(),
-                  r.rays_per_lenslet, std::isnan(r.change) ? "-" : format_number(r.change).c_str(), r.crlb.flag.c_str());
+                  r.rays_per_lenslet, std::isnan(r.change) ? "-" : format_number(r.change).c_str(), r.crlb.flag.c_str(),
+                  extra.c_str());
       all.push_back(r);
     }
     // Real lenses at fine pixels: the geometric CRLB follows slivers of light
@@ -116,13 +157,22 @@ void run(const CrlbArgs& a) {
     write_atomically(a.csv, [&](const std::string& tmp) {
       std::ofstream out(tmp);
       out << "scene,x_mm,y_mm,depth_mm,photons,crlb_x_mm,crlb_y_mm,crlb_z_mm,crlb_3d_mm,"
-             "lens_model,sensor_model,rays_per_lenslet,binning,analysis_pixel_um,change_vs_quarter_rays,flag\n";
-      for (const auto& r : all)
+             "lens_model,sensor_model,rays_per_lenslet,binning,analysis_pixel_um,change_vs_quarter_rays,flag"
+          << (a.ambiguity ? ",alias_kl,alias_x_mm,alias_y_mm,alias_depth_mm,p_confusion" : "") << '\n';
+      for (size_t i = 0; i < all.size(); ++i) {
+        const auto& r = all[i];
         out << r.scene << ',' << format_number(r.theta.x) << ',' << format_number(r.theta.y) << ',' << format_number(r.theta.z) << ','
             << format_number(r.photons) << ',' << format_number(r.crlb.x_mm) << ',' << format_number(r.crlb.y_mm) << ',' << format_number(r.crlb.depth_mm)
             << ',' << format_number(r.crlb.r3_mm) << ',' << to_string(r.lens_model) << ',' << a.sensor << ','
             << r.rays_per_lenslet << ',' << t0.binning << ',' << format_number(g0.pixel_mm * 1e3) << ','
-            << (std::isnan(r.change) ? "" : format_number(r.change)) << ',' << r.crlb.flag << '\n';
+            << (std::isnan(r.change) ? "" : format_number(r.change)) << ',' << r.crlb.flag;
+        if (a.ambiguity) {
+          const Ambiguity& m = ambiguities[i];
+          out << ',' << format_number(m.kl) << ',' << format_number(m.impostor_mm.x) << ',' << format_number(m.impostor_mm.y)
+              << ',' << format_number(m.impostor_mm.z) << ',' << format_number(m.p_confusion);
+        }
+        out << '\n';
+      }
       if (!out) throw std::runtime_error("cannot write " + a.csv);
     });
     std::fprintf(stderr, "prism crlb: wrote %s\n", a.csv.c_str());
@@ -146,6 +196,27 @@ void run(const CrlbArgs& a) {
                 "depth from scintillator face (mm)", "3D CRLB (mm)", true},
                series);
     std::fprintf(stderr, "prism crlb: wrote %s\n", a.plot.c_str());
+    if (a.ambiguity) {
+      // Beside it: the predicted confusion against depth, floored for the log axis.
+      std::map<std::string, Series> conf;
+      for (size_t i = 0; i < all.size(); ++i) {
+        const std::string key = all[i].scene + " (" + to_string(all[i].lens_model) + ")";
+        Series& s = conf[key];
+        s.label = key;
+        s.dashed = all[i].scene.rfind("single", 0) == 0;
+        s.x.push_back(all[i].theta.z);
+        s.y.push_back(std::max(ambiguities[i].p_confusion, kConfusionFloor));
+      }
+      std::vector<Series> cs;
+      for (const auto& k : order) cs.push_back(conf[k]);
+      const std::string path = ambiguity_plot_path(a.plot);
+      plot_lines(path,
+                 {"Predicted confusion with an impostor >= " + format_number(as.min_separation_mm) +
+                      " mm away (binary sensor; floor " + format_number(kConfusionFloor) + ")",
+                  "depth from scintillator face (mm)", "p_confusion per event", true},
+                 cs);
+      std::fprintf(stderr, "prism crlb: wrote %s\n", path.c_str());
+    }
   }
 }
 
@@ -170,6 +241,13 @@ void add_crlb(CLI::App& app) {
                 "each row is checked against a quarter of the rays")
       ->check(CLI::Range(0.0, 1.0));
   c->add_option("--max-rays", a->max_rays, "with --converge: most rays per 3 mm lenslet")->capture_default_str();
+  c->add_flag("--ambiguity", a->ambiguity,
+              "also the global figure per row: the closest impostor source at least --separation-mm away on the "
+              "binary sensor (KL divergence in nats at the row's photons, its position) and the predicted "
+              "probability that the reconstruction confuses the two (columns alias_kl, alias_x_mm, alias_y_mm, "
+              "alias_depth_mm, p_confusion; with --plot also PLOT-ambiguity.png)");
+  c->add_option("--separation-mm", a->separation_mm, "with --ambiguity: the least distance of an impostor (3D)")
+      ->capture_default_str()->check(CLI::PositiveNumber);
   a->fw.add_to(c, defaults::analysis_binning);
   c->callback([a] { run(*a); });
 }

@@ -10,6 +10,9 @@
 #include <string>
 #include <vector>
 
+#include <glm/glm.hpp>
+
+#include "engine/defaults.h"
 #include "host/util/image_io.h"
 #include "support.h"
 
@@ -49,6 +52,34 @@ TEST_CASE("prism crlb writes the documented CSV columns and a plot") {
   for (std::string line; std::getline(in, line);) ++rows;
   CHECK(rows == 4);
   CHECK(std::filesystem::file_size(dir + "/c.png") > 1000);
+  std::filesystem::remove_all(dir);
+}
+
+TEST_CASE("prism crlb --ambiguity adds the closest impostor and the predicted confusion, and their plot") {
+  std::string dir = temp_dir();
+  auto r = prism::test::run_prism("crlb --scene unifocal-f15 --scene prototype --lens-model thin --depth-mm 25 --x-mm 1 "
+                                  "--y-mm 1 --rays 1024 --binning 32 --ambiguity --csv " + dir + "/c.csv --plot " + dir +
+                                  "/c.png");
+  INFO(r.output);
+  REQUIRE(r.status == 0);
+  CHECK(r.output.find("# ambiguity: binary sensor") != std::string::npos);
+  std::ifstream in(dir + "/c.csv");
+  std::string line;
+  std::getline(in, line);
+  CHECK(line.find(",flag,alias_kl,alias_x_mm,alias_y_mm,alias_depth_mm,p_confusion") != std::string::npos);
+  int rows = 0;
+  while (std::getline(in, line)) {
+    std::vector<std::string> f = prism::test::csv_fields(line);
+    REQUIRE(f.size() == 21);
+    ++rows;
+    const glm::dvec3 impostor(std::stod(f[17]), std::stod(f[18]), std::stod(f[19]));
+    CHECK(glm::length(impostor - glm::dvec3(1, 1, 25)) >= prism::defaults::catastrophic_error_mm - 1e-3);  // CSV digits
+    CHECK(std::stod(f[16]) > 0);
+    CHECK(std::stod(f[20]) >= 0);
+    CHECK(std::stod(f[20]) <= 1);
+  }
+  CHECK(rows == 2);
+  CHECK(std::filesystem::file_size(dir + "/c-ambiguity.png") > 1000);
   std::filesystem::remove_all(dir);
 }
 
