@@ -244,6 +244,11 @@ int main(int argc, char** argv) {
   const Row cpu = run({"backend", "cpu reference (double)", B::cpu, 2, 1, false, 1, 3}, few, few_truth);
   const Row dense = run({"backend", "dense baseline (device)", B::dense, 2, 1, false, 1, 3}, few, few_truth);
   const Row sparse = run({"backend", "sparse vulkan", B::vulkan, 2, 1, false, 1, 3}, few, few_truth);
+  // The default path: the budget's scan level, coarse to fine (reconstruct.h).
+  const int default_level = default_search_level(m, 0, ReconstructionSettings{}.tau_mm);
+  const Row sparse_default =
+      run({"backend", "sparse, default level " + std::to_string(default_level), B::vulkan, default_level, 1, false, 1, 3}, few,
+          few_truth);
   // 2. The sparse path: tier, step, precision, K.
   std::map<int, const Row*> tier;
   for (int level : {1, 2, 3, 4})
@@ -308,6 +313,10 @@ int main(int argc, char** argv) {
     std::printf("  sparse vulkan vs cpu reference:  %.1fx faster\n", cpu.seconds_per_event / sparse.seconds_per_event);
     std::printf("  sparse vulkan vs dense baseline: %.1fx faster\n", dense.seconds_per_event / sparse.seconds_per_event);
   }
+  if (ran(dense) && ran(sparse_default))
+    std::printf("  sparse at the default level %d (coarse to fine) vs the dense baseline: %.1fx faster, same vertices %s\n",
+                default_level, dense.seconds_per_event / sparse_default.seconds_per_event,
+                same_vertices(dense, sparse_default) ? "yes" : "NO");
   for (auto [level, f] : fixed8)
     if (ran(*f) && ran(*tier[level]) && ran(*tier[2]))
       std::printf("  level %d coarse to fine (margin %.0f) vs exhaustive level 2: %.1fx faster, error mean %.2f vs %.2f mm, "
