@@ -597,8 +597,8 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
   }
   // The continuation: the geometric images have hard edges, so a click
   // that an image's edge leaves costs up to -log(dark_rate) at once, and the
-  // likelihood near the face is a staircase of such cliffs a few hundredths
-  // of a mm apart, which a local step cannot see across. Fitted again with
+  // likelihood near the face is a staircase of such cliffs thousandths to
+  // hundredths of a mm apart, which a local step cannot see across. Fitted again with
   // the images blurred (the cliffs become slopes), then less, then not, from
   // the estimate; kept if the unblurred NLL is lower.
   if (s_.continuation && near_face()) {
