@@ -63,6 +63,16 @@ std::vector<prism::ReconstructedVertex> refine(const prism::Event& e, std::vecto
   return r.refine(e, std::move(start));
 }
 
+// The source moved by `pitches` lenslet pitches along the row, times (D + L) / L
+// (alias_scale): a lattice alias, every image where a neighbour's was.
+glm::dvec3 row_alias(glm::dvec3 at, double pitches) {
+  return at + glm::dvec3(pitches * prism::defaults::lenslet_pitch_mm * small_scene().optics.alias_scale(at.z), 0, 0);
+}
+
+double error_mm(const prism::ReconstructedVertex& v, glm::dvec3 truth) {
+  return glm::length(glm::dvec3(v.x_mm, v.y_mm, v.depth_mm) - truth);
+}
+
 // Per-axis error in units of the vertex's own CRLB.
 glm::dvec3 z_scores(const prism::ReconstructedVertex& v, glm::dvec3 truth) {
   return glm::abs(glm::dvec3(v.x_mm, v.y_mm, v.depth_mm) - truth) / glm::dvec3(v.crlb_x_mm, v.crlb_y_mm, v.crlb_z_mm);
@@ -155,9 +165,7 @@ TEST_CASE("refinement: a start on a lattice alias comes back to the truth") {
   // every image where its neighbour's was; only the neighbours' focal lengths
   // differ.
   const glm::dvec3 at(-1.2, 0.4, 12.5);
-  const auto& o = small_scene().optics;
-  const double scale = o.alias_scale(at.z);
-  const glm::dvec3 alias = at + glm::dvec3(prism::defaults::lenslet_pitch_mm * scale, 0, 0);
+  const glm::dvec3 alias = row_alias(at, 1);
   auto e = make_event({{at, 300}}, 6);
   auto without = refine(e, {row(alias, 300)}, true, {.aliases = false, .lattice_scan = false});
   auto with = refine(e, {row(alias, 300)}, true);
@@ -171,9 +179,7 @@ TEST_CASE("refinement: a poor fit two pitches off is rescued by the far aliases"
   // Near the face a source two pitches away makes a look-alike the nearest
   // aliases cannot reach (from +2 pitches they try +1 and +3).
   const glm::dvec3 at(0.6, 0.3, 4.5);
-  const auto& o = small_scene().optics;
-  const double scale = o.alias_scale(at.z);
-  const glm::dvec3 alias = at + glm::dvec3(2 * prism::defaults::lenslet_pitch_mm * scale, 0, 0);
+  const glm::dvec3 alias = row_alias(at, 2);
   auto e = make_event({{at, 300}}, 8);
   auto stuck = refine(e, {row(alias, 300)}, true, {.rescue = false, .lattice_scan = false});
   auto rescued = refine(e, {row(alias, 300)}, true);
@@ -273,10 +279,8 @@ TEST_CASE("refinement hazards with several vertices: 0.5 mm apart, a lattice ali
     CHECK(v[0].alpha + v[1].alpha == doctest::Approx(600).epsilon(0.15));
   }
   SUBCASE("a lattice alias apart: both found, each where it is") {
-    const auto& o = small_scene().optics;
     const glm::dvec3 a(-3, 0.3, 15);
-    const double scale = o.alias_scale(a.z);
-    const glm::dvec3 b = a + glm::dvec3(prism::defaults::lenslet_pitch_mm * scale, 0, 0);
+    const glm::dvec3 b = row_alias(a, 1);
     auto e = make_event({{a, 400}, {b, 400}}, 9);
     auto v = refine(e, {row(a + glm::dvec3(0.3, -0.2, 0.5), 300), row(b + glm::dvec3(-0.3, 0.2, -0.5), 300)}, true);
     CHECK(glm::length(pos(v[0]) - a) < 5 * v[0].crlb_3d_mm);
@@ -322,15 +326,14 @@ TEST_CASE("refinement: the ladder's rungs, moved by whole pixels, take a near-fa
   rs.ladder_reach_px = prism::defaults::refine_ladder_reach_px;
   const auto& v = stuck[0];
   const auto moved = refine(e, {row({v.x_mm, v.y_mm, v.depth_mm}, v.alpha)}, true, rs)[0];
-  auto error_mm = [&](const prism::ReconstructedVertex& r) { return glm::length(glm::dvec3(r.x_mm, r.y_mm, r.depth_mm) - at); };
   CAPTURE(from_truth[0].nll);
   CAPTURE(stuck[0].nll);
   CAPTURE(moved.nll);
-  CAPTURE(error_mm(stuck[0]));
-  CAPTURE(error_mm(moved));
+  CAPTURE(error_mm(stuck[0], at));
+  CAPTURE(error_mm(moved, at));
   CHECK(stuck[0].nll > from_truth[0].nll + 20);  // the start's own optimum is a worse one
   CHECK(moved.nll < stuck[0].nll - 20);          // the ladder leaves it for a better one
-  CHECK(error_mm(moved) < 0.5 * error_mm(stuck[0]));
+  CHECK(error_mm(moved, at) < 0.5 * error_mm(stuck[0], at));
   prism::test::check_validation_clean();
 }
 
@@ -339,21 +342,19 @@ TEST_CASE("refinement: a shallow estimate on a wrong site that fits as well as e
   // fit settles on that site and the model finds nothing wrong with it (p
   // well above the lattice scan's trigger); its depth alone sends it to the
   // scan, which finds the source (defaults::refine_near_face_mm).
-  const auto& o = small_scene().optics;
   const glm::dvec3 at(0.6, 0.3, 2.5);
-  const glm::dvec3 alias = at + glm::dvec3(2 * prism::defaults::lenslet_pitch_mm * o.alias_scale(at.z), 0, 0);
+  const glm::dvec3 alias = row_alias(at, 2);
   auto e = make_event({{at, 40}}, 101);
   prism::RefineSettings by_pvalue{.rescue = false};
   by_pvalue.near_face_mm = 0;
   const auto stuck = refine(e, {row(alias, 40)}, true, by_pvalue)[0];
   const auto found = refine(e, {row(alias, 40)}, true, {.rescue = false})[0];
-  auto error_mm = [&](const prism::ReconstructedVertex& r) { return glm::length(glm::dvec3(r.x_mm, r.y_mm, r.depth_mm) - at); };
-  CAPTURE(error_mm(stuck));
+  CAPTURE(error_mm(stuck, at));
   CAPTURE(stuck.fit_pvalue);
-  CAPTURE(error_mm(found));
-  CHECK(error_mm(stuck) > 3);
+  CAPTURE(error_mm(found, at));
+  CHECK(error_mm(stuck, at) > 3);
   CHECK(stuck.fit_pvalue > prism::defaults::refine_lattice_scan_pvalue);
-  CHECK(error_mm(found) < 5 * found.crlb_3d_mm);
+  CHECK(error_mm(found, at) < 5 * found.crlb_3d_mm);
   CHECK(found.nll < stuck.nll - 20);
   prism::test::check_validation_clean();
 }
@@ -374,14 +375,13 @@ TEST_CASE("refinement: the continuation crosses the cliffs that hard-edged image
     CAPTURE(on_device);
     const auto stays = refine(e, {row(worse, 71.5)}, on_device, none)[0];
     const auto crossed = refine(e, {row(worse, 71.5)}, on_device, continued)[0];
-    auto error_mm = [&](const prism::ReconstructedVertex& r) { return glm::length(glm::dvec3(r.x_mm, r.y_mm, r.depth_mm) - at); };
-    CAPTURE(error_mm(stays));
+    CAPTURE(error_mm(stays, at));
     CAPTURE(stays.nll);
-    CAPTURE(error_mm(crossed));
+    CAPTURE(error_mm(crossed, at));
     CAPTURE(crossed.nll);
-    CHECK(error_mm(stays) > 0.03);
+    CHECK(error_mm(stays, at) > 0.03);
     CHECK(crossed.nll < stays.nll - 5);
-    CHECK(error_mm(crossed) < 0.5 * error_mm(stays));
+    CHECK(error_mm(crossed, at) < 0.5 * error_mm(stays, at));
   }
   prism::test::check_validation_clean();
 }
@@ -392,9 +392,8 @@ TEST_CASE("refinement near the face is reproducible: runs and backends reach the
   // hard-edged images; started two pitches off, one run in three ended 0.05
   // mm from the best optimum, 9.7 worse in NLL, before the continuation.
   // Every run and the double reference must now agree.
-  const auto& o = small_scene().optics;
   const glm::dvec3 at(0.6, 0.3, 4.5);
-  const glm::dvec3 alias = at + glm::dvec3(2 * prism::defaults::lenslet_pitch_mm * o.alias_scale(at.z), 0, 0);
+  const glm::dvec3 alias = row_alias(at, 2);
   auto e = make_event({{at, 100}}, 111);
   const prism::RefineSettings rs{.rescue = false};
   const auto reference = refine(e, {row(alias, 100)}, false, rs)[0];
