@@ -31,6 +31,8 @@ struct SweepArgs {
   SplatOptions splat;
   std::vector<std::string> bounds;
   unsigned keep = 3, confirm = 0;
+  bool ambiguity = false;  // score it even when no objective or bound names it
+  AmbiguityScoring ambiguity_scoring;
 };
 
 std::atomic<bool> interrupted{false};
@@ -47,7 +49,8 @@ void write_csv(const std::string& path, const Sweep& sweep, const std::vector<co
     out << "rank,feasible,valid,origin";
     for (const auto& c : DesignSpace::parameter_columns()) out << ',' << c;
     out << ",mean_crlb_3d_mm,worst_crlb_3d_mm,mean_crlb_x_mm,mean_crlb_y_mm,mean_crlb_z_mm,mean_photons,depth_ratio,"
-           "seconds,reason,key\n";
+           "p_confusion,worst_p_confusion,alias_kl,seconds,reason,key\n";
+    auto maybe = [](double v) { return std::isnan(v) ? std::string() : format_number(v); };  // empty: not scored
     size_t rank = 0;
     for (const Evaluated* e : ranked) {
       bool feasible = e->valid;
@@ -58,9 +61,10 @@ void write_csv(const std::string& path, const Sweep& sweep, const std::vector<co
       if (e->valid)
         out << ',' << format_number(o.mean_crlb_3d_mm) << ',' << format_number(o.worst_crlb_3d_mm) << ',' << format_number(o.mean_crlb_x_mm) << ','
             << format_number(o.mean_crlb_y_mm) << ',' << format_number(o.mean_crlb_z_mm) << ',' << format_number(o.mean_photons) << ','
-            << format_number(o.depth_ratio) << ',' << format_number(e->seconds) << ',';
+            << format_number(o.depth_ratio) << ',' << maybe(o.mean_p_confusion) << ',' << maybe(o.worst_p_confusion)
+            << ',' << maybe(o.min_alias_kl) << ',' << format_number(e->seconds) << ',';
       else
-        out << ",,,,,,,,," << csv_field(e->reason);
+        out << ",,,,,,,,,,,," << csv_field(e->reason);
       out << ',' << e->key << '\n';
     }
     if (!out) throw std::runtime_error("cannot write " + path);
@@ -72,27 +76,33 @@ Series marker(const std::string& label, double x, double y, double dx) {
   return {label, {x - dx, x + dx, x, x - dx, x + dx}, {y * 0.93, y * 1.07, y, y * 1.07, y * 0.93}};
 }
 
+// The staircase of the lowest y so far along `pts` (in the order given: best x first).
+Series pareto_front(const std::vector<std::pair<double, double>>& pts) {
+  Series front{"Pareto front (" + std::to_string(pts.size()) + " designs)", {}, {}};
+  double best = INFINITY;
+  for (const auto& [x, y] : pts)
+    if (y < best && std::isfinite(y)) {
+      if (!front.x.empty()) {  // staircase
+        front.x.push_back(x);
+        front.y.push_back(best);
+      }
+      best = y;
+      front.x.push_back(x);
+      front.y.push_back(y);
+    }
+  return front;
+}
+
 void write_plots(const SweepArgs& a, const Sweep& sweep, const std::vector<const Evaluated*>& ranked,
                  const std::vector<Baseline>& baselines, const std::string& stated) {
   // Pareto front: the best objective among designs with at least x photons.
-  std::string y_name = objective_is_maximised(a.objective) ? "mean_crlb_3d" : a.objective;
+  std::string y_name = objective_is_maximised(a.objective) || objective_is_ambiguity(a.objective) ? "mean_crlb_3d" : a.objective;
   std::vector<std::pair<double, double>> pts;
   for (const Evaluated* e : ranked)
     if (e->valid) pts.push_back({e->objectives.mean_photons, objective_value(e->objectives, y_name)});
   if (pts.empty()) return;
   std::sort(pts.begin(), pts.end(), [](auto& p, auto& q) { return p.first > q.first || (p.first == q.first && p.second < q.second); });
-  Series front{"Pareto front (" + std::to_string(pts.size()) + " designs)", {}, {}};
-  double best = INFINITY;
-  for (const auto& [photons, v] : pts)
-    if (v < best && std::isfinite(v)) {
-      if (!front.x.empty()) {  // staircase
-        front.x.push_back(photons);
-        front.y.push_back(best);
-      }
-      best = v;
-      front.x.push_back(photons);
-      front.y.push_back(v);
-    }
+  Series front = pareto_front(pts);
   double dx = 0.01 * std::max(1.0, pts.front().first - pts.back().first);
   std::vector<Series> series{front};
   const Evaluated& top = *ranked.front();
@@ -114,6 +124,32 @@ void write_plots(const SweepArgs& a, const Sweep& sweep, const std::vector<const
              depth);
 }
 
+// The trade-off the ambiguity objectives exist for: the lowest predicted
+// confusion rate among designs with at most a given mean 3D CRLB.
+void write_ambiguity_plot(const std::string& path, const std::vector<const Evaluated*>& ranked,
+                          const std::vector<Baseline>& baselines, const AmbiguityScoring& scoring,
+                          const std::string& stated) {
+  constexpr double floor = 1e-6;  // the Gaussian tail is not a figure below ~1e-4 (host/reconstruct/ambiguity.h)
+  auto p = [&](const Objectives& o) { return std::max(floor, o.mean_p_confusion); };
+  std::vector<std::pair<double, double>> pts;
+  for (const Evaluated* e : ranked)
+    if (e->valid && std::isfinite(e->objectives.mean_crlb_3d_mm) && !std::isnan(e->objectives.mean_p_confusion))
+      pts.push_back({e->objectives.mean_crlb_3d_mm, p(e->objectives)});
+  if (pts.empty()) return;
+  std::sort(pts.begin(), pts.end());
+  Series front = pareto_front(pts);
+  front.markers = true;
+  std::vector<Series> series{front};
+  for (const auto& b : baselines)
+    if (std::isfinite(b.objectives.mean_crlb_3d_mm))
+      series.push_back({b.name, {b.objectives.mean_crlb_3d_mm}, {p(b.objectives)}, false, true});
+  plot_lines(path,
+             {"confusion vs CRLB: " + format_number(scoring.photons) + " photons, >= " +
+                  format_number(scoring.settings.min_separation_mm) + " mm",
+              "mean 3D CRLB (mm; " + stated + ")", "mean p_confusion per event (floor 1e-6)", true, true},
+             series);
+}
+
 void run(const SweepArgs& a) {
   DesignSpace space = DesignSpace::load(a.space);
   SweepSettings s;
@@ -131,6 +167,7 @@ void run(const SweepArgs& a) {
   s.seed = a.seed;
   s.batch = a.batch;
   for (const auto& b : a.bounds) s.bounds.push_back(parse_bound(b));
+  if (a.ambiguity || s.names_ambiguity()) s.ambiguity = a.ambiguity_scoring;
   std::filesystem::create_directories(a.out);
   Sweep sweep(space, s, a.out + "/evaluated.jsonl");
 
@@ -151,6 +188,12 @@ void run(const SweepArgs& a) {
               device.c_str(), s.trace.rays(), a.binning, a.binning, g.pixel_mm * 1e3, to_string(s.trace.splat),
               to_string(s.trace.estimator), format_number(s.trace.photons_emitted).c_str());
   std::printf("# volume samples: %s\n", space.samples.describe().c_str());
+  if (s.ambiguity)
+    std::printf("# ambiguity: %s (host/reconstruct/ambiguity.h): %s detected photons, impostors >= %s mm away, "
+                "binary sensor at %u x %u binned pixels, scene model at %u cells per lenslet\n",
+                space.ambiguity_samples.describe().c_str(), format_number(s.ambiguity->photons).c_str(),
+                format_number(s.ambiguity->settings.min_separation_mm).c_str(), s.ambiguity->binning,
+                s.ambiguity->binning, refine_trace_settings(s.ambiguity->binning).rays());
   std::printf("# state: %s/evaluated.jsonl (%zu designs already scored), seed %llu, budget %zu\n", a.out.c_str(),
               sweep.evaluated().size(), static_cast<unsigned long long>(a.seed), a.budget);
   std::fflush(stdout);
@@ -186,12 +229,19 @@ void run(const SweepArgs& a) {
   // Baselines at the same settings and samples: the prototype and the unifocal arrays.
   auto baselines = score_baselines(space, s, ctx.get());
   write_plots(a, sweep, ranked, baselines, stated);
+  if (s.ambiguity) write_ambiguity_plot(a.out + "/ambiguity.png", ranked, baselines, *s.ambiguity, stated);
 
-  std::printf("%-4s %-10s %12s %12s %10s %8s  %s\n", "rank", "origin", "mean_3d_mm", "worst_3d_mm", "photons",
-              "d_ratio", "focal_mm");
+  const bool amb = s.ambiguity.has_value();
+  std::printf("%-4s %-12s %12s %12s %10s %8s%s  %s\n", "rank", "origin", "mean_3d_mm", "worst_3d_mm", "photons",
+              "d_ratio", amb ? "  p_confusion    alias_kl" : "", "focal_mm");
   auto row = [&](const std::string& rank, const std::string& origin, const Objectives& o, const std::string& focal) {
-    std::printf("%-4s %-10s %12s %12s %10s %8s  %s\n", rank.c_str(), origin.c_str(), format_number(o.mean_crlb_3d_mm).c_str(),
-                format_number(o.worst_crlb_3d_mm).c_str(), format_number(o.mean_photons).c_str(), format_number(o.depth_ratio).c_str(), focal.c_str());
+    char extra[64] = "";
+    if (amb)
+      std::snprintf(extra, sizeof extra, " %12s %11s", format_number(o.mean_p_confusion).c_str(),
+                    format_number(o.min_alias_kl).c_str());
+    std::printf("%-4s %-12s %12s %12s %10s %8s%s  %s\n", rank.c_str(), origin.c_str(),
+                format_number(o.mean_crlb_3d_mm).c_str(), format_number(o.worst_crlb_3d_mm).c_str(),
+                format_number(o.mean_photons).c_str(), format_number(o.depth_ratio).c_str(), extra, focal.c_str());
   };
   for (size_t k = 0; k < ranked.size() && k < 5; ++k)
     row(std::to_string(k + 1), ranked[k]->origin, ranked[k]->objectives,
@@ -213,7 +263,8 @@ void run(const SweepArgs& a) {
       std::printf("%-4zu %14s %14s %8zu\n", c.rank, format_number(c.device_value).c_str(),
                   format_number(c.reference_value).c_str(), c.reference_rank);
   }
-  std::fprintf(stderr, "prism sweep: wrote %s/ranked.csv, best-*.json, pareto.png, crlb-depth.png\n", a.out.c_str());
+  std::fprintf(stderr, "prism sweep: wrote %s/ranked.csv, best-*.json, pareto.png, crlb-depth.png%s\n", a.out.c_str(),
+               amb ? ", ambiguity.png" : "");
 }
 
 }  // namespace
@@ -224,7 +275,7 @@ void add_sweep(CLI::App& app) {
   c->add_option("--space", a->space, "design space JSON file (host/sweep/spaces/*.json)")->required();
   std::string names;
   for (const auto& n : objective_names()) names += (names.empty() ? "" : ", ") + n;
-  c->add_option("--objective", a->objective, "what to minimise (photons is maximised): " + names)
+  c->add_option("--objective", a->objective, "what to minimise (photons and alias_kl are maximised): " + names)
       ->capture_default_str()->check(CLI::IsMember(objective_names()));
   c->add_option("--budget", a->budget, "designs to score (rejected ones count); the whole space when it is smaller")
       ->capture_default_str()->check(CLI::Range(size_t(1), size_t(1) << 30));
@@ -244,6 +295,16 @@ void add_sweep(CLI::App& app) {
   c->add_option("--backend", a->backend, "vulkan, or cpu (double-precision reference; slow)")
       ->capture_default_str()->check(CLI::IsMember({"vulkan", "cpu"}));
   c->add_option("--bound", a->bounds, "constraint NAME>=X or NAME<=X, e.g. photons>=100; repeatable");
+  c->add_flag("--ambiguity", a->ambiguity,
+              "also score the global ambiguity (p_confusion, worst_p_confusion, alias_kl; host/reconstruct/ambiguity.h) "
+              "at the space's ambiguity_samples: on by itself when the objective or a bound names one; ~60 renders "
+              "per sample and design");
+  c->add_option("--ambiguity-photons", a->ambiguity_scoring.photons,
+                "ambiguity: detected photons per event (the volume experiment's)")
+      ->capture_default_str()->check(CLI::Range(1e-3, 1e9));
+  c->add_option("--separation-mm", a->ambiguity_scoring.settings.min_separation_mm,
+                "ambiguity: the least distance of an impostor (3D; the catastrophic threshold of prism evaluate)")
+      ->capture_default_str()->check(CLI::Range(1e-3, 1e3));
   c->add_option("--keep", a->keep, "write the best K designs as best-1.json ... best-K.json")->capture_default_str();
   c->add_option("--confirm", a->confirm, "re-score the top K designs with the CPU reference and show its ranking");
   c->callback([a] { run(*a); });

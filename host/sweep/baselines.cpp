@@ -9,7 +9,10 @@ std::vector<Baseline> score_baselines(const DesignSpace& space, const SweepSetti
   for (const char* name : {"prototype", "unifocal-f3", "unifocal-f9", "unifocal-f15"}) {
     Scene b = builtin_scene(name);
     b.volume = space.base.volume;
-    baselines.push_back({name, score(b, space.samples, s.trace, s.backend, ctx)});
+    Objectives o = score(b, space.samples, s.trace, s.backend, ctx);
+    if (s.ambiguity)
+      score_ambiguity(b, space.ambiguity_samples, *s.ambiguity, s.backend == Backend::vulkan ? ctx : nullptr, o);
+    baselines.push_back({name, o});
   }
   return baselines;
 }
@@ -24,7 +27,10 @@ std::vector<Confirmation> confirm_with_reference(const Sweep& sweep, const std::
     Confirmation c;
     c.rank = k + 1;
     c.device_value = objective_value(ranked[k]->objectives, s.objective);
-    c.reference_value = objective_value(score(scene, sweep.space().samples, s.trace, Backend::cpu, nullptr), s.objective);
+    Objectives o = score(scene, sweep.space().samples, s.trace, Backend::cpu, nullptr);
+    if (objective_is_ambiguity(s.objective))
+      score_ambiguity(scene, sweep.space().ambiguity_samples, *s.ambiguity, nullptr, o);
+    c.reference_value = objective_value(o, s.objective);
     out.push_back(c);
   }
   std::vector<size_t> order(out.size());

@@ -51,12 +51,17 @@ SampleGrid SampleGrid::of(const Volume& v, int lateral, int depth) {
 // ---- Objectives and bounds
 
 const std::vector<std::string>& objective_names() {
-  static const std::vector<std::string> names{"mean_crlb_3d", "worst_crlb_3d", "mean_crlb_x", "mean_crlb_y",
-                                              "mean_crlb_z",  "photons",       "depth_ratio"};
+  static const std::vector<std::string> names{"mean_crlb_3d", "worst_crlb_3d", "mean_crlb_x",      "mean_crlb_y",
+                                              "mean_crlb_z",  "photons",       "depth_ratio",      "p_confusion",
+                                              "worst_p_confusion", "alias_kl"};
   return names;
 }
 
-bool objective_is_maximised(const std::string& name) { return name == "photons"; }
+bool objective_is_maximised(const std::string& name) { return name == "photons" || name == "alias_kl"; }
+
+bool objective_is_ambiguity(const std::string& name) {
+  return name == "p_confusion" || name == "worst_p_confusion" || name == "alias_kl";
+}
 
 double objective_value(const Objectives& o, const std::string& name) {
   if (name == "mean_crlb_3d") return o.mean_crlb_3d_mm;
@@ -66,6 +71,9 @@ double objective_value(const Objectives& o, const std::string& name) {
   if (name == "mean_crlb_z") return o.mean_crlb_z_mm;
   if (name == "photons") return o.mean_photons;
   if (name == "depth_ratio") return o.depth_ratio;
+  if (name == "p_confusion") return o.mean_p_confusion;
+  if (name == "worst_p_confusion") return o.worst_p_confusion;
+  if (name == "alias_kl") return o.min_alias_kl;
   std::string list;
   for (const auto& n : objective_names()) list += (list.empty() ? "" : ", ") + n;
   throw SweepError("unknown objective '" + name + "' (known: " + list + ")");
@@ -93,6 +101,16 @@ Bound parse_bound(const std::string& text) {
     throw SweepError("--bound '" + text + "': '" + text.substr(at + 2) + "' is not a number");
   }
   return b;
+}
+
+nlohmann::json AmbiguityScoring::to_json() const {
+  return {{"photons", photons},
+          {"binning", binning},
+          {"min_separation_mm", settings.min_separation_mm},
+          {"dark_rate", settings.dark_rate},
+          {"refined", settings.refined},
+          {"iterations", settings.iterations},
+          {"rays_per_lenslet", refine_trace_settings(binning).rays()}};
 }
 
 // ---- Scoring
@@ -161,6 +179,22 @@ std::vector<Objectives> score_together(const std::vector<Scene>& scenes, const S
 Objectives score(const Scene& scene, const SampleGrid& grid, const TraceSettings& settings, Backend backend,
                  vk::Context* ctx) {
   return objectives_of(crlb_study(scene, grid.positions(), settings, backend, SensorModel::poisson, ctx), grid);
+}
+
+void score_ambiguity(const Scene& scene, const SampleGrid& samples, const AmbiguityScoring& scoring, vk::Context* ctx,
+                     Objectives& o) {
+  auto model = make_scene_model(scene, refine_trace_settings(scoring.binning), ctx);
+  double sum = 0, worst = 0, kl = INFINITY;
+  const auto positions = samples.positions();
+  for (const auto& theta : positions) {
+    const Ambiguity a = ambiguity(*model, scene, theta, scoring.photons, scoring.settings);
+    sum += a.p_confusion;
+    worst = std::max(worst, a.p_confusion);
+    kl = std::min(kl, a.kl);
+  }
+  o.mean_p_confusion = sum / double(positions.size());
+  o.worst_p_confusion = worst;
+  o.min_alias_kl = kl;
 }
 
 }  // namespace prism

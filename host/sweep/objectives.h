@@ -9,6 +9,10 @@
 
 #include <glm/glm.hpp>
 
+#include <nlohmann/json.hpp>
+
+#include "host/reconstruct/ambiguity.h"
+#include "host/reconstruct/evaluate.h"
 #include "host/scene/crlb_study.h"
 #include "host/scene/scene.h"
 
@@ -38,10 +42,31 @@ struct Objectives {
   double mean_photons = 0;             // expected detected photons, mean over the samples
   double depth_ratio = INFINITY;       // worst / best depth plane of the mean 3D CRLB (1 = uniform)
   std::vector<double> crlb_3d_by_depth_mm;  // mean over the lateral samples, per depth plane
+  // Global ambiguity over the space's ambiguity samples (host/reconstruct/
+  // ambiguity.h); NaN where not computed (see AmbiguityScoring).
+  double mean_p_confusion = NAN;   // predicted probability per event that an impostor wins: a catastrophic rate
+  double worst_p_confusion = NAN;  // largest over the samples
+  double min_alias_kl = NAN;       // nats, the closest impostor over the samples (maximised)
+};
+
+// How the global ambiguity is scored. It costs about 60 renders of the
+// scene's model per sample (the CRLB: one batched dispatch for all samples),
+// so it has its own, smaller sample grid (DesignSpace::ambiguity_samples)
+// and is computed only when an objective or a bound names it, or when asked.
+struct AmbiguityScoring {
+  // Detected photons per event and the clicks' pixels of the volume
+  // experiment, so that mean_p_confusion predicts the catastrophic rate that
+  // `prism evaluate --experiments volume` measures.
+  double photons = volume_protocol::photons;
+  unsigned binning = defaults::analysis_binning;
+  AmbiguitySettings settings;
+  nlohmann::json to_json() const;  // for the sweep's state header
 };
 
 const std::vector<std::string>& objective_names();
 bool objective_is_maximised(const std::string& name);
+// p_confusion, worst_p_confusion, alias_kl: needs AmbiguityScoring.
+bool objective_is_ambiguity(const std::string& name);
 // The named objective's value; throws SweepError listing the names when unknown.
 double objective_value(const Objectives& o, const std::string& name);
 
@@ -58,6 +83,11 @@ Bound parse_bound(const std::string& text);
 // Score one scene at the grid's positions (one batched dispatch on Vulkan).
 Objectives score(const Scene& scene, const SampleGrid& grid, const TraceSettings& settings, Backend backend,
                  vk::Context* ctx);
+
+// Adds the ambiguity objectives of one scene at `samples`, with the scene's
+// model on the device (`ctx`) or the double reference (nullptr).
+void score_ambiguity(const Scene& scene, const SampleGrid& samples, const AmbiguityScoring& scoring, vk::Context* ctx,
+                     Objectives& o);
 
 // Several scenes at the grid's positions in one multi-design dispatch; throws
 // std::invalid_argument when they differ in more than their lenslets.

@@ -155,7 +155,7 @@ DesignSpace DesignSpace::parse(const json& j, const std::string& origin, const s
   SpaceReader rd{origin};
   if (!j.is_object()) rd.fail("(top level)", "a design space is a JSON object");
   rd.keys(j, "", {"name", "base", "layout", "focal_mm", "assignment", "diameter_mm", "lens_to_sensor_mm",
-                  "working_distance_mm", "lens_model", "effects", "samples"});
+                  "working_distance_mm", "lens_model", "effects", "samples", "ambiguity_samples"});
   DesignSpace s;
   s.source = j;
   s.name = j.value("name", std::filesystem::path(origin).stem().string());
@@ -250,29 +250,35 @@ DesignSpace DesignSpace::parse(const json& j, const std::string& origin, const s
   }
   for (const auto& e : s.effects) s.effects_labels.push_back(effects_label(e));
 
-  int lateral = 3, depth = 6;
-  s.samples = SampleGrid::of(s.base.volume, lateral, depth);
-  if (j.contains("samples")) {
-    const json& sj = j["samples"];
-    if (!sj.is_object()) rd.fail("samples", "must be {\"lateral\": N, \"depth\": N} and/or explicit x_mm, y_mm, depth_mm lists");
-    rd.keys(sj, "samples.", {"lateral", "depth", "x_mm", "y_mm", "depth_mm"});
-    if (sj.contains("lateral")) lateral = rd.count(sj["lateral"], "samples.lateral");
-    if (sj.contains("depth")) depth = rd.count(sj["depth"], "samples.depth");
-    s.samples = SampleGrid::of(s.base.volume, lateral, depth);
-    auto coords = [&](const char* k, std::vector<double>& out) {
-      if (!sj.contains(k)) return;
-      json list = sj[k].is_array() ? sj[k] : json::array({sj[k]});
+  // Volume samples: {"lateral": N, "depth": N} (SampleGrid::of) and/or explicit lists.
+  auto sample_grid = [&](const char* key, int lateral, int depth) {
+    const std::string k = key;
+    if (!j.contains(key)) return SampleGrid::of(s.base.volume, lateral, depth);
+    const json& sj = j[key];
+    if (!sj.is_object()) rd.fail(k, "must be {\"lateral\": N, \"depth\": N} and/or explicit x_mm, y_mm, depth_mm lists");
+    rd.keys(sj, k + ".", {"lateral", "depth", "x_mm", "y_mm", "depth_mm"});
+    if (sj.contains("lateral")) lateral = rd.count(sj["lateral"], k + ".lateral");
+    if (sj.contains("depth")) depth = rd.count(sj["depth"], k + ".depth");
+    SampleGrid g = SampleGrid::of(s.base.volume, lateral, depth);
+    auto coords = [&](const char* c, std::vector<double>& out) {
+      if (!sj.contains(c)) return;
+      json list = sj[c].is_array() ? sj[c] : json::array({sj[c]});
       out.clear();
       for (const auto& v : list) {
-        if (!v.is_number()) rd.fail(std::string("samples.") + k, "must be numbers in mm, got " + v.dump());
+        if (!v.is_number()) rd.fail(k + "." + c, "must be numbers in mm, got " + v.dump());
         out.push_back(v.get<double>());
       }
-      if (out.empty()) rd.fail(std::string("samples.") + k, "must list at least one position");
+      if (out.empty()) rd.fail(k + "." + c, "must list at least one position");
     };
-    coords("x_mm", s.samples.x_mm);
-    coords("y_mm", s.samples.y_mm);
-    coords("depth_mm", s.samples.depth_mm);
-  }
+    coords("x_mm", g.x_mm);
+    coords("y_mm", g.y_mm);
+    coords("depth_mm", g.depth_mm);
+    return g;
+  };
+  s.samples = sample_grid("samples", 3, 6);
+  // The global ambiguity costs ~60 renders per sample: by default the
+  // volume's axis at six depths.
+  s.ambiguity_samples = sample_grid("ambiguity_samples", 1, 6);
 
   if (s.focal_fixed || s.diameter_fixed)
     for (size_t l = 0; l < s.layouts.size(); ++l)

@@ -73,7 +73,8 @@ class DesignSpace {
   std::vector<LensModel> lens_models;
   std::vector<Effects> effects;
   std::vector<std::string> effects_labels;
-  SampleGrid samples;
+  SampleGrid samples;            // where the CRLB objectives are scored
+  SampleGrid ambiguity_samples;  // where the ambiguity objectives are (fewer: each costs ~60 renders)
 
   std::vector<LensletGeometry> positions(size_t layout) const;  // centres only
  private:

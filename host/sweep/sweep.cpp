@@ -12,8 +12,15 @@ namespace prism {
 
 using json = nlohmann::json;
 
+bool SweepSettings::names_ambiguity() const {
+  bool named = objective_is_ambiguity(objective);
+  for (const auto& b : bounds) named = named || objective_is_ambiguity(b.objective);
+  return named;
+}
+
 std::vector<Evaluated> evaluate_designs(const DesignSpace& space, const std::vector<Design>& designs,
-                                        const TraceSettings& settings, Backend backend, vk::Context* ctx) {
+                                        const TraceSettings& settings, Backend backend, vk::Context* ctx,
+                                        const AmbiguityScoring* ambiguity) {
   std::vector<Evaluated> out(designs.size());
   std::vector<size_t> valid;
   std::vector<Scene> scenes;
@@ -45,6 +52,10 @@ std::vector<Evaluated> evaluate_designs(const DesignSpace& space, const std::vec
   }
   if (!together)
     for (const auto& scene : scenes) scores.push_back(score(scene, space.samples, settings, backend, ctx));
+  if (ambiguity)
+    for (size_t k = 0; k < scenes.size(); ++k)
+      score_ambiguity(scenes[k], space.ambiguity_samples, *ambiguity, backend == Backend::vulkan ? ctx : nullptr,
+                      scores[k]);
   double per_design = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() / double(scenes.size());
   for (size_t k = 0; k < valid.size(); ++k) {
     out[valid[k]].objectives = scores[k];
@@ -54,8 +65,8 @@ std::vector<Evaluated> evaluate_designs(const DesignSpace& space, const std::vec
 }
 
 Evaluated evaluate_design(const DesignSpace& space, const Design& d, const TraceSettings& settings, Backend backend,
-                          vk::Context* ctx) {
-  return evaluate_designs(space, {d}, settings, backend, ctx).front();
+                          vk::Context* ctx, const AmbiguityScoring* ambiguity) {
+  return evaluate_designs(space, {d}, settings, backend, ctx, ambiguity).front();
 }
 
 
@@ -81,6 +92,10 @@ json to_json(const Evaluated& e) {
                      {"mean_crlb_x_mm", num(o.mean_crlb_x_mm)},   {"mean_crlb_y_mm", num(o.mean_crlb_y_mm)},
                      {"mean_crlb_z_mm", num(o.mean_crlb_z_mm)},   {"mean_photons", num(o.mean_photons)},
                      {"depth_ratio", num(o.depth_ratio)},         {"crlb_3d_by_depth_mm", by_depth}};
+  if (!std::isnan(o.mean_p_confusion))
+    j["objectives"].update({{"mean_p_confusion", num(o.mean_p_confusion)},
+                            {"worst_p_confusion", num(o.worst_p_confusion)},
+                            {"min_alias_kl", num(o.min_alias_kl)}});
   j["seconds"] = e.seconds;
   return j;
 }
@@ -105,6 +120,11 @@ Evaluated evaluated_from_json(const json& j) {
   b.mean_photons = num(o.at("mean_photons"));
   b.depth_ratio = num(o.at("depth_ratio"));
   for (const auto& v : o.at("crlb_3d_by_depth_mm")) b.crlb_3d_by_depth_mm.push_back(num(v));
+  if (o.contains("mean_p_confusion")) {
+    b.mean_p_confusion = num(o.at("mean_p_confusion"));
+    b.worst_p_confusion = num(o.at("worst_p_confusion"));
+    b.min_alias_kl = num(o.at("min_alias_kl"));
+  }
   e.seconds = j.value("seconds", 0.0);
   return e;
 }
@@ -113,7 +133,7 @@ Evaluated evaluated_from_json(const json& j) {
 
 json Sweep::header() const {
   const TraceSettings& t = settings_.trace;
-  return {{"prism_sweep", 1},
+  json h = {{"prism_sweep", 1},
           {"space", space_.source},
           {"rays_per_lenslet", t.rays()},
           {"binning", t.binning},
@@ -124,15 +144,23 @@ json Sweep::header() const {
           {"backend", settings_.backend == Backend::cpu ? "cpu" : "vulkan"},
           {"batch", settings_.batch},
           {"samples", {{"x_mm", space_.samples.x_mm}, {"y_mm", space_.samples.y_mm}, {"depth_mm", space_.samples.depth_mm}}}};
+  if (settings_.ambiguity) {  // absent otherwise, so that sweeps without it resume from older state files
+    const SampleGrid& g = space_.ambiguity_samples;
+    h["ambiguity"] = settings_.ambiguity->to_json();
+    h["ambiguity"]["samples"] = {{"x_mm", g.x_mm}, {"y_mm", g.y_mm}, {"depth_mm", g.depth_mm}};
+  }
+  return h;
 }
 
 Sweep::Sweep(const DesignSpace& space, SweepSettings settings, std::string state_path)
     : space_(space), settings_(std::move(settings)), state_path_(std::move(state_path)) {
   objective_value(Objectives{}, settings_.objective);  // an unknown name fails before any work
   if (settings_.budget == 0) throw SweepError("--budget must be at least 1");
+  if (settings_.names_ambiguity() && !settings_.ambiguity) settings_.ambiguity.emplace();
   try {
     journal_.emplace(state_path_, header(),
-                     "rerun with the same space and --rays/--binning/--device kind, or use a new --out");
+                     "rerun with the same space and --rays/--binning/--device kind (and the ambiguity's options, when "
+                     "the objective or a bound names it), or use a new --out");
   } catch (const JournalError& e) {
     throw SweepError(e.what());
   }
@@ -184,7 +212,8 @@ void Sweep::consume(const std::vector<std::pair<Design, std::string>>& queue, vk
   std::vector<Design> fresh;
   for (const auto& [d, origin] : queue)
     if (!stored_.count(d.key())) fresh.push_back(d);
-  std::vector<Evaluated> scored = evaluate_designs(space_, fresh, settings_.trace, settings_.backend, ctx);
+  std::vector<Evaluated> scored = evaluate_designs(space_, fresh, settings_.trace, settings_.backend, ctx,
+                                                     settings_.ambiguity ? &*settings_.ambiguity : nullptr);
   size_t next = 0;
   size_t consumed = seen_.size() - queue.size();
   for (const auto& [d, origin] : queue) {

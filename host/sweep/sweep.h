@@ -32,6 +32,10 @@ struct SweepSettings {
   size_t budget = 100;  // designs in the state file, rejected ones included
   uint64_t seed = 1;
   size_t batch = 8;  // candidates generated and scored together (one dispatch on Vulkan)
+  // The global ambiguity objectives: scored when set, and set by the Sweep
+  // (with the defaults) when the objective or a bound names one of them.
+  std::optional<AmbiguityScoring> ambiguity;
+  bool names_ambiguity() const;  // the objective or a bound needs it
 };
 
 struct Evaluated {
@@ -87,9 +91,11 @@ class Sweep {
 // Validate and score designs, the valid ones together (one multi-design
 // dispatch when they differ only in their lenslets); a design validate()
 // refuses is returned with valid = false and the reason.
+// With `ambiguity`, also the ambiguity objectives at space.ambiguity_samples.
 std::vector<Evaluated> evaluate_designs(const DesignSpace& space, const std::vector<Design>& designs,
-                                        const TraceSettings& settings, Backend backend, vk::Context* ctx);
+                                        const TraceSettings& settings, Backend backend, vk::Context* ctx,
+                                        const AmbiguityScoring* ambiguity = nullptr);
 Evaluated evaluate_design(const DesignSpace& space, const Design& d, const TraceSettings& settings, Backend backend,
-                          vk::Context* ctx);
+                          vk::Context* ctx, const AmbiguityScoring* ambiguity = nullptr);
 
 }  // namespace prism

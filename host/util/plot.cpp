@@ -31,13 +31,16 @@ void plot_lines(const std::string& path, const PlotSpec& spec, const std::vector
       ymax = std::max(ymax, ty(s.y[i]));
     }
   if (!std::isfinite(xmin)) throw std::runtime_error("plot " + path + ": no finite values to draw");
+  // Whole decades on log axes, with a little room so that a value on a
+  // decade is not drawn on the frame (where its marker is cut).
+  constexpr double room = 0.02;
   if (spec.log_y) {
-    ymin = std::floor(ymin);
-    ymax = std::ceil(ymax);
+    ymin = std::floor(ymin - room);
+    ymax = std::ceil(ymax + room);
   }
   if (spec.log_x) {
-    xmin = std::floor(xmin);
-    xmax = std::ceil(xmax);
+    xmin = std::floor(xmin - room);
+    xmax = std::ceil(xmax + room);
   }
   if (ymax <= ymin) ymax = ymin + 1;
   if (xmax <= xmin) xmax = xmin + 1;

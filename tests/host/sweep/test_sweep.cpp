@@ -45,7 +45,8 @@ prism::DesignSpace row_space(const TempDir& dir) {
   json space = {{"base", "row3.json"},
                 {"focal_mm", {4.5, 9, 15}},
                 {"assignment", "free"},
-                {"samples", {{"x_mm", {0}}, {"y_mm", {0}}, {"depth_mm", {5, 25}}}}};
+                {"samples", {{"x_mm", {0}}, {"y_mm", {0}}, {"depth_mm", {5, 25}}}},
+                {"ambiguity_samples", {{"x_mm", {0}}, {"y_mm", {0}}, {"depth_mm", {8}}}}};
   return prism::DesignSpace::parse(space, "row3-space.json", dir.path.string());
 }
 
@@ -194,6 +195,54 @@ TEST_CASE("sweep: an interrupted sweep keeps its designs and resumes to the same
   prism::test::check_validation_clean();
 }
 
+TEST_CASE("sweep: the ambiguity objectives are scored when named, as ambiguity() gives them, and kept in the state") {
+  TempDir dir;
+  auto space = row_space(dir);
+  const std::string state = dir.file("state.jsonl");
+  auto settings = tiny(4, 3);
+  settings.objective = "alias_kl";  // maximised: the least ambiguous first
+  {
+    prism::Sweep sweep(space, settings, state);
+    REQUIRE(sweep.settings().ambiguity);  // named by the objective: scored with the defaults
+    sweep.run(&prism::test::gpu());
+    REQUIRE(sweep.evaluated().size() == 4);
+    const prism::AmbiguityScoring& scoring = *sweep.settings().ambiguity;
+    for (const auto& e : sweep.evaluated()) {
+      CAPTURE(e.key);
+      // One sample: the objectives are that sample's figure, with the
+      // scene's model at the clicks' pixels and the volume experiment's photons.
+      prism::Scene scene = space.scene_of(e.design, "check");
+      auto model = prism::make_scene_model(scene, prism::refine_trace_settings(scoring.binning), &prism::test::gpu());
+      const prism::Ambiguity a = prism::ambiguity(*model, scene, {0, 0, 8}, scoring.photons, scoring.settings);
+      REQUIRE(std::isfinite(a.kl));
+      CHECK(e.objectives.min_alias_kl == doctest::Approx(a.kl).epsilon(1e-6));
+      CHECK(e.objectives.mean_p_confusion == doctest::Approx(a.p_confusion).epsilon(1e-6));
+      CHECK(e.objectives.worst_p_confusion == e.objectives.mean_p_confusion);
+    }
+    auto ranked = sweep.ranked();
+    for (size_t i = 1; i < ranked.size(); ++i)
+      CHECK(ranked[i - 1]->objectives.min_alias_kl >= ranked[i]->objectives.min_alias_kl);
+  }
+  // A resume replays the stored figures; other ambiguity settings cannot share the state.
+  prism::Sweep again(space, settings, state);
+  again.run(&prism::test::gpu());
+  CHECK(again.replayed() == 4);
+  for (const auto& e : again.evaluated()) CHECK(std::isfinite(e.objectives.min_alias_kl));
+  auto other = settings;
+  other.ambiguity.emplace();
+  other.ambiguity->settings.min_separation_mm = 2;
+  CHECK_THROWS_WITH_AS(prism::Sweep(space, other, state), doctest::Contains("ambiguity"), prism::SweepError);
+  // Not named: not scored (NaN), and a bound on it then needs it.
+  prism::Sweep plain(space, tiny(1), dir.file("plain.jsonl"));
+  CHECK(!plain.settings().ambiguity);
+  plain.run(&prism::test::gpu());
+  CHECK(std::isnan(plain.evaluated().front().objectives.mean_p_confusion));
+  auto bounded = tiny(1);
+  bounded.bounds = {prism::parse_bound("p_confusion<=0.01")};
+  CHECK(prism::Sweep(space, bounded, dir.file("bounded.jsonl")).settings().ambiguity);
+  prism::test::check_validation_clean();
+}
+
 TEST_CASE("sweep: overlapping and off-sensor designs are rejected with a reason") {
   TempDir dir;
   json j = {{"base", "prototype"},
@@ -224,6 +273,7 @@ TEST_CASE("sweep: space files name the bad field") {
   CHECK(space_error({{"effects", {{"glow"}}}}).find("effects[0]") != std::string::npos);
   CHECK(space_error({{"base", "no-such-scene"}}).find("base:") != std::string::npos);
   CHECK(space_error({{"samples", {{"depth", 0}}}}).find("samples.depth") != std::string::npos);
+  CHECK(space_error({{"ambiguity_samples", {{"x_mm", {"a"}}}}}).find("ambiguity_samples.x_mm") != std::string::npos);
   CHECK_THROWS_WITH_AS(prism::parse_bound("photons>100"), doctest::Contains("NAME>=VALUE"), prism::SweepError);
   CHECK_THROWS_WITH_AS(prism::parse_bound("flux>=1"), doctest::Contains("unknown objective 'flux'"), prism::SweepError);
   auto b = prism::parse_bound("photons>=100");
