@@ -215,8 +215,12 @@ TEST_CASE("sweep: the ambiguity objectives are scored when named, as ambiguity()
       auto model = prism::make_scene_model(scene, prism::refine_trace_settings(scoring.binning), &prism::test::gpu());
       const prism::Ambiguity a = prism::ambiguity(*model, scene, {0, 0, 8}, scoring.photons, scoring.settings);
       REQUIRE(std::isfinite(a.kl));
-      CHECK(e.objectives.min_alias_kl == doctest::Approx(a.kl).epsilon(1e-6));
-      CHECK(e.objectives.mean_p_confusion == doctest::Approx(a.p_confusion).epsilon(1e-6));
+      // Device renders differ between runs by ~1e-9 (float atomics), which
+      // can stop the impostor's refinement a step earlier or later: it stops
+      // on a gain below 1e-4 of D, so D agrees to 1e-3 and its Gaussian
+      // tail, whose log is ~D^2 / 2V, to a few per cent.
+      CHECK(e.objectives.min_alias_kl == doctest::Approx(a.kl).epsilon(1e-3));
+      CHECK(e.objectives.mean_p_confusion == doctest::Approx(a.p_confusion).epsilon(0.05).scale(1e-30));
       CHECK(e.objectives.worst_p_confusion == e.objectives.mean_p_confusion);
     }
     auto ranked = sweep.ranked();
