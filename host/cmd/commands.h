@@ -1,9 +1,18 @@
 // One function per `prism` subcommand; each lives in host/cmd/<name>.cpp and
 // registers its options and callback on the top-level CLI11 app.
 #pragma once
+#include <stdexcept>
+
 #include <CLI/CLI.hpp>
 
 namespace prism::cmd {
+// A command stopped by Ctrl-C after saving what it could: prism exits 130,
+// as a shell reports a process ended by SIGINT.
+struct Interrupted : std::runtime_error {
+  using std::runtime_error::runtime_error;
+};
+inline constexpr int interrupted_exit_status = 130;
+
 void add_crlb(CLI::App& app);
 void add_psf(CLI::App& app);
 void add_camera(CLI::App& app);

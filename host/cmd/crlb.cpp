@@ -42,6 +42,9 @@ struct CrlbArgs {
 
 
 void run(const CrlbArgs& a) {
+  if (!a.csv.empty()) check_writable(a.csv);
+  if (!a.plot.empty()) check_writable(a.plot);
+  if (!a.plot.empty() && a.ambiguity) check_writable(ambiguity_plot_path(a.plot));
   auto depths = parse_list(a.depths, "--depth-mm");
   std::vector<glm::dvec3> positions;
   for (double d : depths) positions.push_back({a.x_mm, a.y_mm, d});
@@ -52,6 +55,7 @@ void run(const CrlbArgs& a) {
   for (const auto& name : a.scenes) {
     scenes.push_back(load_scene(name));
     a.fw.apply(scenes.back());
+    for (double d : depths) require_in_front(scenes.back(), d, "--depth-mm");
   }
   std::unique_ptr<vk::Context> ctx;
   std::string device = "CPU reference (double precision)";

@@ -3,6 +3,8 @@
 
 #include "engine/vk/context.h"
 #include "host/cmd/commands.h"
+#include "host/cmd/options.h"
+#include "host/util/output_file.h"
 
 int main(int argc, char** argv) {
   CLI::App app{"prism: plenoptic imaging of particle interactions in scintillation detectors, on Vulkan compute"};
@@ -20,10 +22,15 @@ int main(int argc, char** argv) {
   app.add_subcommand("devices", "list the Vulkan devices that --device can choose")->callback([] {
     for (const auto& d : prism::vk::Context::list_devices()) std::printf("%s\n", d.c_str());
   });
+  prism::cmd::require_finite_numbers(app);
+  prism::install_interrupt_cleanup();
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
     return app.exit(e);
+  } catch (const prism::cmd::Interrupted& e) {
+    std::fprintf(stderr, "prism: %s\n", e.what());
+    return prism::cmd::interrupted_exit_status;
   } catch (const std::exception& e) {
     std::fprintf(stderr, "prism: %s\n", e.what());
     return 1;

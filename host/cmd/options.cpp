@@ -1,7 +1,10 @@
 #include "host/cmd/options.h"
 
 #include <cmath>
+#include <cstdlib>
 #include <sstream>
+
+#include "host/util/format.h"
 
 namespace prism::cmd {
 
@@ -111,6 +114,29 @@ std::string format_list(std::span<const double> values) {
     out += b;
   }
   return out;
+}
+
+void require_in_front(const Scene& scene, double depth_mm, const std::string& option) {
+  const double wd = scene.optics.working_distance_mm;
+  if (!(depth_mm > -wd))
+    throw std::runtime_error(option + ": depth " + format_number(depth_mm) + " mm is not in front of " + scene.name +
+                             "'s lenses, which lie " + format_number(wd) +
+                             " mm before the scintillator face: give a depth > " + format_number(-wd) + " mm");
+}
+
+void require_finite_numbers(CLI::App& app) {
+  // No name: the help's type column stays as CLI11 writes it.
+  static const CLI::Validator finite(
+      [](std::string& text) -> std::string {
+        char* end = nullptr;
+        const double v = std::strtod(text.c_str(), &end);
+        if (end != text.c_str() && !std::isfinite(v)) return "'" + text + "' is not a finite number";
+        return "";  // anything else: CLI11's own conversion judges it
+      },
+      "");
+  for (CLI::Option* o : app.get_options())
+    if (o->get_type_name().find("FLOAT") != std::string::npos) o->check(finite);
+  for (CLI::App* sub : app.get_subcommands({})) require_finite_numbers(*sub);
 }
 
 glm::dvec3 parse_point(const std::string& text, const std::string& option) {

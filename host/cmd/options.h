@@ -50,4 +50,13 @@ std::string format_list(std::span<const double> values);
 // "X,Y,DEPTH".
 glm::dvec3 parse_point(const std::string& text, const std::string& option);
 
+// A source must be in front of the lenses: depth (from the scintillator face)
+// > -working distance. Throws naming the option and the scene's limit.
+void require_in_front(const Scene& scene, double depth_mm, const std::string& option);
+
+// Every number option of `app` and its subcommands (CLI11 type FLOAT) refuses
+// NaN and infinities, naming the option: call once, after every subcommand
+// has added its options.
+void require_finite_numbers(CLI::App& app);
+
 }  // namespace prism::cmd

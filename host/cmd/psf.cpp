@@ -19,10 +19,15 @@ struct PsfArgs {
   ForwardOptions fw;
 };
 
+std::string preview_path(const std::string& exr) { return exr.substr(0, exr.find_last_of('.')) + ".png"; }
+
 void run(const PsfArgs& a) {
+  check_writable(a.out);
+  check_writable(preview_path(a.out));
   Scene scene = load_scene(a.scene);
   a.fw.apply(scene);
   glm::dvec3 theta = parse_point(a.source, "--source-mm");
+  require_in_front(scene, theta.z, "--source-mm");
   TraceSettings t = a.fw.settings(scene);
   PixelImage img;
   std::string device = "CPU reference (double precision)";
@@ -54,7 +59,7 @@ void run(const PsfArgs& a) {
     channels.push_back({"db_ddepth", img.data.data() + 3, 4});
   }
   write_exr(a.out, img.width, img.height, channels);
-  std::string png = a.out.substr(0, a.out.find_last_of('.')) + ".png";
+  const std::string png = preview_path(a.out);
   write_png_preview(png, img.width, img.height, img.data.data(), 4);
   std::printf("# device: %s\n%s: %d x %d px of %.1f um, %u rays/lenslet, %.3f expected photons detected\n",
               device.c_str(), a.out.c_str(), img.width, img.height, img.pixel_mm * 1e3, t.rays(), img.photons());

@@ -14,6 +14,7 @@
 #include "host/reconstruct/match.h"
 #include "host/reconstruct/pool.h"
 #include "host/reconstruct/refine.h"
+#include "host/util/output_file.h"
 #include "host/util/progress.h"
 
 namespace prism::cmd {
@@ -35,6 +36,7 @@ struct ReconstructArgs {
 };
 
 void run(const ReconstructArgs& a) {
+  check_writable(a.out);
   DictionaryReader reader(a.dictionary);
   const auto& m = reader.manifest();
   EventReader events(a.events);
@@ -70,51 +72,54 @@ void run(const ReconstructArgs& a) {
     refiner = std::make_unique<Refiner>(*source_model, scene, m.level_grid(level), rs);
   }
 
-  std::ofstream csv(a.out);
-  if (!csv) throw std::runtime_error(a.out + ": cannot open for writing; check the directory exists and is writable");
-  csv << "event,vertex,x_mm,y_mm,depth_mm,alpha,nll,clicks,flags,crlb_x_mm,crlb_y_mm,crlb_z_mm,crlb_3d_mm,fit_pvalue\n";
-  csv.precision(10);
-
+  // Written aside and renamed when whole: a failure (a corrupt PSF, a
+  // truncated event file) leaves an earlier CSV as it was.
   Progress progress("reconstruct", events.header().event_count);
   const size_t batch = on_device ? std::max<size_t>(1, a.batch) : 32 * pool.workers();
   std::vector<Event> in(batch);
   uint64_t done = 0, flagged = 0, clicks = 0, scored = 0;
   double error_sum_mm = 0;
   auto start = std::chrono::steady_clock::now();
-  for (bool more = true; more;) {
-    size_t n = 0;
-    while (n < batch && (more = events.next(in[n]))) ++n;
-    auto out = pool.run(std::span<const Event>(in.data(), n));
-    if (refiner)
-      for (size_t i = 0; i < n; ++i) out[i] = refiner->refine(in[i], std::move(out[i]));
-    for (size_t i = 0; i < n; ++i) {
-      const Event& e = in[i];
-      clicks += e.clicks.size();
-      for (size_t k = 0; k < out[i].size(); ++k) {
-        const auto& v = out[i][k];
-        flagged += v.flags != vertex_ok;
-        csv << e.id << ',' << k << ',' << v.x_mm << ',' << v.y_mm << ',' << v.depth_mm << ',' << v.alpha << ','
-            << v.nll << ',' << v.clicks << ',' << flags_to_string(v.flags);
-        // Without refinement the CRLB and p-value fields stay empty.
-        for (double x : {v.crlb_x_mm, v.crlb_y_mm, v.crlb_z_mm, v.crlb_3d_mm, v.fit_pvalue}) {
-          csv << ',';
-          if (!std::isnan(x)) csv << x;
+  write_atomically(a.out, [&](const std::string& tmp) {
+    std::ofstream csv(tmp);
+    if (!csv) throw std::runtime_error(a.out + ": cannot open for writing; check the directory exists and is writable");
+    csv << "event,vertex,x_mm,y_mm,depth_mm,alpha,nll,clicks,flags,crlb_x_mm,crlb_y_mm,crlb_z_mm,crlb_3d_mm,fit_pvalue\n";
+    csv.precision(10);
+    for (bool more = true; more;) {
+      size_t n = 0;
+      while (n < batch && (more = events.next(in[n]))) ++n;
+      auto out = pool.run(std::span<const Event>(in.data(), n));
+      if (refiner)
+        for (size_t i = 0; i < n; ++i) out[i] = refiner->refine(in[i], std::move(out[i]));
+      for (size_t i = 0; i < n; ++i) {
+        const Event& e = in[i];
+        clicks += e.clicks.size();
+        for (size_t k = 0; k < out[i].size(); ++k) {
+          const auto& v = out[i][k];
+          flagged += v.flags != vertex_ok;
+          csv << e.id << ',' << k << ',' << v.x_mm << ',' << v.y_mm << ',' << v.depth_mm << ',' << v.alpha << ','
+              << v.nll << ',' << v.clicks << ',' << flags_to_string(v.flags);
+          // Without refinement the CRLB and p-value fields stay empty.
+          for (double x : {v.crlb_x_mm, v.crlb_y_mm, v.crlb_z_mm, v.crlb_3d_mm, v.fit_pvalue}) {
+            csv << ',';
+            if (!std::isnan(x)) csv << x;
+          }
+          csv << '\n';
         }
-        csv << '\n';
+        // Single-vertex truth: the 3D error, for the summary line.
+        if (e.vertices.size() == 1 && out[i].size() == 1 && out[i][0].flags == vertex_ok) {
+          const auto& t = e.vertices[0];
+          error_sum_mm += error_3d_mm(out[i][0], {t.x_mm, t.y_mm, t.depth_mm});
+          ++scored;
+        }
       }
-      // Single-vertex truth: the 3D error, for the summary line.
-      if (e.vertices.size() == 1 && out[i].size() == 1 && out[i][0].flags == vertex_ok) {
-        const auto& t = e.vertices[0];
-        error_sum_mm += error_3d_mm(out[i][0], {t.x_mm, t.y_mm, t.depth_mm});
-        ++scored;
-      }
+      done += n;
+      progress.update(done);
     }
-    done += n;
-    progress.update(done);
-  }
+    csv.close();
+    if (!csv) throw std::runtime_error(a.out + ": write failed (disk full?)");
+  });
   progress.finish();
-  csv.close();
-  if (!csv) throw std::runtime_error(a.out + ": write failed (disk full?)");
   double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   const unsigned threads = pool.workers();
   if (on_device)

@@ -9,6 +9,7 @@
 #include "host/cmd/options.h"
 #include "host/events/event_file.h"
 #include "host/events/simulate.h"
+#include "host/util/output_file.h"
 #include "host/util/progress.h"
 
 namespace prism::cmd {
@@ -46,9 +47,12 @@ std::vector<EventVertex> parse_vertices(const SimulateArgs& a) {
 }
 
 void run(const SimulateArgs& a) {
+  check_writable(a.out);
   Scene scene = load_scene(a.scene);
   const auto base = parse_vertices(a);
   if (a.jitter_mm < 0) throw std::runtime_error("--jitter-mm must be >= 0");
+  for (const auto& v : base)
+    require_in_front(scene, v.depth_mm - a.jitter_mm, a.jitter_mm > 0 ? "--vertex less --jitter-mm" : "--vertex");
 
   std::optional<vk::Context> ctx;  // only the forward model needs a device
   std::optional<DictionaryReader> reader;

@@ -38,7 +38,8 @@ struct SweepArgs {
 std::atomic<bool> interrupted{false};
 extern "C" void on_sigint(int) {
   interrupted = true;
-  std::signal(SIGINT, SIG_DFL);  // a second Ctrl-C stops at once; the state file is safe either way
+  // A second Ctrl-C stops at once (temporaries removed); the state file is safe either way.
+  std::signal(SIGINT, remove_temporaries_and_die);
 }
 
 
@@ -200,6 +201,7 @@ void run(const SweepArgs& a) {
 
   interrupted = false;
   auto previous = std::signal(SIGINT, on_sigint);
+  if (previous == SIG_IGN) std::signal(SIGINT, SIG_IGN);  // ignored by who started us: stays so
   Progress progress("prism sweep: designs", a.budget);
   size_t fresh = 0;
   sweep.run(
@@ -210,9 +212,6 @@ void run(const SweepArgs& a) {
       });
   progress.finish();
   std::signal(SIGINT, previous);
-  if (interrupted)
-    std::fprintf(stderr, "prism sweep: interrupted; %zu designs kept in %s/evaluated.jsonl; rerun the same command to resume\n",
-                 sweep.evaluated().size(), a.out.c_str());
 
   auto ranked = sweep.ranked();
   write_csv(a.out + "/ranked.csv", sweep, ranked);
@@ -265,6 +264,9 @@ void run(const SweepArgs& a) {
   }
   std::fprintf(stderr, "prism sweep: wrote %s/ranked.csv, best-*.json, pareto.png, crlb-depth.png%s\n", a.out.c_str(),
                amb ? ", ambiguity.png" : "");
+  if (interrupted)
+    throw Interrupted("sweep interrupted; " + std::to_string(sweep.evaluated().size()) + " designs kept in " + a.out +
+                      "/evaluated.jsonl and ranked above; rerun the same command to resume");
 }
 
 }  // namespace

@@ -20,9 +20,7 @@ DictionaryManifest manifest_for(const Scene& scene, const DictionaryBuildOptions
   AnalysisGrid g = AnalysisGrid::of(scene.optics, unsigned(o.base_binning));
   m.width = g.width;
   m.height = g.height;
-  int levels = 1;
-  for (int s = std::max(m.width, m.height); s > 1; s = (s + 1) / 2) ++levels;
-  m.levels = levels;
+  m.levels = DictionaryManifest::mip_levels(m.width, m.height);
   m.tile_px = o.tile_px;
   m.rays_per_lenslet = TraceSettings{o.rays_per_lenslet}.rays();
   m.splat = o.splat;

@@ -18,6 +18,7 @@
 #include <fstream>
 
 #include "engine/defaults.h"
+#include "host/util/format.h"
 #include "host/util/image_io.h"
 
 namespace prism {
@@ -99,6 +100,12 @@ std::string DictionaryManifest::file_of(size_t i) const {
   return b;
 }
 
+int DictionaryManifest::mip_levels(int width, int height) {
+  int levels = 1;
+  for (int s = std::max(width, height); s > 1; s = (s + 1) / 2) ++levels;
+  return levels;
+}
+
 double DictionaryManifest::pixel_mm(int level) const {
   return scene.optics.pixel_um * 1e-3 * base_binning * double(1 << level);
 }
@@ -148,15 +155,28 @@ DictionaryManifest DictionaryManifest::from_json(const nlohmann::json& j, const 
     m.grid.y_mm = g.at("y_mm").get<std::vector<double>>();
     m.grid.depth_mm = g.at("depth_mm").get<std::vector<double>>();
     const auto& lv = j.at("levels");
-    m.levels = lv.at("count");
-    m.base_binning = lv.at("base_binning");
-    m.width = lv.at("level0_px").at(0);
-    m.height = lv.at("level0_px").at(1);
-    m.tile_px = j.at("storage").at("tile_px");
-    m.rays_per_lenslet = j.value("rays_per_lenslet", 0u);
+    // Integers read checked: a wrapped 2^40 or a 0 would divide by zero later.
+    auto integer = [&](const nlohmann::json& v, const std::string& field, double lo, double hi) {
+      if (!v.is_number() || v.get<double>() != std::floor(v.get<double>()) || v.get<double>() < lo ||
+          v.get<double>() > hi)
+        throw fail(field, "must be an integer in " + format_number(lo) + ".." + format_number(hi) + ", got " + v.dump());
+      return int(v.get<double>());
+    };
+    const auto& sensor = m.scene.optics;
+    m.base_binning = integer(lv.at("base_binning"), "levels.base_binning", 1,
+                             std::min(sensor.sensor_width_px, sensor.sensor_height_px));
+    m.width = integer(lv.at("level0_px").at(0), "levels.level0_px[0]", 1, sensor.sensor_width_px);
+    m.height = integer(lv.at("level0_px").at(1), "levels.level0_px[1]", 1, sensor.sensor_height_px);
+    m.levels = integer(lv.at("count"), "levels.count", 1, 64);
+    m.tile_px = integer(j.at("storage").at("tile_px"), "storage.tile_px", 1, 1 << 16);
+    m.rays_per_lenslet = unsigned(j.contains("rays_per_lenslet")
+                                      ? integer(j.at("rays_per_lenslet"), "rays_per_lenslet", 0, 1 << 30)
+                                      : 0);
     m.splat = splat_from_string(j.value("splat", std::string("point")));
     m.stratification = j.value("stratification", 0u);
   } catch (const SceneError&) {
+    throw;
+  } catch (const DictionaryError&) {
     throw;
   } catch (const std::exception& e) {
     throw fail("(fields)", std::string("missing or malformed: ") + e.what());
@@ -169,6 +189,10 @@ DictionaryManifest DictionaryManifest::from_json(const nlohmann::json& j, const 
   if (m.width != ceil_div(m.scene.optics.sensor_width_px, m.base_binning) ||
       m.height != ceil_div(m.scene.optics.sensor_height_px, m.base_binning))
     throw fail("levels.level0_px", "does not match the sensor binned by levels.base_binning");
+  if (m.levels != DictionaryManifest::mip_levels(m.width, m.height))
+    throw fail("levels.count", "is " + std::to_string(m.levels) + ", but a " + std::to_string(m.width) + " x " +
+                                   std::to_string(m.height) + " level 0 has " +
+                                   std::to_string(DictionaryManifest::mip_levels(m.width, m.height)) + " mip levels");
   return m;
 }
 

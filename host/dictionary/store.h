@@ -66,6 +66,8 @@ struct DictionaryManifest {
   std::string source = "synthesised";  // or "calibrated"
 
   std::string file_of(size_t i) const;  // relative to the directory
+  // OpenEXR's ROUND_UP mip chain of a w x h level 0, down to 1 x 1.
+  static int mip_levels(int width, int height);
   double pixel_mm(int level) const;
   int level_width(int level) const;
   int level_height(int level) const;

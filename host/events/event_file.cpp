@@ -7,6 +7,8 @@
 #include <cstring>
 #include <filesystem>
 
+#include "host/util/output_file.h"
+
 namespace prism {
 
 namespace {
@@ -52,9 +54,18 @@ EventWriter::EventWriter(std::string path, EventFileHeader header) : path_(std::
     throw EventFileError(path_ + ": sensor size and binning must be positive");
   if (header_.scene.size() > max_text_bytes || header_.provenance.size() > max_text_bytes)
     throw EventFileError(path_ + ": scene name or provenance longer than 1 MiB");
-  temp_ = path_ + ".tmp." + std::to_string(::getpid());
+  try {
+    check_writable(path_);
+  } catch (const std::runtime_error& e) {
+    throw EventFileError(e.what());
+  }
+  temp_ = begin_temporary(path_);
   f_ = std::fopen(temp_.c_str(), "wb");
-  if (!f_) throw EventFileError(temp_ + ": cannot create (" + std::strerror(errno) + "); check the directory exists and is writable");
+  if (!f_) {
+    const std::string why = std::strerror(errno);
+    remove_temporary(temp_);
+    throw EventFileError(temp_ + ": cannot create (" + why + "); check the directory exists and is writable");
+  }
   std::vector<uint8_t> b(file_magic.begin(), file_magic.end());
   put_u32(b, event_format_version);
   put_u32(b, header_.sensor_width_px);
@@ -74,7 +85,7 @@ EventWriter::EventWriter(std::string path, EventFileHeader header) : path_(std::
 EventWriter::~EventWriter() {
   if (f_) {
     std::fclose(f_);
-    std::filesystem::remove(temp_);
+    remove_temporary(temp_);
   }
 }
 
@@ -120,12 +131,14 @@ void EventWriter::close() {
   ok = ::fsync(::fileno(f_)) == 0 && ok;
   ok = std::fclose(f_) == 0 && ok;
   f_ = nullptr;
-  std::error_code ec;
-  if (ok) std::filesystem::rename(temp_, path_, ec);
-  if (!ok || ec) {
-    std::filesystem::remove(temp_);
-    throw EventFileError(path_ + ": could not finish the file (" + (ec ? ec.message() : "write failed") +
-                         "); nothing was written");
+  if (!ok) {
+    remove_temporary(temp_);
+    throw EventFileError(path_ + ": could not finish the file (write failed); nothing was written");
+  }
+  try {
+    rename_into_place(temp_, path_);
+  } catch (const std::runtime_error& e) {
+    throw EventFileError(std::string(e.what()) + "; nothing was written");
   }
 }
 

@@ -55,12 +55,16 @@ struct Reader {
 };
 
 void check_keys(const Reader& rd, const json& j, const std::string& path, std::initializer_list<const char*> allowed) {
+  std::string list;
+  for (const char* a : allowed) list += std::string(list.empty() ? "" : ", ") + a;
+  if (!j.is_object()) {
+    const std::string field = path.empty() ? "(top level)" : path.substr(0, path.size() - 1);  // "sensor." -> "sensor"
+    rd.fail(field, "must be an object with the fields " + list + ", got " + j.dump());
+  }
   for (auto it = j.begin(); it != j.end(); ++it) {
     bool ok = false;
     for (const char* a : allowed) ok = ok || it.key() == a;
     if (!ok) {
-      std::string list;
-      for (const char* a : allowed) list += std::string(list.empty() ? "" : ", ") + a;
       rd.fail(path + it.key(), "unknown field (expected one of: " + list + ")");
     }
   }

@@ -17,19 +17,6 @@
 
 namespace prism {
 
-std::string temporary_path_for(const std::string& path) {
-  return path + ".partial-" + std::to_string(::getpid());
-}
-
-void rename_into_place(const std::string& tmp, const std::string& path) {
-  std::error_code ec;
-  std::filesystem::rename(tmp, path, ec);
-  if (ec) {
-    std::filesystem::remove(tmp, ec);
-    throw std::runtime_error("cannot write " + path + ": " + ec.message());
-  }
-}
-
 void write_exr(const std::string& path, int width, int height, const std::vector<ExrChannel>& channels) {
   write_atomically(path, [&](const std::string& tmp) {
     try {
@@ -43,7 +30,6 @@ void write_exr(const std::string& path, int width, int height, const std::vector
       file.setFrameBuffer(fb);
       file.writePixels(height);
     } catch (const std::exception& e) {
-      std::remove(tmp.c_str());
       throw std::runtime_error("cannot write " + path + ": " + e.what());
     }
   });

@@ -1,6 +1,12 @@
 // The `prism` command as a user runs it: outputs, files that outside tools
 // read, and errors that say what to do.
+#include <fcntl.h>
+#include <spawn.h>
+#include <sys/wait.h>
+
 #include <array>
+#include <chrono>
+#include <csignal>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -8,6 +14,7 @@
 #include <memory>
 #include <sstream>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include <glm/glm.hpp>
@@ -174,6 +181,102 @@ TEST_CASE("bad input: the error names the problem and nothing is written") {
   auto m = prism::test::run_prism("crlb --scene single-f3 --lens-model real --depth-mm 5");
   CHECK(m.status == 1);
   CHECK(m.output.find("use lens_model thin") != std::string::npos);
+  std::filesystem::remove_all(dir);
+}
+
+TEST_CASE("bad numbers, sources behind the lenses and unwritable outputs are refused before any work") {
+  std::string dir = temp_dir();
+  auto refused = [&](const std::string& args, const std::string& says) {
+    auto r = prism::test::run_prism(args);
+    CAPTURE(args);
+    INFO(r.output);
+    CHECK(r.status != 0);
+    CHECK(r.output.find(says) != std::string::npos);
+    CHECK(r.output.find("rays/lenslet ...") == std::string::npos);  // nothing traced
+  };
+  refused("crlb --x-mm nan --depth-mm 10", "--x-mm: 'nan' is not a finite number");
+  // NaN passes CLI11's range checks (every comparison with it is false).
+  refused("reconstruct --dictionary " + dir + " --events x --tau-mm nan --out " + dir + "/v.csv",
+          "--tau-mm: 'nan' is not a finite number");
+  refused("crlb --depth-mm=-10", "--depth-mm: depth -10 mm is not in front of prototype's lenses");
+  refused("psf --source-mm 0,0,-5 --out " + dir + "/p.exr", "--source-mm: depth -5 mm is not in front");
+  refused("simulate --vertex 0,0,1 --jitter-mm 7 --out " + dir + "/e.events", "--vertex less --jitter-mm");
+  refused("crlb --depth-mm 10 --csv " + dir, "cannot write " + dir + ": it is a directory");
+  refused("crlb --depth-mm 10 --plot " + dir + "/none/x.png", "the folder " + dir + "/none does not exist");
+  refused("psf --source-mm 0,0,10 --out " + dir + "/none/p.exr", "the folder " + dir + "/none does not exist");
+  std::ofstream(dir + "/s.json") << R"({"name": "s", "sensor": 5, "lenslets": [{"x_mm": 0, "y_mm": 0, "focal_mm": 9}]})";
+  refused("crlb --scene " + dir + "/s.json --depth-mm 10", "sensor: must be an object with the fields width_px");
+  CHECK(std::filesystem::is_empty(dir) == false);  // s.json only
+  for (const auto& f : std::filesystem::directory_iterator(dir)) CHECK(f.path().filename() == "s.json");
+  std::filesystem::remove_all(dir);
+}
+
+TEST_CASE("outputs are whole: a temporary left by a killed run is removed, Ctrl-C on a sweep exits 130") {
+  std::string dir = temp_dir();
+  // A temporary of a process that no longer runs (pid beyond any pid_max).
+  std::ofstream(dir + "/c.csv.partial-999999999") << "half a row";
+  auto r = prism::test::run_prism("crlb --depth-mm 10 --rays 256 --binning 64 --csv " + dir + "/c.csv");
+  REQUIRE_MESSAGE(r.status == 0, r.output);
+  CHECK(std::filesystem::exists(dir + "/c.csv"));
+  CHECK_FALSE(std::filesystem::exists(dir + "/c.csv.partial-999999999"));
+
+  // Ctrl-C: the design in flight is finished and kept, the outputs written,
+  // the exit status 130.
+  std::ofstream(dir + "/space.json") << R"({"base": "prototype", "focal_mm": [9, 15], "assignment": "free",
+      "samples": {"x_mm": [0], "y_mm": [0], "depth_mm": [20]}})";
+  // Sent once a design is in the state file: the process spawned directly,
+  // with SIGINT at its default (a shell would start a background job with it
+  // ignored, and prism keeps a signal ignored that it was started ignoring).
+  const std::string state_file = dir + "/sw/evaluated.jsonl", log = dir + "/sweep.log";
+  std::vector<std::string> args{PRISM_BINARY, "sweep", "--space", dir + "/space.json", "--budget", "100000",
+                                "--batch", "1", "--rays", "256", "--binning", "64", "--out", dir + "/sw"};
+  std::vector<char*> argv;
+  for (auto& a : args) argv.push_back(a.data());
+  argv.push_back(nullptr);
+  posix_spawn_file_actions_t io;
+  posix_spawn_file_actions_init(&io);
+  posix_spawn_file_actions_addopen(&io, 1, log.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+  posix_spawn_file_actions_adddup2(&io, 1, 2);
+  posix_spawnattr_t attr;
+  posix_spawnattr_init(&attr);
+  sigset_t defaults;
+  sigemptyset(&defaults);
+  sigaddset(&defaults, SIGINT);
+  posix_spawnattr_setsigdefault(&attr, &defaults);
+  posix_spawnattr_setflags(&attr, POSIX_SPAWN_SETSIGDEF);
+  pid_t pid = 0;
+  const int spawned = posix_spawn(&pid, PRISM_BINARY, &io, &attr, argv.data(), environ);
+  posix_spawn_file_actions_destroy(&io);
+  posix_spawnattr_destroy(&attr);
+  REQUIRE(spawned == 0);
+  auto lines_in = [](const std::string& path) {
+    std::ifstream f(path);
+    int n = 0;
+    for (std::string line; std::getline(f, line);) ++n;
+    return n;
+  };
+  for (int i = 0; i < 1200 && lines_in(state_file) < 2; ++i) std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  ::kill(pid, SIGINT);
+  int status = 0;
+  for (int i = 0; i < 1200 && ::waitpid(pid, &status, WNOHANG) == 0; ++i)
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  if (::waitpid(pid, &status, WNOHANG) == 0) {  // still running after 2 minutes: fail, but do not hang
+    ::kill(pid, SIGKILL);
+    ::waitpid(pid, &status, 0);
+  }
+  std::ifstream log_in(log);
+  prism::test::CommandResult s{0, std::string(std::istreambuf_iterator<char>(log_in), {})};
+  INFO(s.output);
+  CHECK(WIFEXITED(status));
+  CHECK(WEXITSTATUS(status) == 130);
+  CHECK(s.output.find("sweep interrupted") != std::string::npos);
+  CHECK(std::filesystem::exists(dir + "/sw/ranked.csv"));
+  std::ifstream state(dir + "/sw/evaluated.jsonl");
+  int lines = 0;
+  for (std::string line; std::getline(state, line);) ++lines;
+  CHECK(lines >= 2);  // the header and at least the base design
+  for (const auto& f : std::filesystem::recursive_directory_iterator(dir))
+    CHECK_MESSAGE(f.path().filename().string().find(".partial-") == std::string::npos, f.path().string());
   std::filesystem::remove_all(dir);
 }
 

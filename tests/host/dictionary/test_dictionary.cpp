@@ -196,6 +196,24 @@ TEST_CASE("corrupt files, wrong versions and another sensor give errors naming t
   CHECK_THROWS_WITH_AS(prism::DictionaryReader{copy},
                        doctest::Contains((manifest + ": grid: x positions must increase, but -5 follows 0").c_str()),
                        prism::DictionaryError);
+  // Edited integers are refused by field, before anything divides by them.
+  const auto good = nlohmann::json::parse(std::ifstream(d.dir + "/manifest.json"));
+  auto edited = [&](const char* field, const nlohmann::json::json_pointer& at, const nlohmann::json& v) {
+    auto e = good;
+    e[at] = v;
+    std::ofstream(manifest) << e.dump();
+    CAPTURE(field);
+    CAPTURE(v.dump());
+    CHECK_THROWS_WITH_AS(prism::DictionaryReader{copy}, doctest::Contains((manifest + ": " + field).c_str()),
+                         prism::DictionaryError);
+  };
+  edited("levels.base_binning: must be an integer", nlohmann::json::json_pointer("/levels/base_binning"), 0);
+  edited("levels.base_binning: must be an integer", nlohmann::json::json_pointer("/levels/base_binning"), 1099511627776.0);
+  edited("levels.base_binning: must be an integer", nlohmann::json::json_pointer("/levels/base_binning"), 2.5);
+  edited("storage.tile_px: must be an integer", nlohmann::json::json_pointer("/storage/tile_px"), 0);
+  edited("levels.count", nlohmann::json::json_pointer("/levels/count"), good["levels"]["count"].get<int>() + 1);
+  edited("levels.level0_px", nlohmann::json::json_pointer("/levels/level0_px/0"), good["levels"]["level0_px"][0].get<int>() - 1);
+  edited("rays_per_lenslet: must be an integer", nlohmann::json::json_pointer("/rays_per_lenslet"), -4);
   j["version"] = 99;
   std::ofstream(manifest) << j.dump();
   CHECK_THROWS_WITH_AS(prism::DictionaryReader{copy}, doctest::Contains("version"), prism::DictionaryError);

@@ -469,6 +469,24 @@ TEST_CASE("prism reconstruct: CSV rows per vertex, summary, and errors that say 
                                         "/none.events --vertices 1 --out " + csv);
   CHECK(missing.status != 0);
   CHECK(missing.output.find("none.events") != std::string::npos);
+
+  // A truncated event file fails the run and leaves the CSV of the earlier
+  // run as it was, with no temporary beside it.
+  const std::string cut = d.dir + "/cut.events";
+  std::filesystem::copy_file(events, cut, std::filesystem::copy_options::overwrite_existing);
+  std::filesystem::resize_file(cut, std::filesystem::file_size(cut) * 2 / 3);
+  auto read_all = [](const std::string& path) {
+    std::ifstream f(path);
+    return std::string(std::istreambuf_iterator<char>(f), {});
+  };
+  const std::string before = read_all(csv);
+  auto truncated = prism::test::run_prism("reconstruct --dictionary " + d.dir + "/dict --events " + cut +
+                                          " --vertices 1 --out " + csv + " --model none");
+  CHECK(truncated.status == 1);
+  CHECK(truncated.output.find("cut.events") != std::string::npos);
+  CHECK(read_all(csv) == before);
+  for (const auto& f : std::filesystem::directory_iterator(d.dir))
+    CHECK_MESSAGE(f.path().filename().string().find(".partial-") == std::string::npos, f.path().string());
 }
 
 // --- The device backends against the CPU reference --------------------------
