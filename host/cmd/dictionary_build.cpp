@@ -1,11 +1,15 @@
 // prism dictionary build / info: synthesise a PSF dictionary, and describe one.
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
+#include <string>
+#include <vector>
 
 #include "host/cmd/commands.h"
 #include "engine/defaults.h"
 #include "host/cmd/options.h"
 #include "host/dictionary/build.h"
+#include "host/util/format.h"
 #include "host/util/progress.h"
 
 namespace prism::cmd {
@@ -42,7 +46,41 @@ void run_build(const BuildArgs& a) {
               r.rendered, r.reused, r.seconds, r.seconds_per_psf);
 }
 
-void run_info(const std::string& dir) {
+// Every level of every present PSF read back: decompressed (a flipped bit in
+// ZIP data fails its checksum), its attributes checked against the manifest,
+// and normalised as the format says (sums to 1, or 0 without light on the
+// sensor). Returns the problems, one line each.
+std::vector<std::string> verify_entries(const DictionaryReader& r) {
+  const DictionaryManifest& m = r.manifest();
+  constexpr double sum_tolerance = 1e-2;  // half floats: ~2^-11 per value
+  std::vector<std::string> problems;
+  Progress progress("dictionary info: verifying", m.grid.size());
+  for (size_t i = 0; i < m.grid.size(); ++i) {
+    progress.update(i + 1);
+    if (!r.has(i)) continue;
+    try {
+      for (int l = 0; l < m.levels; ++l) {
+        const PsfLevel level = r.read_level(i, l);
+        double sum = 0;
+        for (float v : level.p) {
+          if (!std::isfinite(v) || v < 0) throw DictionaryError(r.path_of(i) + ": level " + std::to_string(l) +
+                                                                " holds a value that is negative or not finite");
+          sum += v;
+        }
+        const bool dark = sum == 0 && r.photons_on_sensor(i) == 0;
+        if (!dark && std::abs(sum - 1) > sum_tolerance)
+          throw DictionaryError(r.path_of(i) + ": level " + std::to_string(l) + " sums to " + format_number(sum) +
+                                ", not 1");
+      }
+    } catch (const std::exception& e) {
+      problems.push_back(e.what());
+    }
+  }
+  progress.finish();
+  return problems;
+}
+
+void run_info(const std::string& dir, bool verify) {
   DictionaryReader r(dir);
   const DictionaryManifest& m = r.manifest();
   const OpticalSystem& o = m.scene.optics;
@@ -63,8 +101,9 @@ void run_info(const std::string& dir) {
   std::printf("  sensor      %d x %d px of %.2f um\n", o.sensor_width_px, o.sensor_height_px, o.pixel_um);
   std::printf("  grid x      %s mm\n  grid y      %s mm\n  grid depth  %s mm\n", range(m.grid.x_mm).c_str(),
               range(m.grid.y_mm).c_str(), range(m.grid.depth_mm).c_str());
-  std::printf("  entries     %zu of %zu present%s\n", present, m.grid.size(),
-              present < m.grid.size() ? " (run `prism dictionary build` again to finish)" : "");
+  std::printf("  entries     %zu of %zu files present%s%s\n", present, m.grid.size(),
+              present < m.grid.size() ? " (run `prism dictionary build` again to finish)" : "",
+              verify ? "" : " (not read: --verify reads every level of every file)");
   std::printf("  storage     half floats x 2^15, ZIP, %d px tiles; %.1f MiB on disk (%.2f MiB per PSF)\n", m.tile_px,
               bytes / 1048576.0, present ? bytes / 1048576.0 / present : 0.0);
   std::printf("  rays        %u per 3 mm lenslet, %s splat, stratification %u\n", m.rays_per_lenslet,
@@ -72,6 +111,15 @@ void run_info(const std::string& dir) {
   std::printf("  levels      %d; every level of every PSF sums to 1 over the sensor\n", m.levels);
   for (int l = 0; l < m.levels; ++l)
     std::printf("    level %-2d  %5d x %-5d px of %7.1f um\n", l, m.level_width(l), m.level_height(l), m.pixel_mm(l) * 1e3);
+  if (!verify) return;
+  const auto problems = verify_entries(r);
+  std::printf("  verified    %zu of %zu files read back whole and normalised\n", present - problems.size(), present);
+  if (problems.empty()) return;
+  std::string listed;
+  for (size_t k = 0; k < problems.size() && k < 10; ++k) listed += "\n  " + problems[k];
+  throw std::runtime_error(std::to_string(problems.size()) + " of " + std::to_string(present) + " files in " + dir +
+                           " are damaged" + (problems.size() > 10 ? " (the first 10)" : "") + ":" + listed +
+                           "\nremove them and run `prism dictionary build` again to rebuild them");
 }
 
 }  // namespace
@@ -95,9 +143,13 @@ void add_dictionary_build(CLI::App& dictionary) {
 
 void add_dictionary_info(CLI::App& dictionary) {
   auto dir = std::make_shared<std::string>();
+  auto verify = std::make_shared<bool>(false);
   CLI::App* c = dictionary.add_subcommand("info", "print a dictionary's manifest, levels and size on disk");
   c->add_option("DIR", *dir, "dictionary directory")->required();
-  c->callback([dir] { run_info(*dir); });
+  c->add_flag("--verify", *verify,
+              "read every level of every PSF file back: damaged files (a flipped bit, a truncated tile, another "
+              "dictionary's file, a level that does not sum to 1) are listed and the exit status is 1");
+  c->callback([dir, verify] { run_info(*dir, *verify); });
 }
 
 }  // namespace prism::cmd

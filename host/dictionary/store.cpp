@@ -292,6 +292,17 @@ struct OpenPsf {
       throw DictionaryError(path + ": PSF format version " + std::to_string(version->value()) + ", expected " +
                             std::to_string(dictionary_format_version));
     if (idx->value() != int(index)) throw DictionaryError(path + ": holds entry " + std::to_string(idx->value()));
+    // The manifest's grid must still say where the file's source was (an
+    // edited grid would put every PSF at a wrong position).
+    if (const auto* at = h.findTypedAttribute<Imf::V3fAttribute>("prismPositionMm")) {
+      const glm::dvec3 want = m.grid.position(index);
+      const Imath::V3f got = at->value();
+      if (glm::length(glm::dvec3(got.x, got.y, got.z) - want) > 1e-3 * (1 + glm::length(want)))
+        throw DictionaryError(path + ": holds the PSF of a source at (" + format_number(got.x) + ", " +
+                              format_number(got.y) + ", " + format_number(got.z) + ") mm, but the manifest's grid " +
+                              "puts entry " + std::to_string(index) + " at (" + format_number(want.x) + ", " +
+                              format_number(want.y) + ", " + format_number(want.z) + ") mm");
+    }
     if (dw.max.x - dw.min.x + 1 != m.width || dw.max.y - dw.min.y + 1 != m.height)
       throw DictionaryError(path + ": level 0 size differs from the manifest's");
     if (!file.isComplete()) throw DictionaryError(path + ": incomplete file (missing tiles)");

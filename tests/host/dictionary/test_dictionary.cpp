@@ -222,6 +222,53 @@ TEST_CASE("corrupt files, wrong versions and another sensor give errors naming t
   fs::remove_all(copy);
 }
 
+TEST_CASE("dictionary info --verify finds a flipped bit and a file that is not where the manifest says") {
+  auto& d = small();
+  std::string copy = d.dir + "-verify";
+  fs::remove_all(copy);
+  fs::copy(d.dir, copy, fs::copy_options::recursive);
+  auto ok = prism::test::run_prism("dictionary info --verify " + copy);
+  INFO(ok.output);
+  CHECK(ok.status == 0);
+  CHECK(ok.output.find("verified") != std::string::npos);
+  CHECK(ok.output.find(" 0 of ") == std::string::npos);
+  // Without --verify, info says it did not read the files.
+  CHECK(prism::test::run_prism("dictionary info " + copy).output.find("not read") != std::string::npos);
+
+  prism::DictionaryReader r(copy);
+  const std::string damaged = r.path_of(2);
+  {
+    std::fstream f(damaged, std::ios::in | std::ios::out | std::ios::binary);
+    f.seekg(0, std::ios::end);
+    const auto middle = std::streamoff(f.tellg()) * 3 / 4;  // in the tiles' compressed data
+    f.seekg(middle);
+    char byte = 0;
+    f.read(&byte, 1);
+    f.seekp(middle);
+    byte = char(byte ^ 0x10);
+    f.write(&byte, 1);
+  }
+  auto bad = prism::test::run_prism("dictionary info --verify " + copy);
+  INFO(bad.output);
+  CHECK(bad.status == 1);
+  CHECK(bad.output.find("1 of ") != std::string::npos);
+  CHECK(bad.output.find(damaged) != std::string::npos);
+
+  // Two entries swapped on disk: each holds another source's PSF.
+  fs::copy_file(d.dir + "/" + r.manifest().file_of(0), damaged, fs::copy_options::overwrite_existing);
+  auto moved = prism::test::run_prism("dictionary info --verify " + copy);
+  CHECK(moved.status == 1);
+  CHECK(moved.output.find(damaged + ": holds entry 0") != std::string::npos);
+  // An edited grid: the files' sources are no longer where it says.
+  fs::copy_file(d.dir + "/" + r.manifest().file_of(2), damaged, fs::copy_options::overwrite_existing);
+  auto j = nlohmann::json::parse(std::ifstream(copy + "/manifest.json"));
+  for (auto& x : j["grid"]["x_mm"]) x = x.get<double>() + 1.0;
+  std::ofstream(copy + "/manifest.json") << j.dump();
+  CHECK_THROWS_WITH_AS(prism::DictionaryReader(copy).read_level(0, 0),
+                       doctest::Contains("but the manifest's grid puts entry 0 at"), prism::DictionaryError);
+  fs::remove_all(copy);
+}
+
 TEST_CASE("summed-area tables give the on-sensor mass of a shifted PSF in four look-ups") {
   prism::DictionaryReader r(small().dir);
   auto l = r.read_level(1, 2);
