@@ -60,6 +60,12 @@ void PsfSampler::add_rates(double alpha, std::vector<double>& lambda) const {
   for (size_t j = 0; j < pixel_.size(); ++j) lambda.at(pixel_[j]) += alpha * p_[j];
 }
 
+void PsfSampler::click_each(double alpha, EventRng& rng, std::vector<uint32_t>& clicks) const {
+  std::uniform_real_distribution<double> uniform(0.0, 1.0);
+  for (size_t j = 0; j < pixel_.size(); ++j)
+    if (uniform(rng) < -std::expm1(-alpha * p_[j])) clicks.push_back(pixel_[j]);
+}
+
 glm::dvec2 PsfSampler::centroid_px(int width) const {
   glm::dvec2 m{0, 0};
   for (size_t j = 0; j < pixel_.size(); ++j)
@@ -100,6 +106,10 @@ void sample_clicks(std::span<const ClickSource> sources, EventRng& rng, std::vec
   for (const auto& s : sources) {
     double mean = s.alpha * s.psf->sensor_fraction();
     if (!(mean > 0)) continue;
+    if (mean > per_pixel_photons_per_support * double(s.psf->support_pixels())) {
+      s.psf->click_each(s.alpha, rng, clicks);
+      continue;
+    }
     // Superposed Poisson processes: each vertex's photons are independent.
     uint64_t photons = std::poisson_distribution<uint64_t>(mean)(rng);
     for (uint64_t n = 0; n < photons; ++n) clicks.push_back(s.psf->draw(uniform(rng)));

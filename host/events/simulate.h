@@ -28,6 +28,8 @@ namespace prism {
 // A PSF ready for drawing photon arrivals: the pixels with P > 0 and a Walker
 // alias table over them, so a draw is O(1) (two memory reads; a binary search
 // over a full-resolution CDF was ~20 cache misses per photon).
+class EventRng;
+
 class PsfSampler {
  public:
   // p: P_i on a width x height row-major grid; the PSF is moved by
@@ -41,6 +43,9 @@ class PsfSampler {
   size_t support_pixels() const { return pixel_.size(); }
   // lambda_i += alpha P_i over the support (dense; for tests and references).
   void add_rates(double alpha, std::vector<double>& lambda) const;
+  // Each pixel of the support clicks with probability 1 - exp(-alpha P_i):
+  // appended to `clicks`, unsorted.
+  void click_each(double alpha, EventRng& rng, std::vector<uint32_t>& clicks) const;
   // Mean (col, row) of P / S, in pixels of the grid.
   glm::dvec2 centroid_px(int width) const;
 
@@ -73,7 +78,13 @@ class EventRng {
 };
 
 // One event's clicks, sorted and unique: Poisson(alpha_k S_k) photons per
-// source, each on a pixel drawn from P_k / S_k, duplicates merged.
+// source, each on a pixel drawn from P_k / S_k, duplicates merged. A source
+// whose mean photons exceed per_pixel_photons_per_support times its PSF's
+// support clicks pixel by pixel instead, with probability 1 - exp(-alpha_k
+// P_i) each (the same distribution, by Poisson thinning): time and memory
+// then grow with the PSF's pixels, not the photons (alpha 1e9 is an event,
+// not 4 GB of photons).
+inline constexpr double per_pixel_photons_per_support = 64;
 void sample_clicks(std::span<const ClickSource> sources, EventRng& rng, std::vector<uint32_t>& clicks);
 
 // Independent random stream of one event: the same (seed, event id) gives the

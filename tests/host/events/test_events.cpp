@@ -103,37 +103,55 @@ TEST_CASE("event sampling: Poisson photons merged per pixel click with probabili
   prism::PsfSampler s1(p1, w, h), s2(p2, w, h, 4, 0);
   CHECK(s1.sensor_fraction() == doctest::Approx(1.0).epsilon(1e-5));
   CHECK(s2.sensor_fraction() < 0.95);  // shifted 4 columns right, part leaves the grid
-  const std::vector<prism::ClickSource> sources{{&s1, 40.0}, {&s2, 25.0}};
-  std::vector<double> lambda(size_t(w) * h, 0.0);
-  for (const auto& s : sources) s.psf->add_rates(s.alpha, lambda);  // K = 2: rates add
+  // Photon by photon at these photons; pixel by pixel from
+  // per_pixel_photons_per_support photons per support pixel (a third source
+  // with the Gaussian tails of a third blob: its far pixels' lambda 0.01-3).
+  for (bool per_pixel : {false, true}) {
+    CAPTURE(per_pixel);
+    auto p3 = blob(w, h, 2, 8, 0.7, 1.0);
+    prism::PsfSampler s3(p3, w, h);
+    const double bright = 2 * prism::per_pixel_photons_per_support * double(s3.support_pixels());
+    std::vector<prism::ClickSource> sources{{&s1, 40.0}, {&s2, 25.0}};
+    if (per_pixel) sources.push_back({&s3, bright});
+    std::vector<double> lambda(size_t(w) * h, 0.0);
+    for (const auto& s : sources) s.psf->add_rates(s.alpha, lambda);  // K = 2: rates add
 
-  const uint64_t n = 20000;
-  std::vector<uint64_t> counts(lambda.size(), 0);
+    const uint64_t n = 20000;
+    std::vector<uint64_t> counts(lambda.size(), 0);
+    std::vector<uint32_t> clicks;
+    for (uint64_t e = 0; e < n; ++e) {
+      auto rng = prism::event_rng(7, e);
+      prism::sample_clicks(sources, rng, clicks);
+      REQUIRE(std::is_sorted(clicks.begin(), clicks.end()));
+      REQUIRE(std::adjacent_find(clicks.begin(), clicks.end()) == clicks.end());
+      for (uint32_t c : clicks) ++counts[c];
+    }
+    std::vector<double> bernoulli(lambda.size()), unmerged(lambda.size());
+    for (size_t i = 0; i < lambda.size(); ++i) {
+      bernoulli[i] = 1 - std::exp(-lambda[i]);
+      unmerged[i] = std::min(lambda[i], 0.999);  // what counting photons, not clicks, would give
+    }
+    auto good = agreement(counts, bernoulli, n);
+    auto bad = agreement(counts, unmerged, n);
+    CAPTURE(good.chi2);
+    CAPTURE(good.dof);
+    CAPTURE(good.max_z);
+    CAPTURE(bad.chi2);
+    REQUIRE(good.dof > (per_pixel ? 20 : 60));
+    // chi-square with dof degrees of freedom: mean dof, sd sqrt(2 dof); 5 sd.
+    CHECK(good.chi2 < good.dof + 5 * std::sqrt(2.0 * good.dof));
+    CHECK(good.max_z < 5.0);
+    // The test can tell: the photon-count model is rejected by far.
+    CHECK(bad.chi2 > 100 * good.dof);
+  }
+  // 1e9 photons: one pass over the PSF's pixels (drawn photon by photon they
+  // took 4 GB).
+  prism::PsfSampler s(p1, w, h);
+  const std::vector<prism::ClickSource> huge{{&s, 1e9}};
   std::vector<uint32_t> clicks;
-  for (uint64_t e = 0; e < n; ++e) {
-    auto rng = prism::event_rng(7, e);
-    prism::sample_clicks(sources, rng, clicks);
-    REQUIRE(std::is_sorted(clicks.begin(), clicks.end()));
-    REQUIRE(std::adjacent_find(clicks.begin(), clicks.end()) == clicks.end());
-    for (uint32_t c : clicks) ++counts[c];
-  }
-  std::vector<double> bernoulli(lambda.size()), unmerged(lambda.size());
-  for (size_t i = 0; i < lambda.size(); ++i) {
-    bernoulli[i] = 1 - std::exp(-lambda[i]);
-    unmerged[i] = std::min(lambda[i], 0.999);  // what counting photons, not clicks, would give
-  }
-  auto good = agreement(counts, bernoulli, n);
-  auto bad = agreement(counts, unmerged, n);
-  CAPTURE(good.chi2);
-  CAPTURE(good.dof);
-  CAPTURE(good.max_z);
-  CAPTURE(bad.chi2);
-  REQUIRE(good.dof > 60);
-  // chi-square with dof degrees of freedom: mean dof, sd sqrt(2 dof); 5 sd.
-  CHECK(good.chi2 < good.dof + 5 * std::sqrt(2.0 * good.dof));
-  CHECK(good.max_z < 5.0);
-  // The test can tell: the photon-count model is rejected by far.
-  CHECK(bad.chi2 > 100 * good.dof);
+  auto rng = prism::event_rng(7, 0);
+  prism::sample_clicks(huge, rng, clicks);
+  CHECK(clicks.size() == s.support_pixels());  // lambda >= 1e9 * 1e-30: every pixel of the support
 }
 
 TEST_CASE("event rng: the same (seed, event) gives the same clicks, another seed does not") {
