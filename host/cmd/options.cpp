@@ -100,8 +100,17 @@ std::vector<double> parse_list(const std::string& text, const std::string& optio
     if (p.size() != 3) throw std::runtime_error(option + ": a range is FIRST:LAST:STEP, got '" + item + "'");
     double a = num(p[0]), b = num(p[1]), step = num(p[2]);
     if (!(step > 0) || b < a) throw std::runtime_error(option + ": need FIRST <= LAST and STEP > 0 in '" + item + "'");
-    for (int i = 0; a + i * step <= b + 1e-9 * step; ++i) out.push_back(a + i * step);
+    const double count = std::floor((b - a) / step + 1e-9) + 1;  // counted before anything is allocated
+    if (!(double(out.size()) + count <= double(max_list_values)))
+      throw std::runtime_error(option + ": '" + item + "' gives " +
+                               (std::isfinite(count) ? format_number(count) : std::string("too many")) +
+                               " values; at most " +
+                               std::to_string(max_list_values) + " in one list: choose a larger STEP");
+    for (size_t i = 0; i < size_t(count); ++i) out.push_back(a + double(i) * step);
   }
+  if (out.size() > max_list_values)
+    throw std::runtime_error(option + ": " + std::to_string(out.size()) + " values; at most " +
+                             std::to_string(max_list_values) + " in one list");
   if (out.empty()) throw std::runtime_error(option + ": empty list");
   return out;
 }

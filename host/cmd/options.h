@@ -43,7 +43,8 @@ struct ForwardOptions {
 };
 
 // Comma-separated numbers and FIRST:LAST:STEP ranges: "5,10,25", "0:50:2.5",
-// "0:10:1,12.5,15:50:5".
+// "0:10:1,12.5,15:50:5"; at most max_list_values, counted before expanding.
+inline constexpr size_t max_list_values = 100000;
 std::vector<double> parse_list(const std::string& text, const std::string& option);
 // Values as parse_list reads them back (A,B,C with %g).
 std::string format_list(std::span<const double> values);

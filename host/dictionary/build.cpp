@@ -6,6 +6,7 @@
 #include <fstream>
 
 #include "engine/forward.h"
+#include "host/util/format.h"
 #include "host/util/image_io.h"
 
 namespace prism {
@@ -46,7 +47,33 @@ void check_build_options(const std::string& dir, const DictionaryBuildOptions& o
   } catch (const DictionaryError& e) {
     throw DictionaryError(dir + ": grid: " + e.what() + "; nothing written");
   }
+  const double psfs = double(o.grid.x_mm.size()) * double(o.grid.y_mm.size()) * double(o.grid.depth_mm.size());
+  if (psfs > double(max_dictionary_psfs))
+    throw DictionaryError(dir + ": grid: " + format_number(psfs) + " PSFs (" + std::to_string(o.grid.x_mm.size()) +
+                          " x " + std::to_string(o.grid.y_mm.size()) + " x " + std::to_string(o.grid.depth_mm.size()) +
+                          "), more than " + format_number(double(max_dictionary_psfs)) +
+                          "; choose coarser --grid-x-mm, --grid-y-mm or --grid-depth-mm; nothing written");
 }
+
+namespace {
+
+// After the first PSF file of a build: the rest, at its size, must fit on the disk.
+void check_disk(const std::string& dir, const std::string& first_file, size_t remaining) {
+  std::error_code ec;
+  const double each = double(std::filesystem::file_size(first_file, ec));
+  const auto space = std::filesystem::space(dir, ec);
+  if (ec) return;  // no figure to judge by
+  const double needed = each * double(remaining);
+  if (needed > double(space.available))
+    throw DictionaryError(dir + ": the " + std::to_string(remaining) + " PSFs left need about " +
+                          format_number(needed / 1073741824.0) + " GiB at " + format_number(each / 1048576.0) +
+                          " MiB each (the first one's size), but the disk has " +
+                          format_number(double(space.available) / 1073741824.0) +
+                          " GiB free; free space, choose another --out, or a coarser --binning or grid "
+                          "(the files written so far are kept: a rerun continues)");
+}
+
+}  // namespace
 
 DictionaryBuildReport build_dictionary(vk::Context& ctx, const Scene& scene, const std::string& dir,
                                        const DictionaryBuildOptions& o,
@@ -87,6 +114,7 @@ DictionaryBuildReport build_dictionary(vk::Context& ctx, const Scene& scene, con
       // A position that puts no light on the sensor is stored as zeros.
       for (float& p : l0.p) p = total > 0 ? float(p / total) : 0.0f;
       write_psf_file(reader.path_of(i), wanted, i, l0, total);
+      if (report.rendered == 0) check_disk(dir, reader.path_of(i), wanted.grid.size() - i - 1);  // at most that many left
       per_psf.push_back(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
       ++report.rendered;
     }

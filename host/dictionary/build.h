@@ -26,9 +26,15 @@ struct DictionaryBuildReport {
   double seconds_per_psf = 0;  // rendering and writing, median
 };
 
+// A grid larger than this is refused before any work: the default has 2783
+// PSFs, and a build renders about one PSF per second on a CPU device.
+inline constexpr size_t max_dictionary_psfs = 1000000;
+
 // Throws DictionaryError, naming `dir` and the axis, unless the options'
-// grid is valid (DictionaryGrid::validate); nothing is written. Callers that
-// must set up a device first check here before it.
+// grid is valid (DictionaryGrid::validate) and at most max_dictionary_psfs;
+// nothing is written. Callers that must set up a device first check here
+// before it. The build itself also stops after its first PSF file when the
+// rest, at that file's size, would not fit on the disk.
 void check_build_options(const std::string& dir, const DictionaryBuildOptions& options);
 
 // progress(done, total) is called after each entry (options checked first).

@@ -6,6 +6,8 @@
 #include <string>
 #include <thread>
 
+#include "host/util/format.h"
+
 namespace prism {
 
 ReconstructionPool::ReconstructionPool(const DictionaryReader& reader, int click_level, ReconstructionSettings s,
@@ -17,6 +19,12 @@ ReconstructionPool::ReconstructionPool(const DictionaryReader& reader, int click
     throw std::invalid_argument("search level " + std::to_string(settings_.search_level) + ": choose a level from " +
                                 std::to_string(click_level) + " (the clicks' own) to " + std::to_string(m.levels - 1) +
                                 " (the coarsest in " + reader.dir() + ")");
+  const double shifts = scan_shifts(m, settings_.search_level, settings_.tau_mm);
+  if (shifts > max_scan_shifts)
+    throw std::invalid_argument("the support scan on level " + std::to_string(settings_.search_level) + " with tau " +
+                                format_number(settings_.tau_mm) + " mm holds " + format_number(shifts) +
+                                " shifts of the PSFs per click, more than " + format_number(max_scan_shifts) +
+                                ": choose a coarser --level or a smaller --tau-mm");
   const bool on_device = o.backend != ReconstructionBackend::cpu;
   const unsigned n = on_device ? 1u : std::max(1u, o.threads);
   ServiceBudget budget;

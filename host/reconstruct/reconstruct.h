@@ -112,6 +112,9 @@ int default_search_level(const DictionaryManifest& m, int click_level, double ta
 // The shifts one event's scan scores per click on `level`: every PSF's
 // lattice within +-tau_mm (times its depth's magnification) summed.
 double scan_shifts(const DictionaryManifest& m, int level, double tau_mm);
+// A scan with more shifts per click than this is refused before it starts
+// (the default level holds at most defaults::search_shifts_per_click).
+inline constexpr double max_scan_shifts = 1e9;
 // The level a coarse-to-fine search ranks its carried PSFs on:
 // settings.select_level, or the clicks' level + 2 when it is -1.
 int select_level(const ReconstructionSettings& s, int click_level);

@@ -4,6 +4,8 @@
 #include <fstream>
 #include <sstream>
 
+#include "host/util/format.h"
+
 namespace prism {
 
 namespace {
@@ -168,8 +170,22 @@ Scene parse_scene(const json& j, const std::string& origin) {
   if (j.contains("sensor")) {
     const json& sj = j["sensor"];
     check_keys(rd, sj, "sensor.", {"width_px", "height_px", "pixel_um"});
-    o.sensor_width_px = int(rd.number(sj, "width_px", "sensor.", o.sensor_width_px));
-    o.sensor_height_px = int(rd.number(sj, "height_px", "sensor.", o.sensor_height_px));
+    // Sizes bounded before anything is allocated for them: a full-resolution
+    // image holds 16 bytes per pixel (value and three derivatives).
+    auto side = [&](const char* key, int current) {
+      const double v = rd.number(sj, key, "sensor.", current);
+      if (!(v >= 1 && v <= max_sensor_side_px) || v != std::floor(v))
+        rd.fail(std::string("sensor.") + key,
+                "must be a whole number of pixels from 1 to " + std::to_string(max_sensor_side_px) + ", got " +
+                    format_number(v));
+      return int(v);
+    };
+    o.sensor_width_px = side("width_px", o.sensor_width_px);
+    o.sensor_height_px = side("height_px", o.sensor_height_px);
+    if (double(o.sensor_width_px) * o.sensor_height_px > double(max_sensor_pixels))
+      rd.fail("sensor", std::to_string(o.sensor_width_px) + " x " + std::to_string(o.sensor_height_px) +
+                            " px is more than " + format_number(double(max_sensor_pixels)) +
+                            " pixels (the prototype's has 3.2e7); bin them, e.g. twice the pixel_um at half the size");
     o.pixel_um = rd.number(sj, "pixel_um", "sensor.", o.pixel_um);
   }
   o.lens_to_sensor_mm = rd.number(j, "lens_to_sensor_mm", "", o.lens_to_sensor_mm);

@@ -17,6 +17,11 @@ struct Volume {
   double depth_min_mm = 0, depth_max_mm = defaults::volume_depth_mm;
 };
 
+// A scene file's sensor is refused beyond these (checked before any image
+// is allocated): the prototype's SVS-SHR661 has 6696 x 4764 = 3.2e7 pixels.
+inline constexpr int max_sensor_side_px = 65536;
+inline constexpr double max_sensor_pixels = 268435456;  // 2^28: 4 GiB as a full-resolution image
+
 struct Scene {
   std::string name;
   OpticalSystem optics;

@@ -204,10 +204,17 @@ TEST_CASE("bad numbers, sources behind the lenses and unwritable outputs are ref
   refused("crlb --depth-mm 10 --csv " + dir, "cannot write " + dir + ": it is a directory");
   refused("crlb --depth-mm 10 --plot " + dir + "/none/x.png", "the folder " + dir + "/none does not exist");
   refused("psf --source-mm 0,0,10 --out " + dir + "/none/p.exr", "the folder " + dir + "/none does not exist");
+  // Work and memory bounded before they are used.
+  refused("crlb --depth-mm=-1e308:1e308:1e300", "--depth-mm: '-1e308:1e308:1e300' gives too many values; at most");
+  refused("dictionary build --out " + dir + "/d --grid-x-mm 0:1000:1 --grid-y-mm 0:1000:1",
+          "grid: 2.3046e+07 PSFs (1001 x 1001 x 23), more than 1e+06");
+  std::ofstream(dir + "/big.json") << R"({"name": "big", "sensor": {"width_px": 100000, "height_px": 100000},
+      "lenslets": [{"x_mm": 0, "y_mm": 0, "focal_mm": 9}]})";
+  refused("crlb --scene " + dir + "/big.json --depth-mm 10", "sensor.width_px: must be a whole number of pixels from 1 to 65536");
   std::ofstream(dir + "/s.json") << R"({"name": "s", "sensor": 5, "lenslets": [{"x_mm": 0, "y_mm": 0, "focal_mm": 9}]})";
   refused("crlb --scene " + dir + "/s.json --depth-mm 10", "sensor: must be an object with the fields width_px");
-  CHECK(std::filesystem::is_empty(dir) == false);  // s.json only
-  for (const auto& f : std::filesystem::directory_iterator(dir)) CHECK(f.path().filename() == "s.json");
+  for (const auto& f : std::filesystem::directory_iterator(dir))  // the scene files only
+    CHECK((f.path().filename() == "s.json" || f.path().filename() == "big.json"));
   std::filesystem::remove_all(dir);
 }
 

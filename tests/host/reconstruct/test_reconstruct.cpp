@@ -227,6 +227,14 @@ TEST_CASE("reconstruction's default scan level: the finest from the clicks' + 2 
   m.levels = 10;
   m.grid = prism::DictionaryGrid::paper();
   CHECK(prism::default_search_level(m, 0, tau) == 3);
+  // An absurd tau: the radius stops at the image's size (beyond it every
+  // shift is off the grid), so the shifts stay countable, and a level whose
+  // scan would exceed max_scan_shifts is for the pool to refuse.
+  m.grid = prism::DictionaryGrid::fine_near_face();
+  const double side = 2.0 * 419 + 1;
+  CHECK(prism::scan_shifts(m, 0, 1e6) == doctest::Approx(side * side * double(m.grid.size())));
+  CHECK(prism::scan_shifts(m, 0, 1e300) == prism::scan_shifts(m, 0, 1e6));
+  CHECK(prism::scan_shifts(m, 0, 1e6) > prism::max_scan_shifts);
 }
 
 TEST_CASE("reconstruction: two vertices at distinct places, K = 2") {
