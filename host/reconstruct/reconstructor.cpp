@@ -7,6 +7,7 @@
 #include "engine/defaults.h"
 #include "host/reconstruct/event_fit.h"
 #include "host/reconstruct/reconstruct.h"
+#include "host/util/format.h"
 
 namespace prism {
 
@@ -28,6 +29,14 @@ std::string flags_to_string(uint32_t flags) {
 
 int click_level(const DictionaryManifest& m, const EventFileHeader& h, const std::string& events_path,
                 const std::string& dictionary_dir) {
+  const OpticalSystem& o = m.scene.optics;
+  if (int(h.sensor_width_px) != o.sensor_width_px || int(h.sensor_height_px) != o.sensor_height_px ||
+      std::abs(h.pixel_um - o.pixel_um) > 1e-6 * o.pixel_um)
+    throw DictionaryError(events_path + ": events from a " + std::to_string(h.sensor_width_px) + " x " +
+                          std::to_string(h.sensor_height_px) + " px sensor of " + format_number(h.pixel_um) +
+                          " um pixels, but " + dictionary_dir + " is for a " + std::to_string(o.sensor_width_px) +
+                          " x " + std::to_string(o.sensor_height_px) + " px sensor of " + format_number(o.pixel_um) +
+                          " um pixels: reconstruct with a dictionary of the same sensor");
   for (int l = 0; l < m.levels; ++l) {
     if ((m.base_binning << l) != int(h.binning)) continue;
     if (m.level_width(l) != int(h.grid_width()) || m.level_height(l) != int(h.grid_height()))

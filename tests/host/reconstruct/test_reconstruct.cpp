@@ -478,6 +478,16 @@ TEST_CASE("prism reconstruct: CSV rows per vertex, summary, and errors that say 
   CHECK(missing.status != 0);
   CHECK(missing.output.find("none.events") != std::string::npos);
 
+  // Events from another sensor (pixel pitch) are refused, naming both.
+  {
+    prism::EventReader er(events);
+    prism::EventFileHeader other = er.header();
+    other.pixel_um = 3.45;
+    CHECK_THROWS_WITH_AS(prism::click_level(d.reader->manifest(), other, events, d.dir + "/dict"),
+                         doctest::Contains("of 3.45 um pixels, but"), prism::DictionaryError);
+    CHECK(prism::click_level(d.reader->manifest(), er.header(), events, d.dir + "/dict") == 0);
+  }
+
   // A truncated event file fails the run and leaves the CSV of the earlier
   // run as it was, with no temporary beside it.
   const std::string cut = d.dir + "/cut.events";
