@@ -72,10 +72,17 @@ struct NodeMap::Impl {
     auto conv = [&](unsigned b) { return little_endian(n) ? b : total - 1 - b; };
     if (n.child("Bit")) {
       unsigned b = conv(unsigned(parse_int(child(n, "Bit"), "Bit")));
+      if (b >= total)
+        throw std::runtime_error(std::string("register '") + n.attribute("Name").value() + "': bit " +
+                                 std::to_string(b) + " outside its " + std::to_string(total) + " bits");
       return {b, b};
     }
     unsigned lsb = conv(unsigned(parse_int(child(n, "LSB"), "LSB")));
     unsigned msb = conv(unsigned(parse_int(child(n, "MSB"), "MSB")));
+    if (lsb >= total || msb >= total)
+      throw std::runtime_error(std::string("register '") + n.attribute("Name").value() + "': bits " +
+                               std::to_string(lsb) + ".." + std::to_string(msb) + " outside its " +
+                               std::to_string(total) + " bits");
     return {std::min(lsb, msb), std::max(lsb, msb)};
   }
   static uint64_t mask(unsigned lo, unsigned hi) { return (hi - lo >= 63 ? ~0ull : ((1ull << (hi - lo + 1)) - 1)) << lo; }
@@ -134,14 +141,16 @@ struct NodeMap::Impl {
       return write_raw(n, (read_raw(n) & ~m) | (uint64_t(v) << lo));
     }
     if (k == "Integer") {
-      auto [lo, hi] = limits(n);
+      auto [lo, hi] = limits(n);  // +-inf where the XML gives none
       if (double(v) < lo || double(v) > hi)
-        throw std::runtime_error(name + " = " + std::to_string(v) + " is outside [" + std::to_string(int64_t(lo)) +
-                                 ", " + std::to_string(int64_t(hi)) + "]");
+        throw std::runtime_error(name + " = " + std::to_string(v) + " is outside [" + std::to_string(lo) + ", " +
+                                 std::to_string(hi) + "]");
       if (n.child("Inc")) {
         int64_t inc = parse_int(child(n, "Inc"), name);
-        if (inc > 1 && (v - int64_t(lo)) % inc != 0)
-          throw std::runtime_error(name + " must be " + std::to_string(int64_t(lo)) + " plus a multiple of " +
+        // The steps start at Min when it is a representable integer, else at 0.
+        const int64_t base = std::isfinite(lo) && std::abs(lo) < 9e18 ? int64_t(lo) : 0;
+        if (inc > 1 && (__int128(v) - base) % inc != 0)
+          throw std::runtime_error(name + " must be " + std::to_string(base) + " plus a multiple of " +
                                    std::to_string(inc));
       }
     }

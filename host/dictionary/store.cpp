@@ -140,9 +140,12 @@ DictionaryManifest DictionaryManifest::from_json(const nlohmann::json& j, const 
   auto fail = [&](const std::string& field, const std::string& why) -> DictionaryError {
     return DictionaryError(path + ": " + field + ": " + why);
   };
-  if (!j.is_object() || j.value("format", "") != "prism-psf-dictionary")
+  if (!j.is_object() || !j.contains("format") || j["format"] != "prism-psf-dictionary")
     throw fail("format", "not a PRISM PSF dictionary manifest");
-  int version = j.value("version", -1);
+  const int version = j.contains("version") && j["version"].is_number_integer() && j["version"].get<double>() > 0 &&
+                              j["version"].get<double>() < 1e6
+                          ? j["version"].get<int>()
+                          : -1;
   if (version != dictionary_format_version)
     throw fail("version", "is " + std::to_string(version) + ", this prism reads version " +
                               std::to_string(dictionary_format_version) + "; rebuild the dictionary with this prism");
@@ -172,8 +175,11 @@ DictionaryManifest DictionaryManifest::from_json(const nlohmann::json& j, const 
     m.rays_per_lenslet = unsigned(j.contains("rays_per_lenslet")
                                       ? integer(j.at("rays_per_lenslet"), "rays_per_lenslet", 0, 1 << 30)
                                       : 0);
-    m.splat = splat_from_string(j.value("splat", std::string("point")));
-    m.stratification = j.value("stratification", 0u);
+    if (j.contains("splat") && !(j["splat"] == "point" || j["splat"] == "footprint"))
+      throw fail("splat", "must be \"point\" or \"footprint\", got " + j["splat"].dump());
+    m.splat = splat_from_string(j.contains("splat") ? j["splat"].get<std::string>() : std::string("point"));
+    m.stratification =
+        unsigned(j.contains("stratification") ? integer(j.at("stratification"), "stratification", 0, 1 << 30) : 0);
   } catch (const SceneError&) {
     throw;
   } catch (const DictionaryError&) {
@@ -277,11 +283,70 @@ size_t DictionaryReader::present() const {
 
 namespace {
 
+// OpenEXR 3.1 allocates what a header attribute declares before reading it
+// (a damaged size field asked for gigabytes; fuzz/README.md): the attribute
+// list is walked here first, each size checked against the bytes the file
+// has. Layout (OpenEXR file layout): magic and version (8 bytes), then
+// attributes (name NUL, type NUL, int32 size, value) up to an empty name;
+// in a multi-part file, headers so until an empty one.
+const std::string& checked_exr_header(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  in.seekg(0, std::ios::end);
+  const int64_t size = in.tellg();
+  uint8_t v[4] = {};
+  in.seekg(4);
+  in.read(reinterpret_cast<char*>(v), 4);
+  const bool multipart = (v[1] & 0x10) != 0;  // version flag 0x1000: headers follow one another, up to an empty one
+  auto text = [&](const char* what) {
+    std::string s;
+    for (char c; in.get(c) && c != '\0';)
+      if (s.size() < 256) s += c;
+      else throw DictionaryError(path + ": corrupt OpenEXR header (" + what + " longer than 255 bytes)");
+    return s;
+  };
+  for (int attributes = 0; in;) {
+    const std::string name = text("attribute name");
+    if (!in) break;
+    if (name.empty()) {  // the end of a header
+      if (!multipart || attributes == 0) break;
+      attributes = 0;
+      continue;
+    }
+    ++attributes;
+    const std::string type = text("attribute type");
+    auto int32 = [&] {
+      uint8_t b[4] = {};
+      in.read(reinterpret_cast<char*>(b), 4);
+      return int64_t(int32_t(uint32_t(b[0]) | uint32_t(b[1]) << 8 | uint32_t(b[2]) << 16 | uint32_t(b[3]) << 24));
+    };
+    auto corrupt = [&](const std::string& why) {
+      return DictionaryError(path + ": corrupt OpenEXR header (attribute '" + name + "' " + why + ")");
+    };
+    const int64_t bytes = int32();
+    const int64_t start = in.tellg(), left = size - start;
+    if (!in || bytes < 0 || bytes > left)
+      throw corrupt("declares " + std::to_string(bytes) + " bytes, the file has " +
+                    std::to_string(std::max<int64_t>(0, left)) + " left");
+    // Values OpenEXR reads by their own structure, not by the size: they must
+    // end where the size says, or its reading goes out of step with the file.
+    if (type == "chlist") {
+      while (!text("channel name").empty() && in) in.seekg(16, std::ios::cur);  // type, linear, reserved, sampling
+      if (!in || int64_t(in.tellg()) - start != bytes) throw corrupt("holds channels that do not fill its size");
+    } else if (type == "preview") {
+      const int64_t w = int32(), h = int32();
+      if (!in || w < 0 || h < 0 || 8 + 4 * w * h != bytes) throw corrupt("is a preview image of another size");
+    }
+    in.seekg(start + bytes);
+  }
+  return path;
+}
+
 // Opens a PSF file and checks it belongs to this dictionary.
 struct OpenPsf {
   Imf::TiledInputFile file;
   float inv_scale;
-  OpenPsf(const std::string& path, const DictionaryManifest& m, size_t index) : file(path.c_str()) {
+  OpenPsf(const std::string& path, const DictionaryManifest& m, size_t index)
+      : file(checked_exr_header(path).c_str()) {
     const Imf::Header& h = file.header();
     auto dw = h.dataWindow();
     const auto* version = h.findTypedAttribute<Imf::IntAttribute>("prismFormatVersion");

@@ -4,9 +4,11 @@
 
 #include <array>
 #include <bit>
+#include <cmath>
 #include <cstring>
 #include <filesystem>
 
+#include "host/scene/scene.h"
 #include "host/util/output_file.h"
 
 namespace prism {
@@ -145,6 +147,19 @@ void EventWriter::close() {
 EventReader::EventReader(std::string path) : path_(std::move(path)) {
   f_ = std::fopen(path_.c_str(), "rb");
   if (!f_) throw EventFileError(path_ + ": cannot open (" + std::strerror(errno) + ")");
+  try {
+    read_header();
+  } catch (...) {  // the destructor does not run for a constructor that throws
+    std::fclose(f_);
+    f_ = nullptr;
+    throw;
+  }
+}
+
+void EventReader::read_header() {
+  std::error_code ec;
+  size_ = std::filesystem::file_size(path_, ec);
+  if (ec) throw EventFileError(path_ + ": cannot read its size (" + ec.message() + ")");
   std::array<char, 8> magic;
   read(magic.data(), magic.size(), "file magic");
   if (magic != file_magic) {
@@ -174,6 +189,11 @@ EventReader::EventReader(std::string path) : path_(std::move(path)) {
   header_.binning = u32("binning");
   if (header_.sensor_width_px == 0 || header_.sensor_height_px == 0 || header_.binning == 0)
     fail("sensor size or binning is zero: corrupt header");
+  if (header_.sensor_width_px > uint32_t(max_sensor_side_px) || header_.sensor_height_px > uint32_t(max_sensor_side_px) ||
+      !(header_.pixel_um > 0 && std::isfinite(header_.pixel_um)) || header_.binning > header_.sensor_width_px)
+    fail("sensor " + std::to_string(header_.sensor_width_px) + " x " + std::to_string(header_.sensor_height_px) +
+         " px of " + std::to_string(header_.pixel_um) + " um binned " + std::to_string(header_.binning) +
+         " is not a sensor a scene can describe: corrupt header");
   read(b, 1, "truth model");
   if (b[0] > uint8_t(TruthModel::dictionary)) fail("unknown truth model " + std::to_string(b[0]));
   header_.truth = TruthModel(b[0]);
@@ -189,6 +209,12 @@ EventReader::~EventReader() {
 
 void EventReader::fail(const std::string& why) const {
   throw EventFileError(path_ + ": at byte offset " + std::to_string(offset_) + ": " + why);
+}
+
+void EventReader::require_left(uint64_t bytes, const std::string& what) const {
+  if (bytes > size_ - std::min(size_, offset_))
+    fail(what + " needs " + std::to_string(bytes) + " bytes, the file has " + std::to_string(size_ - offset_) +
+         " left: corrupt record or a file cut short");
 }
 
 void EventReader::read(void* dst, size_t n, const char* what) {
@@ -228,6 +254,7 @@ bool EventReader::next(Event& e) {
   read(b, 4, "vertex count");
   uint32_t k = get_u32(b);
   if (k > max_vertices) fail("vertex count " + std::to_string(k) + " exceeds 65536: corrupt record");
+  require_left(40ull * k, "vertex count " + std::to_string(k));
   e.vertices.resize(k);
   uint8_t v[40];
   for (auto& vx : e.vertices) {
@@ -242,6 +269,7 @@ bool EventReader::next(Event& e) {
   uint32_t n = get_u32(b);
   const uint64_t pixels = uint64_t(header_.grid_width()) * header_.grid_height();
   if (n > pixels) fail("click count " + std::to_string(n) + " exceeds the sensor's pixels: corrupt record");
+  require_left(4ull * n, "click count " + std::to_string(n));
   e.clicks.resize(n);
   uint64_t start = offset_;
   read(e.clicks.data(), size_t(n) * 4, "clicks");

@@ -95,6 +95,9 @@ class EventReader {
   std::FILE* f_ = nullptr;
   EventFileHeader header_;
   uint64_t offset_ = 0, read_events_ = 0;
+  uint64_t size_ = 0;  // the file's bytes: a count is checked against what is left before it is allocated
+  void require_left(uint64_t bytes, const std::string& what) const;
+  void read_header();
   bool done_ = false;
 };
 

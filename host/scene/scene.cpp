@@ -35,6 +35,11 @@ struct Reader {
   [[noreturn]] void fail(const std::string& field, const std::string& why) const {
     throw SceneError("scene " + origin + ": " + field + ": " + why);
   }
+  std::string text(const json& j, const std::string& key, const std::string& fallback) const {
+    if (!j.contains(key)) return fallback;
+    if (!j[key].is_string()) fail(key, "must be a string, got " + j[key].dump());
+    return j[key].get<std::string>();
+  }
   double number(const json& j, const std::string& key, const std::string& path, double fallback, bool required = false) const {
     if (!j.contains(key)) {
       if (required) fail(path + key, "is required");
@@ -138,7 +143,7 @@ Scene parse_scene(const json& j, const std::string& origin) {
   check_keys(rd, j, "", {"name", "base", "lens_model", "glass", "lenslets", "sensor", "lens_to_sensor_mm",
                          "working_distance_mm", "volume", "photons_emitted", "effects"});
   Scene s = j.contains("base") ? builtin_scene(j["base"].get<std::string>()) : base_scene("");
-  s.name = j.value("name", s.name.empty() ? origin : s.name);
+  s.name = rd.text(j, "name", s.name.empty() ? origin : s.name);
   OpticalSystem& o = s.optics;
   if (j.contains("lens_model")) o.lens_model = parse_lens_model(rd, j["lens_model"], "lens_model");
   if (j.contains("glass")) {

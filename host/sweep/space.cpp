@@ -89,8 +89,15 @@ struct SpaceReader {
     return out;
   }
   int count(const json& j, const std::string& field) const {
-    if (!j.is_number_integer() || j.get<int>() < 1) fail(field, "must be a whole number >= 1, got " + j.dump());
+    // Read as a double first: get<int> would wrap 2^32 + 1 to 1.
+    if (!j.is_number_integer() || j.get<double>() < 1 || j.get<double>() > 1e6)
+      fail(field, "must be a whole number from 1 to 1000000, got " + j.dump());
     return j.get<int>();
+  }
+  std::string text(const json& j, const std::string& key, const std::string& fallback) const {
+    if (!j.contains(key)) return fallback;
+    if (!j[key].is_string()) fail(key, "must be a string, got " + j[key].dump());
+    return j[key].get<std::string>();
   }
   void keys(const json& j, const std::string& path, std::initializer_list<const char*> allowed) const {
     for (auto it = j.begin(); it != j.end(); ++it) {
@@ -158,7 +165,7 @@ DesignSpace DesignSpace::parse(const json& j, const std::string& origin, const s
                   "working_distance_mm", "lens_model", "effects", "samples", "ambiguity_samples"});
   DesignSpace s;
   s.source = j;
-  s.name = j.value("name", std::filesystem::path(origin).stem().string());
+  s.name = rd.text(j, "name", std::filesystem::path(origin).stem().string());
 
   // Base scene: a built-in, or a scene file relative to the space file.
   std::string base = "prototype";
@@ -185,7 +192,8 @@ DesignSpace DesignSpace::parse(const json& j, const std::string& origin, const s
     auto rows = rd.numbers(l["rows"], "layout.rows"), cols = rd.numbers(l["columns"], "layout.columns");
     for (double r : rows)
       for (double c : cols) {
-        if (r != std::floor(r) || c != std::floor(c)) rd.fail("layout", "rows and columns must be whole numbers");
+        if (r != std::floor(r) || c != std::floor(c) || r > 1000 || c > 1000)
+          rd.fail("layout", "rows and columns must be whole numbers up to 1000");
         for (double p : rd.numbers(l["pitch_mm"], "layout.pitch_mm")) s.layouts.push_back({int(r), int(c), p});
       }
   } else {
@@ -200,7 +208,7 @@ DesignSpace DesignSpace::parse(const json& j, const std::string& origin, const s
       if (find_index(s.focal_mm, l.focal_mm) < 0) s.focal_mm.push_back(l.focal_mm);
     s.focal_fixed = true;
   }
-  std::string assignment = j.value("assignment", std::string("balanced"));
+  std::string assignment = rd.text(j, "assignment", "balanced");
   if (assignment != "balanced" && assignment != "free")
     rd.fail("assignment", "must be \"balanced\" (each focal length equally often, +-1) or \"free\", got " + j["assignment"].dump());
   s.focal_free = assignment == "free";

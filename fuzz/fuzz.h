@@ -1,0 +1,67 @@
+// Shared by the libFuzzer harnesses (fuzz/README.md). Each harness feeds
+// outside data to one parser and lets only the parser's documented errors
+// (std::runtime_error and its subclasses, which name the file and field)
+// pass: anything else that escapes (a raw library exception, bad_alloc, a
+// crash, a sanitizer report) is a finding.
+#pragma once
+// libFuzzer's entry point, left out where the harnesses are linked into the
+// regression tests (PRISM_FUZZ_NO_MAIN).
+#ifdef PRISM_FUZZ_NO_MAIN
+#define PRISM_FUZZ_MAIN(harness)
+#else
+#define PRISM_FUZZ_MAIN(harness)                                                  \
+  extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {       \
+    prism::fuzz::harness(data, size);                                             \
+    return 0;                                                                     \
+  }
+#endif
+#include <unistd.h>
+
+#include <cstddef>
+#include <cstdint>
+#include <filesystem>
+#include <fstream>
+#include <optional>
+#include <string>
+
+#include <nlohmann/json.hpp>
+
+namespace prism::fuzz {
+
+// The harnesses, one per parser (fuzz/<name>.cpp). Each returns normally for
+// any input the parser handles, errors included; tests/host/test_fuzz_
+// regressions.cpp runs them on the inputs that once crashed.
+void scene(const uint8_t* data, size_t size);
+void space(const uint8_t* data, size_t size);
+void manifest(const uint8_t* data, size_t size);
+void events(const uint8_t* data, size_t size);
+void psf_exr(const uint8_t* data, size_t size);
+void hdr_stack(const uint8_t* data, size_t size);
+void genicam(const uint8_t* data, size_t size);
+void gencp_ack(const uint8_t* data, size_t size);
+void stream_leader_trailer(const uint8_t* data, size_t size);
+
+// The input as JSON, or nothing when it is not JSON (the parsers' callers
+// report that themselves, naming the file).
+inline std::optional<nlohmann::json> json_of(const uint8_t* data, size_t size) {
+  auto j = nlohmann::json::parse(data, data + size, nullptr, /*allow_exceptions=*/false);
+  if (j.is_discarded()) return std::nullopt;
+  return j;
+}
+
+// A folder of this process's own, made once, for parsers that read files.
+inline const std::filesystem::path& scratch() {
+  static const std::filesystem::path dir = [] {
+    auto d = std::filesystem::temp_directory_path() / ("prism-fuzz-" + std::to_string(::getpid()));
+    std::filesystem::create_directories(d);
+    return d;
+  }();
+  return dir;
+}
+
+inline std::string write_file(const std::filesystem::path& path, const uint8_t* data, size_t size) {
+  std::ofstream(path, std::ios::binary | std::ios::trunc).write(reinterpret_cast<const char*>(data), std::streamsize(size));
+  return path.string();
+}
+
+}  // namespace prism::fuzz

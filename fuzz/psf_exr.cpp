@@ -1,0 +1,30 @@
+// Dictionary PSF files (OpenEXR, host/dictionary/store.h) as the store reads
+// them: a one-entry dictionary of a 64 x 48 px sensor whose only file is the
+// input.
+#include "fuzz/fuzz.h"
+#include "fuzz/tiny_dictionary.h"
+
+
+namespace prism::fuzz {
+
+void psf_exr(const uint8_t* data, size_t size) {
+  static const prism::DictionaryManifest m = tiny_manifest();
+  static const std::filesystem::path dir = [] {
+    const auto d = prism::fuzz::scratch() / "dictionary";
+    std::filesystem::create_directories(d / "psf");
+    std::ofstream(d / "manifest.json") << m.to_json().dump();
+    return d;
+  }();
+  prism::fuzz::write_file(dir / m.file_of(0), data, size);
+  try {
+    prism::DictionaryReader r(dir.string());
+    for (int l = 0; l < m.levels; ++l) (void)r.read_level(0, l);
+    (void)r.read_window(0, 0, 8, 8, 16, 16);
+    (void)r.photons_on_sensor(0);
+  } catch (const std::runtime_error&) {
+  }
+}
+
+}  // namespace prism::fuzz
+
+PRISM_FUZZ_MAIN(psf_exr)

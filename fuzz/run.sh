@@ -1,0 +1,56 @@
+#!/usr/bin/env bash
+# Build the libFuzzer harnesses (clang, ASan + UBSan) in build-fuzz/ and run
+# each for SECONDS (default 30) from the seed corpus in fuzz/corpus/<harness>/.
+#   fuzz/run.sh [SECONDS] [HARNESS ...]
+# New inputs that reach new code go to build-fuzz/corpus/<harness>/ (not the
+# repository's corpus); a crash leaves its input in build-fuzz/artifacts/ and
+# makes the exit status 1. Needs Debian 12's clang-16 and libclang-rt-16-dev
+# (clang 14 lacks C++20 parenthesised aggregate initialisation, which the
+# GLSL-shared code uses).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+seconds="${1:-30}"
+shift || true
+all=(scene space manifest events psf_exr hdr_stack genicam gencp_ack stream_leader_trailer)
+harnesses=("${@:-${all[@]}}")
+for p in clang-16 libclang-rt-16-dev; do
+  if ! dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed"; then
+    if [[ $(id -u) -ne 0 ]]; then echo "fuzz: as root run: apt-get install $p" >&2; exit 1; fi
+    export DEBIAN_FRONTEND=noninteractive
+    apt-get update -qq && apt-get install -y -qq --no-install-recommends "$p" >/dev/null
+  fi
+done
+
+CC=clang-16 CXX=clang++-16 cmake -S . -B build-fuzz -DCMAKE_BUILD_TYPE=RelWithDebInfo -DPRISM_FUZZ=ON >/dev/null
+targets=(fuzz_seeds)
+for h in "${harnesses[@]}"; do targets+=("fuzz_$h"); done
+cmake --build build-fuzz -j"$(nproc)" --target "${targets[@]}"
+
+# Seeds: the repository's corpus, plus what fuzz_seeds writes from the code
+# that writes each format (so a format change brings fresh seeds).
+mkdir -p build-fuzz/seeds build-fuzz/artifacts
+ASAN_OPTIONS=detect_leaks=0 build-fuzz/fuzz/fuzz_seeds build-fuzz/seeds >/dev/null
+mkdir -p build-fuzz/seeds/space && cp host/sweep/spaces/*.json build-fuzz/seeds/space/
+
+status=0
+for h in "${harnesses[@]}"; do
+  corpus=build-fuzz/corpus/$h
+  mkdir -p "$corpus"
+  dirs=("$corpus")
+  [[ -d fuzz/corpus/$h ]] && dirs+=("fuzz/corpus/$h")
+  [[ -d build-fuzz/seeds/$h ]] && dirs+=("build-fuzz/seeds/$h")
+  log=build-fuzz/$h.log
+  # Corpus dirs after the first are read only; -rss_limit_mb: a parser that
+  # allocates beyond it on a small input is a finding.
+  if ASAN_OPTIONS=detect_leaks=1 build-fuzz/fuzz/fuzz_$h -max_total_time="$seconds" -rss_limit_mb=2048 -timeout=20 \
+      -max_len=65536 -artifact_prefix=build-fuzz/artifacts/$h- -print_final_stats=1 "${dirs[@]}" >"$log" 2>&1; then
+    runs=$(grep -o 'stat::number_of_executed_units: *[0-9]*' "$log" | grep -o '[0-9]*$' || echo "?")
+    cov=$(grep -o 'cov: [0-9]*' "$log" | tail -1 | grep -o '[0-9]*' || echo "?")
+    echo "fuzz $h: ${runs} executions in ${seconds} s, coverage ${cov} edges, no crash"
+  else
+    echo "fuzz $h: FAILED (log: $log; input: build-fuzz/artifacts/$h-*)" >&2
+    tail -40 "$log" >&2
+    status=1
+  fi
+done
+exit $status

@@ -1,0 +1,67 @@
+// Inputs the fuzz harnesses found (fuzz/README.md), kept as regression
+// tests: each harness must handle its parser's input with the parser's own
+// errors. tests/data/fuzz/<harness>/<kind>-<hash> is the input as libFuzzer
+// wrote it; the fix is named in the commit that added it.
+#include <sys/resource.h>
+
+#include <algorithm>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <functional>
+#include <map>
+#include <vector>
+
+#include "fuzz/fuzz.h"
+#include "support.h"
+
+namespace fs = std::filesystem;
+
+TEST_CASE("fuzz regressions: every input that once crashed a parser gets the parser's own error") {
+  std::map<std::string, std::function<void(const uint8_t*, size_t)>> harnesses{
+      {"scene", prism::fuzz::scene},         {"space", prism::fuzz::space},
+      {"manifest", prism::fuzz::manifest},   {"events", prism::fuzz::events},
+      {"psf_exr", prism::fuzz::psf_exr},     {"hdr_stack", prism::fuzz::hdr_stack},
+#ifdef PRISM_FUZZ_CAMERA
+      {"genicam", prism::fuzz::genicam},     {"gencp_ack", prism::fuzz::gencp_ack},
+      {"stream_leader_trailer", prism::fuzz::stream_leader_trailer},
+#endif
+  };
+  const fs::path root = fs::path(PRISM_SOURCE_DIR) / "tests" / "data" / "fuzz";
+  size_t inputs = 0;
+  for (const auto& dir : fs::directory_iterator(root)) {
+    const std::string name = dir.path().filename().string();
+    auto h = harnesses.find(name);
+    if (h == harnesses.end()) {
+#ifdef PRISM_FUZZ_CAMERA
+      FAIL("tests/data/fuzz/" << name << ": no harness of that name (fuzz/fuzz.h)");
+#endif
+      continue;
+    }
+    for (const auto& f : fs::directory_iterator(dir.path())) {
+      std::ifstream in(f.path(), std::ios::binary);
+      const std::vector<uint8_t> bytes((std::istreambuf_iterator<char>(in)), {});
+      CAPTURE(f.path().string());
+      CHECK_NOTHROW(h->second(bytes.data(), bytes.size()));
+      ++inputs;
+    }
+  }
+  CHECK(inputs >= 4);  // the first long run's findings at least
+}
+
+TEST_CASE("fuzz regressions: an event file refused in its header leaves no file open") {
+  // The events harness ran out of file descriptors: a reader whose
+  // constructor threw never closed its file.
+  const std::vector<uint8_t> bad{'P', 'R', 'I', 'S', 'M', 'E', 'V', 'T', 1, 0, 0, 0, 0, 0, 0, 0};  // sensor width 0
+  // A few hundred descriptors at most for this check, whatever the machine allows.
+  rlimit was{};
+  REQUIRE(::getrlimit(RLIMIT_NOFILE, &was) == 0);
+  rlimit low = was;
+  low.rlim_cur = std::min<rlim_t>(was.rlim_cur, 512);
+  REQUIRE(::setrlimit(RLIMIT_NOFILE, &low) == 0);
+  for (int i = 0; i < 600; ++i) prism::fuzz::events(bad.data(), bad.size());
+  std::FILE* f = std::fopen(PRISM_SOURCE_DIR "/README.md", "rb");
+  ::setrlimit(RLIMIT_NOFILE, &was);
+  CHECK(f != nullptr);
+  if (f) std::fclose(f);
+}
