@@ -211,17 +211,22 @@ void EventReader::fail(const std::string& why) const {
   throw EventFileError(path_ + ": at byte offset " + std::to_string(offset_) + ": " + why);
 }
 
-void EventReader::require_left(uint64_t bytes, const std::string& what) const {
-  if (bytes > size_ - std::min(size_, offset_))
-    fail(what + " needs " + std::to_string(bytes) + " bytes, the file has " + std::to_string(size_ - offset_) +
-         " left: corrupt record or a file cut short");
+void EventReader::require_left(uint64_t bytes, const char* what) {
+  if (bytes > size_ - std::min(size_, offset_)) {
+    offset_ = size_;  // as read() would report it, without allocating what the count asks for
+    truncated(what);
+  }
+}
+
+void EventReader::truncated(const char* what) const {
+  fail(std::string("truncated while reading the ") + what + " (file ends here; it was cut short: re-run prism simulate)");
 }
 
 void EventReader::read(void* dst, size_t n, const char* what) {
   size_t got = std::fread(dst, 1, n, f_);
   if (got != n) {
     offset_ += got;
-    fail(std::string("truncated while reading the ") + what + " (file ends here; it was cut short: re-run prism simulate)");
+    truncated(what);
   }
   offset_ += n;
 }
@@ -254,7 +259,7 @@ bool EventReader::next(Event& e) {
   read(b, 4, "vertex count");
   uint32_t k = get_u32(b);
   if (k > max_vertices) fail("vertex count " + std::to_string(k) + " exceeds 65536: corrupt record");
-  require_left(40ull * k, "vertex count " + std::to_string(k));
+  require_left(40ull * k, "vertex truth");
   e.vertices.resize(k);
   uint8_t v[40];
   for (auto& vx : e.vertices) {
@@ -269,7 +274,7 @@ bool EventReader::next(Event& e) {
   uint32_t n = get_u32(b);
   const uint64_t pixels = uint64_t(header_.grid_width()) * header_.grid_height();
   if (n > pixels) fail("click count " + std::to_string(n) + " exceeds the sensor's pixels: corrupt record");
-  require_left(4ull * n, "click count " + std::to_string(n));
+  require_left(4ull * n, "clicks");
   e.clicks.resize(n);
   uint64_t start = offset_;
   read(e.clicks.data(), size_t(n) * 4, "clicks");

@@ -96,7 +96,8 @@ class EventReader {
   EventFileHeader header_;
   uint64_t offset_ = 0, read_events_ = 0;
   uint64_t size_ = 0;  // the file's bytes: a count is checked against what is left before it is allocated
-  void require_left(uint64_t bytes, const std::string& what) const;
+  void require_left(uint64_t bytes, const char* what);  // before allocating for a count
+  [[noreturn]] void truncated(const char* what) const;
   void read_header();
   bool done_ = false;
 };
