@@ -42,7 +42,10 @@ for h in "${harnesses[@]}"; do
   log=build-fuzz/$h.log
   # Corpus dirs after the first are read only; -rss_limit_mb: a parser that
   # allocates beyond it on a small input is a finding.
-  if ASAN_OPTIONS=detect_leaks=1 build-fuzz/fuzz/fuzz_$h -max_total_time="$seconds" -rss_limit_mb=2048 -timeout=20 \
+  # A fixed seed (PRISM_FUZZ_SEED, default 1): the same binary and corpus
+  # mutate alike on every run, so that CI does not fail by chance.
+  if ASAN_OPTIONS=detect_leaks=1 build-fuzz/fuzz/fuzz_$h -seed="${PRISM_FUZZ_SEED:-1}" -max_total_time="$seconds" \
+      -rss_limit_mb=2048 -timeout=20 \
       -max_len=65536 -artifact_prefix=build-fuzz/artifacts/$h- -print_final_stats=1 "${dirs[@]}" >"$log" 2>&1; then
     runs=$(grep -o 'stat::number_of_executed_units: *[0-9]*' "$log" | grep -o '[0-9]*$' || echo "?")
     cov=$(grep -o 'cov: [0-9]*' "$log" | tail -1 | grep -o '[0-9]*' || echo "?")

@@ -29,6 +29,20 @@ struct NodeMap::Impl {
 
   explicit Impl(RegisterPort& p) : port(p) {}
 
+  // p-references are followed recursively: a chain this deep is a cycle
+  // (the fuzzer found a feature whose pValue names itself).
+  static constexpr int kMaxReferenceDepth = 64;
+  int depth = 0;
+  struct Follow {
+    int& d;
+    Follow(int& depth, pugi::xml_node n) : d(depth) {
+      if (++d > kMaxReferenceDepth)
+        throw std::runtime_error(std::string("GenICam XML: references through '") + n.attribute("Name").value() +
+                                 "' nest deeper than " + std::to_string(kMaxReferenceDepth) + " (a cycle?)");
+    }
+    ~Follow() { --d; }
+  };
+
   pugi::xml_node node(const std::string& name) const {
     auto it = nodes.find(name);
     if (it == nodes.end()) throw std::runtime_error("camera has no feature '" + name + "' in its GenICam XML");
@@ -89,6 +103,7 @@ struct NodeMap::Impl {
 
   // --- values ---
   int64_t integer(pugi::xml_node n) {
+    Follow follow(depth, n);
     std::string k = kind(n);
     std::string name = n.attribute("Name").value();
     if (k == "IntReg") {
@@ -109,6 +124,7 @@ struct NodeMap::Impl {
     throw std::runtime_error("feature '" + name + "' (" + k + ") has no integer value this driver can read");
   }
   double number(pugi::xml_node n) {
+    Follow follow(depth, n);
     std::string k = kind(n);
     if (k == "FloatReg") {
       uint64_t raw = read_raw(n);
@@ -129,6 +145,7 @@ struct NodeMap::Impl {
     return double(integer(n));
   }
   void set_integer(pugi::xml_node n, int64_t v) {
+    Follow follow(depth, n);
     std::string k = kind(n);
     std::string name = n.attribute("Name").value();
     check_writable(n);
@@ -160,6 +177,7 @@ struct NodeMap::Impl {
     throw std::runtime_error("feature '" + name + "' (" + k + ") cannot be written by this driver");
   }
   void set_number(pugi::xml_node n, double v) {
+    Follow follow(depth, n);
     std::string k = kind(n);
     std::string name = n.attribute("Name").value();
     check_writable(n);

@@ -1,6 +1,7 @@
 #include "host/scene/scene.h"
 
 #include <cmath>
+#include <cstdlib>
 #include <fstream>
 #include <sstream>
 
@@ -115,7 +116,10 @@ Scene builtin_scene(const std::string& name) {
     s.optics.lenslets = hex_array(0);
   } else if (name.rfind("unifocal-f", 0) == 0 || name.rfind("single-f", 0) == 0) {
     bool single = name[0] == 's';
-    double f = std::stod(name.substr(name.find("-f") + 2));
+    const std::string digits = name.substr(name.find("-f") + 2);
+    char* end = nullptr;
+    const double f = std::strtod(digits.c_str(), &end);
+    if (digits.empty() || *end != '\0') throw SceneError("unknown built-in scene '" + name + "'");
     if (f != 3 && f != 9 && f != 15) throw SceneError("unknown built-in scene '" + name + "'");
     if (single) {
       // Ideal thin lens on the axis with the array's total aperture area:
