@@ -1,7 +1,8 @@
 // Inputs the fuzz harnesses found (fuzz/README.md), kept as regression
 // tests: each harness must handle its parser's input with the parser's own
 // errors. tests/data/fuzz/<harness>/<kind>-<hash> is the input as libFuzzer
-// wrote it; the fix is named in the commit that added it.
+// wrote it (binary ones as `xxd -p` text, <kind>-<hash>.hex); the fix is
+// named in the commit that added it.
 #include <sys/resource.h>
 
 #include <algorithm>
@@ -16,6 +17,23 @@
 #include "support.h"
 
 namespace fs = std::filesystem;
+
+namespace {
+
+// `xxd -p` text back to its bytes (whitespace ignored).
+std::vector<uint8_t> from_hex(const std::vector<uint8_t>& text) {
+  std::vector<uint8_t> out;
+  int high = -1;
+  for (uint8_t c : text) {
+    const int v = c >= '0' && c <= '9' ? c - '0' : c >= 'a' && c <= 'f' ? c - 'a' + 10 : -1;
+    if (v < 0) continue;
+    if (high < 0) high = v;
+    else out.push_back(uint8_t(high * 16 + v)), high = -1;
+  }
+  return out;
+}
+
+}  // namespace
 
 TEST_CASE("fuzz regressions: every input that once crashed a parser gets the parser's own error") {
   std::map<std::string, std::function<void(const uint8_t*, size_t)>> harnesses{
@@ -40,7 +58,8 @@ TEST_CASE("fuzz regressions: every input that once crashed a parser gets the par
     }
     for (const auto& f : fs::directory_iterator(dir.path())) {
       std::ifstream in(f.path(), std::ios::binary);
-      const std::vector<uint8_t> bytes((std::istreambuf_iterator<char>(in)), {});
+      std::vector<uint8_t> bytes((std::istreambuf_iterator<char>(in)), {});
+      if (f.path().extension() == ".hex") bytes = from_hex(bytes);  // binary inputs are kept as `xxd -p` text
       CAPTURE(f.path().string());
       CHECK_NOTHROW(h->second(bytes.data(), bytes.size()));
       ++inputs;
