@@ -49,14 +49,19 @@ inline std::optional<nlohmann::json> json_of(const uint8_t* data, size_t size) {
   return j;
 }
 
-// A folder of this process's own, made once, for parsers that read files.
+// A folder of this process's own, made once, for parsers that read files;
+// removed when the fuzzer exits normally (a crash leaves it beside its input).
 inline const std::filesystem::path& scratch() {
-  static const std::filesystem::path dir = [] {
-    auto d = std::filesystem::temp_directory_path() / ("prism-fuzz-" + std::to_string(::getpid()));
-    std::filesystem::create_directories(d);
-    return d;
-  }();
-  return dir;
+  struct Scratch {
+    std::filesystem::path path = std::filesystem::temp_directory_path() / ("prism-fuzz-" + std::to_string(::getpid()));
+    Scratch() { std::filesystem::create_directories(path); }
+    ~Scratch() {
+      std::error_code ignored;
+      std::filesystem::remove_all(path, ignored);
+    }
+  };
+  static const Scratch dir;
+  return dir.path;
 }
 
 inline std::string write_file(const std::filesystem::path& path, const uint8_t* data, size_t size) {

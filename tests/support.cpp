@@ -1,6 +1,7 @@
 #include "support.h"
 
 #include <sys/wait.h>
+#include <unistd.h>
 
 #include <array>
 #include <cstdio>
@@ -17,6 +18,20 @@ vk::Context& gpu() {
   static vk::Context ctx(vk::ContextOptions{"", true});
   created = &ctx;
   return ctx;
+}
+
+const std::filesystem::path& scratch_dir() {
+  struct Scratch {
+    std::filesystem::path path =
+        std::filesystem::temp_directory_path() / ("prism-test-" + std::to_string(::getpid()));
+    Scratch() { std::filesystem::create_directories(path); }
+    ~Scratch() {
+      std::error_code ignored;  // nothing to report from an exiting process
+      std::filesystem::remove_all(path, ignored);
+    }
+  };
+  static const Scratch scratch;
+  return scratch.path;
 }
 
 size_t validation_message_count() { return created ? created->validation_messages().size() : 0; }

@@ -3,6 +3,7 @@
 #pragma once
 #include <doctest/doctest.h>
 
+#include <filesystem>
 #include <string>
 #include <vector>
 
@@ -20,6 +21,11 @@ vk::Context& gpu();
 void check_validation_clean();
 // Messages the validation layer printed in this process (0 if no GPU test ran).
 size_t validation_message_count();
+// This test process's own folder, prism-test-PID under the system's temp
+// directory: made on first use and removed with its contents when the process
+// exits, so that the suite leaves nothing behind.
+const std::filesystem::path& scratch_dir();
+
 // A scene small enough for exhaustive CPU-reference comparisons.
 OpticalSystem small_system(LensModel model);
 

@@ -26,7 +26,7 @@
 namespace {
 
 std::string temp_dir() {
-  auto d = std::filesystem::temp_directory_path() / ("prism-cli-test-" + std::to_string(::getpid()));
+  auto d = prism::test::scratch_dir() / "cli";
   std::filesystem::create_directories(d);
   return d.string();
 }

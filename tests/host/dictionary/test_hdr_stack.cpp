@@ -18,7 +18,7 @@ using namespace prism;
 namespace {
 
 fs::path fresh_dir(const std::string& name) {
-  fs::path d = fs::temp_directory_path() / ("prism-hdr-test-" + std::to_string(::getpid())) / name;
+  fs::path d = prism::test::scratch_dir() / "hdr" / name;
   fs::remove_all(d);
   fs::create_directories(d);
   return d;
@@ -54,7 +54,7 @@ void edit_json(const fs::path& dir, const std::function<void(nlohmann::json&)>& 
 
 // Runs the prism binary; returns its exit status, with stdout+stderr in `output`.
 int prism_cli(const std::string& args, std::string& output) {
-  fs::path log = fs::temp_directory_path() / ("prism-hdr-cli-" + std::to_string(::getpid()) + ".log");
+  fs::path log = prism::test::scratch_dir() / "prism-cli.log";
   std::string cmd = "PRISM_DEVICE=cpu " + std::string(PRISM_BINARY) + " " + args + " > " + log.string() + " 2>&1";
   int status = std::system(cmd.c_str());
   std::ifstream in(log);

@@ -19,9 +19,7 @@ namespace fs = std::filesystem;
 namespace {
 
 std::string temp_path(const std::string& name) {
-  auto d = fs::temp_directory_path() / ("prism-events-test-" + std::to_string(::getpid()));
-  fs::create_directories(d);
-  return (d / name).string();
+  return (prism::test::scratch_dir() / name).string();
 }
 
 // Per-pixel agreement of click frequencies with a model probability p_i over
@@ -72,7 +70,7 @@ struct TinyDictionary {
     o.rays_per_lenslet = 256;
     prism::build_dictionary(prism::test::gpu(), prism::builtin_scene("prototype"), dir, o);
   }
-  ~TinyDictionary() { fs::remove_all(fs::path(dir).parent_path()); }
+  ~TinyDictionary() { fs::remove_all(dir); }
 };
 TinyDictionary& tiny_dictionary() {
   static TinyDictionary d;
