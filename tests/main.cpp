@@ -1,4 +1,4 @@
-// Test runner: doctest, plus two checks after the run: the Vulkan validation
+// Test runner: doctest, with the tests' environment, plus two checks after the run: the Vulkan validation
 // layer printed nothing, and a run asked for named test cases ran at least
 // one (ctest splits a test name at ';', and a filter that matches nothing
 // would otherwise pass without testing anything).
@@ -6,6 +6,7 @@
 #include <doctest/doctest.h>
 
 #include <cstdio>
+#include <cstdlib>
 #include <cstring>
 
 #include "support.h"
@@ -35,6 +36,10 @@ REGISTER_LISTENER("run-counter", 1, RunCounter);
 }  // namespace
 
 int main(int argc, char** argv) {
+  // Every test on lavapipe with the validation layer on, unless the caller's
+  // environment says otherwise; `prism` run by a test inherits both.
+  ::setenv("PRISM_DEVICE", "cpu", 0);
+  ::setenv("PRISM_VALIDATION", "1", 0);
   doctest::Context context(argc, argv);
   int rc = context.run();
   if (context.shouldExit()) return rc;
