@@ -316,6 +316,11 @@ struct ForwardVulkan::Impl {
   }
 };
 
+uint64_t ForwardVulkan::device_bytes_at_most(const AnalysisGrid& grid, Splat splat, uint64_t image_budget_bytes) {
+  const uint64_t image = std::min<uint64_t>(image_budget_bytes, uint64_t(grid.width) * grid.height * kPixelBytes);
+  return image + (splat == Splat::footprint ? 2 * std::max<uint64_t>(image_budget_bytes, 64u << 10) : 0);
+}
+
 ForwardVulkan::ForwardVulkan(vk::Context& ctx, const OpticalSystem& sys, const TraceSettings& settings,
                              uint64_t image_budget_bytes)
     : ForwardVulkan(ctx, std::vector<OpticalSystem>{sys}, settings, image_budget_bytes) {}

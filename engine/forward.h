@@ -30,13 +30,19 @@ struct PixelImage {
 
 class ForwardVulkan {
  public:
+  static constexpr uint64_t default_image_budget_bytes = 256ull << 20;
   ForwardVulkan(vk::Context& ctx, const OpticalSystem& sys, const TraceSettings& settings,
-                uint64_t image_budget_bytes = 256ull << 20);
+                uint64_t image_budget_bytes = default_image_budget_bytes);
   // Several designs traced in the same dispatches (design sweeps). They must
   // share the sensor, distances, lens model and effects; only the lenslets
   // differ. Each design traces the very rays it would trace alone.
   ForwardVulkan(vk::Context& ctx, const std::vector<OpticalSystem>& designs, const TraceSettings& settings,
-                uint64_t image_budget_bytes = 256ull << 20);
+                uint64_t image_budget_bytes = default_image_budget_bytes);
+  // The most device memory a forward model of `grid` holds: its image buffer
+  // and, for the footprint splat, its two lists, each within the budget (for
+  // memory estimates: on a CPU device it is host memory).
+  static uint64_t device_bytes_at_most(const AnalysisGrid& grid, Splat splat,
+                                       uint64_t image_budget_bytes = default_image_budget_bytes);
   ~ForwardVulkan();
 
   // theta = (x_mm, y_mm, depth_mm) per source, through design 0.

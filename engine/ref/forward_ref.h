@@ -25,6 +25,9 @@ struct SparseImage {
   int width = 0;
   int height = 0;
   std::unordered_map<int64_t, std::array<double, 7>> pixels;
+  // Memory per lit pixel, for estimates: the map's node (key, 7 doubles, link,
+  // allocator overhead) and its bucket.
+  static constexpr double bytes_per_pixel = 96;
   double photons() const;
   // b and the mean gradient of pixel `key`.
   std::array<double, 4> value(int64_t key) const;

@@ -22,6 +22,8 @@ int main(int argc, char** argv) {
   app.add_subcommand("devices", "list the Vulkan devices that --device can choose")->callback([] {
     for (const auto& d : prism::vk::Context::list_devices()) std::printf("%s\n", d.c_str());
   });
+  for (CLI::App* command : app.get_subcommands({}))
+    if (command->get_name() != "camera" && command->get_name() != "devices") prism::cmd::add_memory_limit(*command);
   prism::cmd::require_finite_numbers(app);
   prism::install_interrupt_cleanup();
   try {

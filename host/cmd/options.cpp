@@ -5,6 +5,7 @@
 #include <sstream>
 
 #include "host/util/format.h"
+#include "host/util/memory.h"
 
 namespace prism::cmd {
 
@@ -146,6 +147,32 @@ void require_finite_numbers(CLI::App& app) {
   for (CLI::Option* o : app.get_options())
     if (o->get_type_name().find("FLOAT") != std::string::npos) o->check(finite);
   for (CLI::App* sub : app.get_subcommands({})) require_finite_numbers(*sub);
+}
+
+void add_memory_limit(CLI::App& command) {
+  if (!command.get_subcommands({}).empty()) {
+    for (CLI::App* sub : command.get_subcommands({})) add_memory_limit(*sub);
+    return;
+  }
+  // Checked as it is read, so that a bad size is a usage error naming the option.
+  command
+      .add_option_function<std::string>(
+          "--max-memory", [](const std::string& text) { set_memory_limit_bytes(parse_memory_size(text, "--max-memory")); },
+          "memory this command may plan to use, as bytes or with K, M, G, T (powers of 1024): 512M, 8G; work "
+          "estimated beyond it is refused before it starts. Default " +
+              format_bytes(double(memory_limit_bytes())) + ", " + memory_limit_origin())
+      ->type_name("SIZE")
+      ->envname("PRISM_MAX_MEMORY")
+      ->check(CLI::Validator(
+          [](std::string& text) -> std::string {
+            try {
+              parse_memory_size(text, "--max-memory");
+            } catch (const std::invalid_argument& e) {
+              return std::string(e.what()).substr(std::string("--max-memory: ").size());  // CLI11 names the option
+            }
+            return "";
+          },
+          ""));
 }
 
 glm::dvec3 parse_point(const std::string& text, const std::string& option) {

@@ -6,6 +6,7 @@
 #include "host/cmd/commands.h"
 #include "host/cmd/options.h"
 #include "host/util/image_io.h"
+#include "host/util/memory.h"
 
 namespace prism::cmd {
 
@@ -29,11 +30,21 @@ void run(const PsfArgs& a) {
   glm::dvec3 theta = parse_point(a.source, "--source-mm");
   require_in_front(scene, theta.z, "--source-mm");
   TraceSettings t = a.fw.settings(scene);
+  const AnalysisGrid grid = AnalysisGrid::of(scene.optics, t.binning);
+  const double px = double(grid.width) * grid.height;
+  MemoryEstimate memory("psf at binning " + std::to_string(t.binning) + " (" + std::to_string(grid.width) +
+                        " x " + std::to_string(grid.height) + " px)");
+  memory.add("the image and its derivatives, 4 floats per pixel", 16 * px).add("the PNG preview", px);
+  const bool vulkan = a.fw.backend_kind() == Backend::vulkan;
+  if (!vulkan) memory.add("the CPU reference's sparse image, up to every pixel", ref::SparseImage::bytes_per_pixel * px);
+  if (vulkan && !a.derivatives) memory.add("the values from the device", 4 * px);
   PixelImage img;
   std::string device = "CPU reference (double precision)";
-  if (a.fw.backend_kind() == Backend::vulkan) {
+  if (vulkan) {
     vk::Context ctx(vk::ContextOptions{a.fw.device});
     device = ctx.describe();
+    memory.add_device_buffers(double(ForwardVulkan::device_bytes_at_most(grid, t.splat)), ctx.is_cpu());
+    memory.require_within_limit("Use a coarser --binning");
     ForwardVulkan fw(ctx, scene.optics, t);
     if (a.derivatives) {
       img = fw.psf(theta);
@@ -44,6 +55,7 @@ void run(const PsfArgs& a) {
       for (size_t i = 0; i < b.size(); ++i) img.data[4 * i] = b[i];
     }
   } else {
+    memory.require_within_limit("Use a coarser --binning");
     auto sparse = ref::psf(scene.optics, t, theta);
     img = {sparse.width, sparse.height, AnalysisGrid::of(scene.optics, t.binning).pixel_mm,
            std::vector<float>(size_t(sparse.width) * sparse.height * 4, 0.0f)};

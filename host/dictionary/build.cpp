@@ -8,6 +8,7 @@
 #include "engine/forward.h"
 #include "host/util/format.h"
 #include "host/util/image_io.h"
+#include "host/util/memory.h"
 
 namespace prism {
 
@@ -80,6 +81,16 @@ DictionaryBuildReport build_dictionary(vk::Context& ctx, const Scene& scene, con
                                        const std::function<void(size_t, size_t)>& progress) {
   check_build_options(dir, o);
   DictionaryManifest wanted = manifest_for(scene, o);
+  // One PSF at a time: level 0, its copy in half floats as it is written, and
+  // a coarser level with its double accumulator (binned from level 0).
+  const double px = double(wanted.width) * wanted.height;
+  MemoryEstimate memory("dictionary build at binning " + std::to_string(o.base_binning) + " (" +
+                        std::to_string(wanted.width) + " x " + std::to_string(wanted.height) + " px per PSF)");
+  memory.add("a PSF's level 0 in float and half", 6 * px).add("its coarser levels as they are binned", 3 * px);
+  memory.add_device_buffers(
+      double(ForwardVulkan::device_bytes_at_most(AnalysisGrid::of(scene.optics, unsigned(o.base_binning)), o.splat)),
+      ctx.is_cpu());
+  memory.require_within_limit("Use a coarser --binning");
   std::filesystem::create_directories(dir + "/psf");
   if (std::filesystem::exists(dir + "/manifest.json")) {
     // Resume only the very same dictionary.

@@ -8,7 +8,9 @@
 #include <random>
 #include <stdexcept>
 
+#include "host/util/format.h"
 #include "host/util/image_io.h"
+#include "host/util/memory.h"
 
 namespace fs = std::filesystem;
 
@@ -112,6 +114,12 @@ HdrStack read_hdr_stack(const std::string& dir) {
                    " exposures; the merge needs at least 3 (paper: m = 7): recapture with more --exposures");
   if (f.exposure_s.size() > 16) fail(file, "field 'exposures' lists more than 16 exposures; the merge takes 16");
   if (f.dark_s.empty()) fail(file, "field 'darks' is empty: the merge needs at least one dark frame");
+  const double px = w * h, frames = double(f.exposure_s.size() + f.dark_s.size());
+  MemoryEstimate memory("the HDR stack " + dir + " (" + std::to_string(f.width) + " x " + std::to_string(f.height) +
+                        " px)");
+  memory.add(format_number(frames) + " frames of 16-bit pixels", 2 * frames * px)
+      .add("the merged PSF, its status and validity mask", 16 * px);
+  memory.require_within_limit("Merge it on a machine with more memory");
   for (const auto& name : s.exposure_files) f.exposures.push_back(read_raw(fs::path(dir) / name, f));
   for (const auto& name : s.dark_files) f.darks.push_back(read_raw(fs::path(dir) / name, f));
   return s;

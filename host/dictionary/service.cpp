@@ -9,6 +9,19 @@ namespace {
 std::string mib(uint64_t b) { return std::to_string((b + (1 << 20) - 1) >> 20) + " MiB"; }
 }  // namespace
 
+namespace {
+// Words of one PSF's coarse level on the device: values (two halves per word,
+// or one float), then its float summed-area table.
+uint64_t device_words(const DictionaryManifest& m, int level, bool device_half) {
+  const uint64_t w = uint64_t(m.level_width(level)), h = uint64_t(m.level_height(level));
+  return (device_half ? (w * h + 1) / 2 : w * h) + (w + 1) * (h + 1);
+}
+}  // namespace
+
+uint64_t DictionaryService::device_bytes(const DictionaryManifest& m, int coarse_level, bool device_half) {
+  return device_words(m, coarse_level, device_half) * 4 * m.grid.size();
+}
+
 DictionaryService::DictionaryService(const DictionaryReader& reader, vk::Context* ctx, int coarse_level,
                                      ServiceBudget budget, bool device_half)
     : reader_(reader), coarse_level_(coarse_level), budget_(budget), device_half_(device_half) {
@@ -17,8 +30,8 @@ DictionaryService::DictionaryService(const DictionaryReader& reader, vk::Context
     throw DictionaryError(reader.dir() + ": no level " + std::to_string(coarse_level) + " (levels 0.." +
                           std::to_string(m.levels - 1) + ")");
   const uint64_t w = uint64_t(m.level_width(coarse_level)), h = uint64_t(m.level_height(coarse_level));
-  const uint64_t p_words = device_half ? (w * h + 1) / 2 : w * h;
   const uint64_t sat_words = (w + 1) * (h + 1);
+  const uint64_t p_words = device_words(m, coarse_level, device_half) - sat_words;
   const uint64_t psf_bytes = (p_words + sat_words) * 4;  // on the device: values, then the float table
   const uint64_t sat_bytes = (w + 1) * (h + 1) * sizeof(double);
   const size_t n = m.grid.size();

@@ -40,6 +40,10 @@ class DictionaryService {
   DictionaryService(const DictionaryReader& reader, vk::Context* ctx, int coarse_level, ServiceBudget budget,
                     bool device_half = false);
 
+  // What the coarse level of every PSF takes on the device: values and float
+  // summed-area tables.
+  static uint64_t device_bytes(const DictionaryManifest& m, int coarse_level, bool device_half);
+
   const DictionaryManifest& manifest() const { return reader_.manifest(); }
   int coarse_level() const { return coarse_level_; }
 

@@ -235,7 +235,8 @@ void write_psf_file(const std::string& path, const DictionaryManifest& m, size_t
     try {
       Imf::TiledOutputFile file(tmp.c_str(), header);
       for (int l = 0; l < file.numLevels(); ++l) {
-        PsfLevel lv = l == 0 ? level0 : bin_level(level0, l);
+        PsfLevel binned;  // level 0 is written from the caller's copy
+        const PsfLevel& lv = l == 0 ? level0 : (binned = bin_level(level0, l));
         std::vector<half> data(lv.p.size());
         for (size_t i = 0; i < data.size(); ++i) data[i] = half(lv.p[i] * scale);
         Imf::FrameBuffer fb;

@@ -5,6 +5,8 @@
 #include <cmath>
 #include <sstream>
 
+#include "host/util/memory.h"
+
 namespace prism {
 
 PsfSampler::PsfSampler(std::span<const float> p, int width, int height, int shift_cols, int shift_rows) {
@@ -137,12 +139,34 @@ std::shared_ptr<const PsfSampler> EventTruth::psf(const glm::dvec3& position_mm)
   render_seconds_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   ++renders_;
   cache_.emplace_front(position_mm, s);
-  if (cache_.size() > cache_entries_) cache_.pop_back();
+  cache_bytes_ += s->bytes();
+  const double budget = cache_share * double(memory_limit_bytes());
+  while (cache_.size() > 1 && (cache_.size() > cache_entries_ || double(cache_bytes_) > budget)) {
+    cache_bytes_ -= cache_.back().second->bytes();
+    cache_.pop_back();
+  }
   return s;
 }
 
+namespace {
+
+// Checked before the forward model is made: one PSF rendered on the device,
+// read back and made into a sampler (up to every pixel lit).
+TraceSettings within_memory(vk::Context& ctx, const Scene& scene, const TraceSettings& settings) {
+  const AnalysisGrid grid = AnalysisGrid::of(scene.optics, settings.binning);
+  const double px = double(grid.width) * grid.height;
+  MemoryEstimate memory("the forward model's events at binning " + std::to_string(settings.binning) + " (" +
+                        std::to_string(grid.width) + " x " + std::to_string(grid.height) + " px)");
+  memory.add("a PSF read back from the device", 4 * px).add("its sampler, up to every pixel lit", 24 * px);
+  memory.add_device_buffers(double(ForwardVulkan::device_bytes_at_most(grid, settings.splat)), ctx.is_cpu());
+  memory.require_within_limit("Use a coarser --binning");
+  return settings;
+}
+
+}  // namespace
+
 ForwardTruth::ForwardTruth(vk::Context& ctx, const Scene& scene, const TraceSettings& settings, size_t cache_entries)
-    : EventTruth(cache_entries), settings_(settings), fw_(ctx, scene.optics, settings) {}
+    : EventTruth(cache_entries), settings_(settings), fw_(ctx, scene.optics, within_memory(ctx, scene, settings)) {}
 
 std::string ForwardTruth::provenance() const {
   return "forward model, " + std::string(to_string(settings_.splat)) + " splat, " + std::to_string(settings_.rays()) +

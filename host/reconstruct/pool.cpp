@@ -7,6 +7,7 @@
 #include <thread>
 
 #include "host/util/format.h"
+#include "host/util/memory.h"
 
 namespace prism {
 
@@ -27,6 +28,18 @@ ReconstructionPool::ReconstructionPool(const DictionaryReader& reader, int click
                                 ": choose a coarser --level or a smaller --tau-mm");
   const bool on_device = o.backend != ReconstructionBackend::cpu;
   const unsigned n = on_device ? 1u : std::max(1u, o.threads);
+  {
+    // The host budget holds the summed-area tables and the tile cache; the
+    // scan level on a CPU device is host memory too.
+    const int L = settings_.search_level;
+    MemoryEstimate memory("the support search on level " + std::to_string(L) + " of " +
+                          std::to_string(m.grid.size()) + " PSFs (" + std::to_string(m.level_width(L)) + " x " +
+                          std::to_string(m.level_height(L)) + " px each)");
+    memory.add("summed-area tables and tiles (--budget-mib)", double(o.host_budget_bytes));
+    if (on_device && o.ctx)
+      memory.add_device_buffers(double(DictionaryService::device_bytes(m, L, o.device_half)), o.ctx->is_cpu());
+    memory.require_within_limit("Use a smaller --budget-mib or a coarser --level");
+  }
   ServiceBudget budget;
   budget.host_bytes = o.host_budget_bytes / n;
   for (unsigned t = 0; t < n; ++t) {

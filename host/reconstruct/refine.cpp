@@ -12,6 +12,7 @@
 #include "engine/ref/likelihood_ref.h"
 #include "host/reconstruct/click_geometry.h"
 #include "host/reconstruct/levenberg_marquardt.h"
+#include "host/util/memory.h"
 
 namespace prism {
 
@@ -125,6 +126,17 @@ std::vector<SourceImage> SourceModel::render(std::span<const glm::dvec3> theta) 
 }
 
 std::unique_ptr<SourceModel> make_scene_model(const Scene& scene, const TraceSettings& settings, vk::Context* ctx) {
+  // One render at a time, up to every pixel lit: the image with derivatives
+  // (the device's) or the reference's sparse image, and the model's pixels.
+  const AnalysisGrid grid = AnalysisGrid::of(scene.optics, settings.binning);
+  const double px = double(grid.width) * grid.height;
+  MemoryEstimate memory("the scene's model for the refinement at binning " + std::to_string(settings.binning) + " (" +
+                        std::to_string(grid.width) + " x " + std::to_string(grid.height) + " px)");
+  memory.add("a render's pixels, each with its gradient in double", double(sizeof(ModelPixel)) * px);
+  if (!ctx) memory.add("the CPU reference's sparse image", ref::SparseImage::bytes_per_pixel * px);
+  if (ctx) memory.add("a render read back from the device, 4 floats per pixel", 16 * px);
+  if (ctx) memory.add_device_buffers(double(ForwardVulkan::device_bytes_at_most(grid, settings.splat)), ctx->is_cpu());
+  memory.require_within_limit("Use coarser clicks (events at a larger binning) or --model dictionary");
   if (ctx) return std::make_unique<SceneModelVulkan>(*ctx, scene, settings);
   return std::make_unique<SceneModelCpu>(scene, settings);
 }

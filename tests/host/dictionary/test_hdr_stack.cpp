@@ -10,6 +10,7 @@
 #include "compare.h"
 #include "host/dictionary/hdr_stack.h"
 #include "host/util/image_io.h"
+#include "host/util/memory.h"
 #include "support.h"
 
 namespace fs = std::filesystem;
@@ -121,6 +122,14 @@ TEST_CASE("HDR stack: bad stacks give errors naming the file and field") {
   // A sample beyond the bit depth: wrong bit_depth or packed data.
   has(error_after([](const fs::path& d) { edit_json(d, [](J& j) { j["bit_depth"] = 8; }); }),
       {"exceeds the 8-bit range"});
+  // A frame size beyond the memory limit is refused from stack.json alone,
+  // before a frame is read: 10 frames of 30000 x 30000 px at 2 bytes are
+  // 16.8 GiB, the merge's outputs at 16 bytes per pixel 13.4 GiB.
+  prism::set_memory_limit_bytes(1ull << 30);
+  has(error_after([](const fs::path& d) { edit_json(d, [](J& j) { j["width"] = j["height"] = 30000; }); }),
+      {"needs an estimated 30.2 GiB of memory", "10 frames of 16-bit pixels: 16.8 GiB", "limit of 1.00 GiB",
+       "--max-memory"});
+  prism::use_default_memory_limit();
   CHECK(error_after([](const fs::path&) {}).empty());
 }
 

@@ -473,6 +473,14 @@ TEST_CASE("prism reconstruct: CSV rows per vertex, summary, and errors that say 
                                           " --vertices 1 --out " + csv + " --level 99");
   CHECK(bad_level.status != 0);
   CHECK(bad_level.output.find("--level 99") != std::string::npos);
+  // The search's host budget (--budget-mib, 1 GiB by default) beyond the
+  // memory limit is refused before the dictionary is read.
+  auto over = prism::test::run_prism("reconstruct --dictionary " + d.dir + "/dict --events " + events +
+                                     " --vertices 1 --out " + csv + " --max-memory 256M");
+  CHECK(over.status != 0);
+  CHECK_MESSAGE(over.output.find("summed-area tables and tiles (--budget-mib): 1.00 GiB") != std::string::npos,
+                over.output);
+  CHECK(over.output.find("Use a smaller --budget-mib or a coarser --level") != std::string::npos);
   auto missing = prism::test::run_prism("reconstruct --dictionary " + d.dir + "/dict --events " + d.dir +
                                         "/none.events --vertices 1 --out " + csv);
   CHECK(missing.status != 0);
