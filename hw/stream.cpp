@@ -5,6 +5,7 @@
 #include <chrono>
 #include <deque>
 #include <memory>
+#include <optional>
 
 #include "hw/u3v_regs.h"
 #include "hw/usb.h"
@@ -80,7 +81,8 @@ struct Slot {
   std::vector<libusb_transfer*> xfers;  // leader, payloads..., trailer
   std::vector<Role> roles;
   Leader leader_info;
-  std::string bad;  // first reason this frame cannot be delivered
+  bool has_leader = false;  // leader_info is this frame's (its leader parsed)
+  std::string bad;          // first reason this frame cannot be delivered
   unsigned pending = 0;
 };
 
@@ -156,6 +158,7 @@ class Streamer {
     slot.trailer.assign(l_.max_trailer, 0);
     slot.data.assign(uint64_t(l_.transfer_count) * l_.transfer_size + l_.final1 + l_.final2, 0);
     slot.bad.clear();
+    slot.has_leader = false;
     size_t off = 0;
     for (unsigned i = 0; i < slot.xfers.size(); ++i) {
       uint8_t* buf;
@@ -224,7 +227,7 @@ class Streamer {
       if (role == Role::Leader) {
         auto ld = parse_leader(std::span(slot.leader).first(size_t(t->actual_length)), why);
         if (!ld) slot.bad = why;
-        else slot.leader_info = *ld;
+        else slot.leader_info = *ld, slot.has_leader = true;
       } else if (role == Role::Payload && uint64_t(t->actual_length) != expected_length(c.index)) {
         slot.bad = "short payload transfer";
       }
@@ -260,7 +263,14 @@ class Streamer {
     }
     if (res_.delivered >= wanted_) {
       // queued beyond the request: not a drop, just not wanted
-    } else if (slot.bad.empty()) {
+      return;
+    }
+    // The frame's block id, from its leader or else its trailer; with neither,
+    // the gap before the next frame with an id counts it.
+    const std::optional<uint64_t> id =
+        slot.has_leader ? std::optional(slot.leader_info.block_id) : tr ? std::optional(tr->block_id) : std::nullopt;
+    if (id) count_missing_before(*id);
+    if (slot.bad.empty()) {
       const Leader& ld = slot.leader_info;
       Frame f{ld.block_id, ld.timestamp, ld.pixel_format, ld.width, ld.height, std::move(slot.data)};
       f.data.resize(l_.payload_size);
@@ -268,9 +278,18 @@ class Streamer {
       on_frame(std::move(f));
     } else {
       drop(slot.bad);
+      if (id) ++res_.frames_dropped;
     }
     if (!aligned) return start_hunt(s);
     if (res_.delivered + in_flight_frames() < wanted_) submit_slot(s, true);
+  }
+
+  // Frames between the last one accounted for and block `id` never arrived
+  // whole (their leaders were lost); a camera that restarts its numbering
+  // starts the count again.
+  void count_missing_before(uint64_t id) {
+    if (next_block_ && id > *next_block_) res_.frames_dropped += unsigned(std::min<uint64_t>(id - *next_block_, 1u << 30));
+    next_block_ = id + 1;
   }
 
   // Payload transfer i (1-based) must be full, except the last, which holds what remains.
@@ -320,6 +339,7 @@ class Streamer {
   StreamResult res_;
   unsigned wanted_ = 0, in_flight_ = 0;
   bool hunting_ = false, halt_cleared_ = false;
+  std::optional<uint64_t> next_block_;  // block id the next frame should carry
 };
 
 }  // namespace

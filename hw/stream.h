@@ -46,7 +46,14 @@ struct Frame {
 
 struct StreamResult {
   unsigned delivered = 0;
-  std::map<std::string, unsigned> drops;  // reason -> frames dropped
+  // Frames the camera sent that were not delivered, counted by block id (the
+  // camera numbers its frames one by one): a frame dropped for a reason, and
+  // the frames missing between two frames whose leaders arrived. Frames lost
+  // after the last good leader of a run (an unplug) cannot be counted.
+  unsigned frames_dropped = 0;
+  // Why, as events by reason: a frame whose leader was lost may add several
+  // "resync" events while the stream finds the next leader.
+  std::map<std::string, unsigned> drops;
   std::string error;                      // why streaming stopped early; empty when all frames came
   unsigned stalls_cleared = 0;
 };

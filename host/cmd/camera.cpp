@@ -35,6 +35,7 @@ void stream(const CameraArgs& a) {
   });
   double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   std::cout << r.delivered << " frames in " << s << " s (" << (s > 0 ? r.delivered / s : 0) << " fps)\n";
+  if (r.frames_dropped) std::cout << r.frames_dropped << " frames dropped\n";
   for (const auto& [why, n] : r.drops) std::cout << "dropped " << n << ": " << why << "\n";
   if (r.stalls_cleared) std::cout << "stream endpoint stalls cleared: " << r.stalls_cleared << "\n";
   if (!r.error.empty()) throw std::runtime_error(r.error);

@@ -75,7 +75,7 @@ uint16_t pattern(uint32_t x, uint32_t y, uint64_t block, unsigned bits) {
   return uint16_t((x * 37 + y * 101 + block * 7) % (1u << bits));
 }
 
-DeviceModel::DeviceModel(Faults f) : faults(f), xml_(kXml) {
+DeviceModel::DeviceModel(Faults f) : faults(f), xml_(kXml), random_(f.random_seed) {
   auto put = [&](uint64_t a, uint64_t v, size_t n) {
     for (size_t i = 0; i < n; ++i) mem_[a + i] = uint8_t(v >> (8 * i));
   };
@@ -166,6 +166,10 @@ unsigned DeviceModel::frames_sent() const {
   std::lock_guard lock(mu_);
   return frames_;
 }
+std::map<uint64_t, Faults::Stream> DeviceModel::faults_injected() const {
+  std::lock_guard lock(mu_);
+  return injected_;
+}
 bool DeviceModel::unplugged() const {
   std::lock_guard lock(mu_);
   return gone_;
@@ -236,7 +240,11 @@ void DeviceModel::queue_frame() {
   using F = Faults::Stream;
   const uint64_t block = frames_++;
   const bool hit = faults.frame && *faults.frame == block;
-  const F fault = hit ? faults.stream : F::None;
+  F fault = hit ? faults.stream : F::None;
+  if (fault == F::None && faults.random_rate > 0 && !faults.random_kinds.empty() &&
+      std::uniform_real_distribution<double>(0, 1)(random_) < faults.random_rate)
+    fault = faults.random_kinds[random_() % faults.random_kinds.size()];
+  if (fault != F::None) injected_[block] = fault;
   uint32_t w = r32(kRegWidth), h = r32(kRegHeight), fmt = r32(kRegPixelFormat);
   unsigned bits = bit_depth(fmt);
   Bytes px;  // pack the pattern in the wire format

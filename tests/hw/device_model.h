@@ -8,6 +8,7 @@
 #include <map>
 #include <mutex>
 #include <optional>
+#include <random>
 #include <string>
 #include <vector>
 
@@ -30,6 +31,12 @@ struct Faults {
   enum class Stream { None, ShortTransfer, LostTransfer, BadLeaderMagic, TruncatedLeader, BadTrailerMagic,
                       TruncatedTrailer, Oversize, TrailerStatus, Stall, Unplug, Silence } stream = Stream::None;
   size_t usbfs_limit = 0;          // bytes of URB buffers the "kernel" accepts at once (0 = unlimited)
+  // Soak: besides `frame`, each frame gets a fault with probability
+  // random_rate, of a kind drawn from random_kinds; seeded, so a failing run
+  // repeats exactly.
+  double random_rate = 0;
+  std::vector<Stream> random_kinds;
+  uint64_t random_seed = 1;
 };
 
 // Pixel value the model puts at (x, y) of frame `block`, before packing.
@@ -54,6 +61,7 @@ class DeviceModel {
   uint32_t reg32(uint64_t addr) const;
   float exposure_us() const;
   unsigned frames_sent() const;
+  std::map<uint64_t, Faults::Stream> faults_injected() const;  // block id -> the fault its frame got
   std::string xml() const { return xml_; }
 
  private:
@@ -70,6 +78,8 @@ class DeviceModel {
   std::deque<Bytes> stream_;         // device transfers waiting for host buffers
   bool acquiring_ = false, halted_ = false, gone_ = false, dropped_ack_ = false, pended_ = false;
   unsigned frames_ = 0;
+  std::map<uint64_t, Faults::Stream> injected_;
+  std::mt19937_64 random_;
 };
 
 }  // namespace prism::hw::test

@@ -12,15 +12,35 @@
 #include <list>
 #include <mutex>
 #include <stdexcept>
+#include <utility>
 
 namespace prism::hw::test {
 namespace {
 
 constexpr const char* kDevNode = "/dev/bus/usb/002/003";
 
+// umockdev_ioctl_data_resolve returns a reference the caller owns (GIR:
+// transfer full): dropped here. Holding them forever leaked every URB's
+// buffer copy, 18 kB per frame.
+struct Resolved {
+  UMockdevIoctlData* p = nullptr;
+  Resolved(UMockdevIoctlData* parent, size_t offset, size_t len) {
+    GError* err = nullptr;
+    p = umockdev_ioctl_data_resolve(parent, offset, len, &err);
+    if (err) g_error_free(err);
+  }
+  Resolved(Resolved&& o) noexcept : p(std::exchange(o.p, nullptr)) {}
+  Resolved(const Resolved&) = delete;
+  ~Resolved() {
+    if (p) g_object_unref(p);
+  }
+  UMockdevIoctlData* operator->() const { return p; }
+  explicit operator bool() const { return p != nullptr; }
+};
+
 struct Urb {
-  UMockdevIoctlData* data;    // the client's struct usbdevfs_urb (kept referenced)
-  UMockdevIoctlData* buffer;  // its data buffer
+  Resolved data;    // the client's struct usbdevfs_urb
+  Resolved buffer;  // its data buffer
   bool discarded = false;
   usbdevfs_urb* get() const { return reinterpret_cast<usbdevfs_urb*>(data->data); }
 };
@@ -46,11 +66,10 @@ struct FakeUsb::Impl {
     std::lock_guard lock(mu);
     const gulong req = umockdev_ioctl_client_get_request(client);
     UMockdevIoctlData* arg = umockdev_ioctl_client_get_arg(client);
-    GError* err = nullptr;
     auto done = [&](long ret, int e) { umockdev_ioctl_client_complete(client, ret, e); };
     switch (req) {
       case USBDEVFS_GET_CAPABILITIES: {
-        auto* d = umockdev_ioctl_data_resolve(arg, 0, 4, &err);
+        Resolved d(arg, 0, 4);
         *reinterpret_cast<uint32_t*>(d->data) = USBDEVFS_CAP_BULK_CONTINUATION | USBDEVFS_CAP_NO_PACKET_SIZE_LIM |
                                                 USBDEVFS_CAP_REAP_AFTER_DISCONNECT | USBDEVFS_CAP_ZERO_PACKET;
         return done(0, 0);
@@ -62,7 +81,7 @@ struct FakeUsb::Impl {
       case USBDEVFS_RESET:
         return model.unplugged() ? done(-1, ENODEV) : done(0, 0);
       case USBDEVFS_CLEAR_HALT: {
-        auto* d = umockdev_ioctl_data_resolve(arg, 0, 4, &err);
+        Resolved d(arg, 0, 4);
         if (model.unplugged()) return done(-1, ENODEV);
         model.clear_halt(uint8_t(*reinterpret_cast<unsigned*>(d->data)));
         return done(0, 0);
@@ -88,27 +107,25 @@ struct FakeUsb::Impl {
 
   template <class Done>
   void submit(UMockdevIoctlData* arg, Done& done) {
-    GError* err = nullptr;
-    UMockdevIoctlData* d = umockdev_ioctl_data_resolve(arg, 0, sizeof(usbdevfs_urb), &err);
+    Resolved d(arg, 0, sizeof(usbdevfs_urb));
+    if (!d) return done(-1, EFAULT);
     auto* u = reinterpret_cast<usbdevfs_urb*>(d->data);
     if (model.unplugged()) return done(-1, ENODEV);
     size_t limit = model.faults.usbfs_limit;
     if (limit && bytes_in_flight + size_t(u->buffer_length) > limit) return done(-1, ENOMEM);  // usbfs_memory_mb
-    UMockdevIoctlData* buf = umockdev_ioctl_data_resolve(d, offsetof(usbdevfs_urb, buffer), size_t(u->buffer_length), &err);
+    Resolved buf(d.p, offsetof(usbdevfs_urb, buffer), size_t(u->buffer_length));
     if (!buf) return done(-1, EFAULT);
-    g_object_ref(d);
-    urbs.push_back({d, buf});
     bytes_in_flight += size_t(u->buffer_length);
     if (u->type == USBDEVFS_URB_TYPE_BULK && !(u->endpoint & 0x80))  // OUT: the device consumes it now
       model.out(u->endpoint, Bytes(buf->data, buf->data + u->buffer_length));
+    urbs.push_back({std::move(d), std::move(buf)});
     done(0, 0);
   }
 
   // Completes the oldest URB the device can answer, keeping per-endpoint order.
   template <class Done>
   void reap(UMockdevIoctlData* arg, Done& done) {
-    GError* err = nullptr;
-    UMockdevIoctlData* ptr = umockdev_ioctl_data_resolve(arg, 0, sizeof(void*), &err);
+    Resolved ptr(arg, 0, sizeof(void*));
     std::vector<unsigned> blocked;  // IN endpoints with an older URB still waiting
     for (auto it = urbs.begin(); it != urbs.end(); ++it) {
       usbdevfs_urb* u = it->get();
@@ -139,10 +156,9 @@ struct FakeUsb::Impl {
         }
       }
       if (!ready) continue;
-      umockdev_ioctl_data_set_ptr(ptr, 0, it->data);
+      umockdev_ioctl_data_set_ptr(ptr.p, 0, it->data.p);
       bytes_in_flight -= size_t(u->buffer_length);
       done(0, 0);
-      g_object_unref(it->data);
       urbs.erase(it);
       return;
     }
@@ -175,8 +191,7 @@ FakeUsb::~FakeUsb() {
   umockdev_testbed_detach_ioctl(impl_->testbed, kDevNode, nullptr);
   {
     std::lock_guard lock(impl_->mu);
-    for (auto& u : impl_->urbs) g_object_unref(u.data);
-    impl_->urbs.clear();
+    impl_->urbs.clear();  // drops their references
   }
   g_object_unref(impl_->handler);
   g_object_unref(impl_->testbed);
