@@ -13,13 +13,7 @@ seconds="${1:-30}"
 shift || true
 all=(scene space manifest events psf_exr hdr_stack genicam gencp_ack stream_leader_trailer)
 harnesses=("${@:-${all[@]}}")
-for p in clang-16 libclang-rt-16-dev; do
-  if ! dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed"; then
-    if [[ $(id -u) -ne 0 ]]; then echo "fuzz: as root run: apt-get install $p" >&2; exit 1; fi
-    export DEBIAN_FRONTEND=noninteractive
-    apt-get update -qq && apt-get install -y -qq --no-install-recommends "$p" >/dev/null
-  fi
-done
+tools/ensure-packages.sh clang-16 libclang-rt-16-dev
 
 CC=clang-16 CXX=clang++-16 cmake -S . -B build-fuzz -DCMAKE_BUILD_TYPE=RelWithDebInfo -DPRISM_FUZZ=ON >/dev/null
 targets=(fuzz_seeds)

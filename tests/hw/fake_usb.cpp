@@ -147,7 +147,7 @@ struct FakeUsb::Impl {
         ready = true;
       } else if (std::find(blocked.begin(), blocked.end(), u->endpoint) == blocked.end()) {
         if (auto in = model.in(u->endpoint, size_t(u->buffer_length))) {
-          std::memcpy(it->buffer->data, in->data.data(), in->data.size());
+          if (!in->data.empty()) std::memcpy(it->buffer->data, in->data.data(), in->data.size());
           u->status = in->status;
           u->actual_length = int(in->data.size());
           ready = true;

@@ -385,8 +385,11 @@ TEST_CASE("event file streams: 200k events written and read in bounded memory") 
   CHECK(click_sum == 24 * n);
   REQUIRE(file_kib > 20000);  // ~30 MB of events
   // Neither direction holds the file: memory grows by far less than its size.
+  // (Not under AddressSanitizer, whose quarantine keeps freed blocks resident.)
+#ifndef PRISM_SANITIZE
   CHECK(rss1 < rss0 + file_kib / 8);
   CHECK(rss2 < rss1 + file_kib / 8);
+#endif
   fs::remove(path);
 }
 
