@@ -16,6 +16,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <map>
 
 #include "engine/defaults.h"
 #include "host/util/format.h"
@@ -290,6 +291,19 @@ namespace {
 // has. Layout (OpenEXR file layout): magic and version (8 bytes), then
 // attributes (name NUL, type NUL, int32 size, value) up to an empty name;
 // in a multi-part file, headers so until an empty one.
+// OpenEXR reads a value of these types by its structure, whatever its size
+// field says; 0 for any other type (read by its size).
+int64_t exr_fixed_value_bytes(const std::string& type) {
+  static const std::map<std::string, int64_t> fixed{
+      {"box2i", 16},      {"box2f", 16},   {"compression", 1}, {"lineOrder", 1}, {"envmap", 1},
+      {"deepImageState", 1}, {"int", 4},   {"float", 4},       {"double", 8},    {"rational", 8},
+      {"timecode", 8},    {"keycode", 28}, {"v2i", 8},         {"v2f", 8},       {"v2d", 16},
+      {"v3i", 12},        {"v3f", 12},     {"v3d", 24},        {"m33f", 36},     {"m33d", 72},
+      {"m44f", 64},       {"m44d", 128},   {"tiledesc", 9},    {"chromaticities", 32}};
+  auto it = fixed.find(type);
+  return it == fixed.end() ? 0 : it->second;
+}
+
 const std::string& checked_exr_header(const std::string& path) {
   std::ifstream in(path, std::ios::binary);
   in.seekg(0, std::ios::end);
@@ -336,6 +350,9 @@ const std::string& checked_exr_header(const std::string& path) {
     } else if (type == "preview") {
       const int64_t w = int32(), h = int32();
       if (!in || w < 0 || h < 0 || 8 + 4 * w * h != bytes) throw corrupt("is a preview image of another size");
+    } else if (auto fixed = exr_fixed_value_bytes(type); fixed && bytes != fixed) {
+      throw corrupt("of type " + type + " declares " + std::to_string(bytes) + " bytes; its value has " +
+                    std::to_string(fixed));
     }
     in.seekg(start + bytes);
   }
