@@ -22,8 +22,12 @@ int main(int argc, char** argv) {
   app.add_subcommand("devices", "list the Vulkan devices that --device can choose")->callback([] {
     for (const auto& d : prism::vk::Context::list_devices()) std::printf("%s\n", d.c_str());
   });
-  for (CLI::App* command : app.get_subcommands({}))
-    if (command->get_name() != "camera" && command->get_name() != "devices") prism::cmd::add_memory_limit(*command);
+  // The commands whose large allocations are estimated (host/util/memory.h);
+  // crlb and sweep hold the forward model's bounded buffers only.
+  prism::cmd::add_memory_limit(*app.get_subcommand("psf"));
+  prism::cmd::add_memory_limit(*app.get_subcommand("dictionary")->get_subcommand("build"));
+  prism::cmd::add_memory_limit(*app.get_subcommand("dictionary")->get_subcommand("merge-hdr"));
+  for (const char* name : {"simulate", "reconstruct", "evaluate"}) prism::cmd::add_memory_limit(*app.get_subcommand(name));
   prism::cmd::require_finite_numbers(app);
   prism::install_interrupt_cleanup();
   try {

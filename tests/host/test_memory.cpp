@@ -100,7 +100,8 @@ TEST_CASE("prism refuses work beyond --max-memory before it starts, and writes n
                 r.output);
   CHECK_FALSE(fs::exists(dir / "dict"));
   // A size that is not one is a usage error naming the option.
-  r = prism::test::run_prism("crlb --scene prototype --depth-mm 20 --max-memory 1x");
+  r = prism::test::run_prism("simulate --scene prototype --vertex 0,0,20 --events 1 --out " +
+                             (dir / "e.events").string() + " --max-memory 1x");
   CHECK(r.status != 0);
   CHECK_MESSAGE(r.output.find("--max-memory: '1x' is not a memory size") != std::string::npos, r.output);
 }
