@@ -150,10 +150,6 @@ void require_finite_numbers(CLI::App& app) {
 }
 
 void add_memory_limit(CLI::App& command) {
-  if (!command.get_subcommands({}).empty()) {
-    for (CLI::App* sub : command.get_subcommands({})) add_memory_limit(*sub);
-    return;
-  }
   // Checked as it is read, so that a bad size is a usage error naming the option.
   command
       .add_option_function<std::string>(

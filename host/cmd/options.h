@@ -60,8 +60,8 @@ void require_in_front(const Scene& scene, double depth_mm, const std::string& op
 // has added its options.
 void require_finite_numbers(CLI::App& app);
 
-// --max-memory SIZE (or PRISM_MAX_MEMORY) on `command` (or each of its
-// subcommands): the limit memory estimates are checked against
+// --max-memory SIZE (or PRISM_MAX_MEMORY) on `command`: the limit memory
+// estimates are checked against
 // (host/util/memory.h), set while the arguments are read, before any
 // command runs.
 void add_memory_limit(CLI::App& command);

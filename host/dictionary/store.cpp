@@ -344,29 +344,29 @@ const std::string& checked_exr_header(const std::string& path, const DictionaryM
                     std::to_string(std::max<int64_t>(0, left)) + " left");
     // Values OpenEXR reads by their own structure, not by the size: they must
     // end where the size says, or its reading goes out of step with the file.
+    if (auto fixed = exr_fixed_value_bytes(type); fixed && bytes != fixed)
+      throw corrupt("of type " + type + " declares " + std::to_string(bytes) + " bytes; its value has " +
+                    std::to_string(fixed));
     if (type == "chlist") {
       while (!text("channel name").empty() && in) in.seekg(16, std::ios::cur);  // type, linear, reserved, sampling
       if (!in || int64_t(in.tellg()) - start != bytes) throw corrupt("holds channels that do not fill its size");
     } else if (type == "preview") {
       const int64_t w = int32(), h = int32();
       if (!in || w < 0 || h < 0 || 8 + 4 * w * h != bytes) throw corrupt("is a preview image of another size");
-    } else if (type == "tiledesc" && bytes == 9) {
+    } else if (type == "tiledesc") {
       // OpenEXR sizes its tile buffers by these before reading a pixel (a
       // 16 x 2.8e8 px tile asked for 1.1 GB): they must be the manifest's.
       const int64_t tx = uint32_t(int32()), ty = uint32_t(int32());
       if (!in || tx != m.tile_px || ty != m.tile_px)
         throw corrupt("declares tiles of " + std::to_string(tx) + " x " + std::to_string(ty) + " px; the manifest's are " +
                       std::to_string(m.tile_px) + " x " + std::to_string(m.tile_px));
-    } else if (type == "box2i" && bytes == 16 && name == "dataWindow") {
+    } else if (type == "box2i" && name == "dataWindow") {
       // Its tile offset tables follow from the data window: it must be the manifest's level 0.
       const int64_t x0 = int32(), y0 = int32(), x1 = int32(), y1 = int32();
       if (!in || x0 != 0 || y0 != 0 || x1 != m.width - 1 || y1 != m.height - 1)
         throw corrupt("is (" + std::to_string(x0) + ", " + std::to_string(y0) + ") - (" + std::to_string(x1) + ", " +
                       std::to_string(y1) + "); the manifest's level 0 is " + std::to_string(m.width) + " x " +
                       std::to_string(m.height) + " px");
-    } else if (auto fixed = exr_fixed_value_bytes(type); fixed && bytes != fixed) {
-      throw corrupt("of type " + type + " declares " + std::to_string(bytes) + " bytes; its value has " +
-                    std::to_string(fixed));
     }
     in.seekg(start + bytes);
   }

@@ -43,16 +43,21 @@ Run stream_with(Fault fault, unsigned at, unsigned n, StreamOptions opt = {}) {
   return run;
 }
 
-// Every delivered frame must carry exactly the model's pattern for its block id.
+// Whether a frame carries exactly the model's pattern for its block id.
+bool intact(const Frame& f) {
+  auto px = unpack(f.pixel_format, f.data, f.width, f.height);
+  unsigned bits = bit_depth(f.pixel_format);
+  for (uint32_t y = 0; y < f.height; ++y)
+    for (uint32_t x = 0; x < f.width; ++x)
+      if (px[y * f.width + x] != pattern(x, y, f.block_id, bits)) return false;
+  return true;
+}
+
+// Every delivered frame must be intact.
 void check_intact(const std::vector<Frame>& frames) {
   for (const Frame& f : frames) {
-    auto px = unpack(f.pixel_format, f.data, f.width, f.height);
-    unsigned bits = bit_depth(f.pixel_format);
-    bool ok = true;
-    for (uint32_t y = 0; y < f.height && ok; ++y)
-      for (uint32_t x = 0; x < f.width && ok; ++x) ok = px[y * f.width + x] == pattern(x, y, f.block_id, bits);
     CAPTURE(f.block_id);
-    CHECK(ok);
+    CHECK(intact(f));
   }
 }
 
@@ -376,15 +381,7 @@ TEST_SUITE("usb3 vision soak") {
       StreamResult r = cam.stream(
           last_run ? 100 : total - std::min(total, first_sent) + 1,
           [&](Frame&& fr) {
-            auto px = unpack(fr.pixel_format, fr.data, fr.width, fr.height);
-            const unsigned bits = bit_depth(fr.pixel_format);
-            for (uint32_t y = 0; y < fr.height; ++y)
-              for (uint32_t x = 0; x < fr.width; ++x)
-                if (px[y * fr.width + x] != pattern(x, y, fr.block_id, bits)) {
-                  ++torn;
-                  y = fr.height;
-                  break;
-                }
+            torn += !intact(fr);
             if (!ids.empty() && fr.block_id <= ids.back()) ++not_rising;
             ids.push_back(fr.block_id);
           },
