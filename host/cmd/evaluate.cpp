@@ -124,6 +124,12 @@ void run(EvaluateArgs a) {
                   "(0.67 when efficient)\n",
                   r.axes.events, 100 * r.axes.catastrophic_rate, defaults::catastrophic_error_mm,
                   r.axes.median_ratio.x, r.axes.median_ratio.y, r.axes.median_ratio.z);
+  for (const auto& r : result.rows)
+    if (r.experiment == "volume" && !std::isnan(r.p_confusion_mean))
+      std::printf("volume %s %.0f-%.0f mm: predicted catastrophic rate (mean p_confusion) %.3g%%, measured %.3g%% "
+                  "(%d events)\n",
+                  r.series == "all" ? "all" : "band", r.depth_lo_mm, r.depth_hi_mm, 100 * r.p_confusion_mean,
+                  100 * r.axes.catastrophic_rate, r.axes.events);
   const auto& cost = result.cost;
   if (result.resumed)
     std::printf("%zu events read from the journals in %s (reconstructed by an earlier run; not in the cost below)\n",
@@ -144,6 +150,10 @@ void run(EvaluateArgs a) {
               cost.reconstruct_s > 0 ? double(cost.events) / cost.reconstruct_s : 0.0,
               cost.events ? cost.reconstruct_s / double(cost.events) : 0.0, cost.scan_s, cost.refine_s,
               cost.events ? double(cost.renders) / double(cost.events) : 0.0, a.backend.c_str());
+  if (cost.ambiguity_s > 0)
+    std::printf("ambiguity: %.2f s and %.1f renders per volume event (%.1f s in all)\n",
+                cost.ambiguity_s / double(result.volume.size() - result.resumed),
+                double(cost.ambiguity_renders) / double(result.volume.size() - result.resumed), cost.ambiguity_s);
   for (const auto& path : write_evaluation(a.out, result))
     std::fprintf(stderr, "prism evaluate: wrote %s\n", path.c_str());
 }
@@ -159,7 +169,7 @@ void add_evaluate(CLI::App& app) {
   c->add_option("--experiments", a->experiments,
                 "comma-separated: single-lines (x, y, depth lines through (1,1,31) mm at 100 photons), photons "
                 "(50, 100, 200, 400 at (1,1,31)), double ((1,1,depth) and (1,1,7.5), 250 photons split 50/50), volume "
-                "(--volume-events single vertices of 100 photons uniform over the field, by depth band)")
+                "(--volume-events single vertices of --volume-photons uniform over the field, by depth band)")
       ->capture_default_str();
   c->add_option("--model", a->model,
                 "continuous refinement after the search: scene (the scene's forward model; the default when the "
@@ -168,6 +178,16 @@ void add_evaluate(CLI::App& app) {
       ->check(CLI::IsMember({"scene", "dictionary", "none"}));
   c->add_option("--volume-events", a->options.volume_events, "volume: events, each at its own position")
       ->capture_default_str()->check(CLI::Range(1, 10000000));
+  c->add_option("--volume-photons", a->options.volume_photons,
+                "volume: expected detected photons of each event (the CRLB and the ambiguity at the same count)")
+      ->capture_default_str()->check(CLI::PositiveNumber);
+  c->add_flag("--ambiguity", a->options.volume_ambiguity,
+              "volume: also each event's global ambiguity at its true position, as `prism crlb --ambiguity` "
+              "(columns alias_kl, alias_*_mm, p_confusion in volume-events.csv), and per depth band the "
+              "catastrophic rate it predicts (mean p_confusion) beside the rate measured; about 60 renders per event");
+  c->add_option("--separation-mm", a->options.ambiguity.min_separation_mm,
+                "with --ambiguity: the least distance of an impostor (3D)")
+      ->capture_default_str()->check(CLI::PositiveNumber);
   c->add_option("--volume-x-mm", a->volume_x, "volume: x range lo,hi (default: the dictionary grid's)")
       ->delimiter(',')->expected(2);
   c->add_option("--volume-y-mm", a->volume_y, "volume: y range lo,hi (default: the dictionary grid's)")

@@ -250,12 +250,18 @@ auto read_record(const json& j, const std::string& path, F&& read) {
 
 // A volume event as one journal record, and back.
 json to_json(const VolumeEvent& v) {
-  return {{"index", v.index},
+  json j = {{"index", v.index},
           {"truth_mm", {v.truth_mm.x, v.truth_mm.y, v.truth_mm.z}},
           {"crlb_mm", {v.crlb_mm.x, v.crlb_mm.y, v.crlb_mm.z}},
           {"estimate", to_json(v.estimate)},
           {"seconds", number_or_null(v.seconds)},
           {"renders", number_or_null(v.renders)}};
+  if (!std::isnan(v.p_confusion))
+    j["ambiguity"] = {{"alias_kl", number_or_null(v.alias_kl)},
+                      {"alias_mm", {number_or_null(v.alias_mm.x), number_or_null(v.alias_mm.y),
+                                    number_or_null(v.alias_mm.z)}},
+                      {"p_confusion", v.p_confusion}};
+  return j;
 }
 
 VolumeEvent volume_event_from_json(const json& j) {
@@ -268,6 +274,12 @@ VolumeEvent volume_event_from_json(const json& j) {
   v.estimate = vertex_from_json(j.at("estimate"));
   v.seconds = number_of(j.value("seconds", json()));  // absent in journals of 30abc7b and before
   v.renders = number_of(j.value("renders", json()));
+  if (j.contains("ambiguity")) {
+    const json& a = j.at("ambiguity");
+    v.alias_kl = number_of(a.at("alias_kl"));
+    for (int k = 0; k < 3; ++k) v.alias_mm[k] = number_of(a.at("alias_mm").at(size_t(k)));
+    v.p_confusion = a.at("p_confusion").get<double>();
+  }
   return v;
 }
 
@@ -284,9 +296,13 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   const auto& m = dictionary.manifest();
   if (o.level < 0 || o.level >= m.levels)
     throw std::invalid_argument("click level " + std::to_string(o.level) + " is not stored in the dictionary");
-  const auto points = plan(m.grid, o);
   const bool volume = std::find(o.experiments.begin(), o.experiments.end(), "volume") != o.experiments.end();
+  if (o.volume_ambiguity && !volume)
+    throw std::invalid_argument("--ambiguity: only with the volume experiment (--experiments volume)");
+  const auto points = plan(m.grid, o);
   if (volume && o.volume_events < 1) throw std::invalid_argument("--volume-events: at least 1");
+  if (volume && !(o.volume_photons > 0 && std::isfinite(o.volume_photons)))
+    throw std::invalid_argument("--volume-photons: a finite number above 0");
 
   const unsigned binning = unsigned(m.base_binning << o.level);
   const TraceSettings model_settings = refine_trace_settings(binning);
@@ -338,6 +354,10 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   std::map<int, std::unique_ptr<Reconstructor>> reconstructors;  // per K
   std::unique_ptr<SourceModel> source_model;
   std::unique_ptr<Refiner> refiner;
+  // Its own model (not the refinement's), so that the refinement's renders
+  // per event stay its own.
+  std::unique_ptr<SourceModel> ambiguity_model;
+  if (o.volume_ambiguity) ambiguity_model = make_scene_model(scene, model_settings, &ctx);
   if (refining) {
     source_model = make_refine_model(o.model, scene, dictionary, o.level, &ctx);
     RefineSettings rs = o.refine;
@@ -412,12 +432,17 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   if (volume && !o.journal_dir.empty()) {
     json header = run;
     header["prism_evaluate_volume"] = 1;
-    header["photons"] = volume_protocol::photons;
+    header["photons"] = o.volume_photons;
+    // Only when asked for, so that journals made before the option resume.
+    if (o.volume_ambiguity)
+      header["ambiguity"] = {{"min_separation_mm", o.ambiguity.min_separation_mm},
+                             {"refined", o.ambiguity.refined}, {"iterations", o.ambiguity.iterations}};
     header["field_mm"] = {{field.x.x, field.x.y}, {field.y.x, field.y.y}, {field.depth.x, field.depth.y}};
     open_journal(volume_journal, "volume-journal.jsonl", header,
                  "rerun with the same options (--volume-events may differ), or without --resume to start over");
     for (const json& j : volume_journal->records()) {
       VolumeEvent v = read_record(j, volume_journal->path(), volume_event_from_json);
+      if (!o.volume_ambiguity) v.alias_kl = v.p_confusion = NAN, v.alias_mm = glm::dvec3(NAN);  // not asked for
       if (v.index < volume_done.size()) {
         if (!volume_done[v.index]) ++result.resumed;
         volume_done[v.index] = v;
@@ -442,18 +467,23 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
     spent.scan_s += r->timings().scan_s - before.scan_s;
     const auto searched = std::chrono::steady_clock::now();
     const double search_share = std::chrono::duration<double>(searched - start).count() / double(events.size());
+    double each_s = 0;  // what the callbacks take is not the reconstruction's
     for (size_t i = 0; i < events.size(); ++i) {
       const auto refine_start = std::chrono::steady_clock::now();
       const uint64_t renders_before = source_model ? source_model->renders() : 0;
       if (refiner) estimates[i] = refiner->refine(events[i], std::move(estimates[i]));
       const double seconds =
           search_share + std::chrono::duration<double>(std::chrono::steady_clock::now() - refine_start).count();
-      if (each) each(i, estimates[i], seconds, source_model ? source_model->renders() - renders_before : 0);
+      if (each) {
+        const auto each_start = std::chrono::steady_clock::now();
+        each(i, estimates[i], seconds, source_model ? source_model->renders() - renders_before : 0);
+        each_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - each_start).count();
+      }
       if (progress) progress(++done, total);
     }
     const auto end = std::chrono::steady_clock::now();
-    spent.reconstruct_s += std::chrono::duration<double>(end - start).count();
-    spent.refine_s += std::chrono::duration<double>(end - searched).count();
+    spent.reconstruct_s += std::chrono::duration<double>(end - start).count() - each_s;
+    spent.refine_s += std::chrono::duration<double>(end - searched).count() - each_s;
     spent.events += events.size();
     if (source_model) spent.renders = source_model->renders();
     return estimates;
@@ -536,7 +566,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
         auto& e = events[i];
         e.id = volume_first_id + index;
         auto psf = truth.psf(volume_positions[index]);
-        const ClickSource source{psf.get(), volume_protocol::photons};
+        const ClickSource source{psf.get(), o.volume_photons};
         sample_clicks(std::span(&source, 1), volume_rngs[index], e.clicks);
       }
       reconstruct(events, 1, [&](size_t i, const std::vector<ReconstructedVertex>& estimate, double seconds,
@@ -548,7 +578,18 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
         v.index = index;
         v.truth_mm = volume_positions[index];
         v.estimate = estimate.at(0);
-        v.crlb_mm = crlb_at(bound + index, volume_protocol::photons).first;
+        v.crlb_mm = crlb_at(bound + index, o.volume_photons).first;
+        if (ambiguity_model) {
+          const auto ambiguity_start = std::chrono::steady_clock::now();
+          AmbiguitySettings as = o.ambiguity;
+          as.dark_rate = s.dark_rate;
+          const Ambiguity a = ambiguity(*ambiguity_model, scene, v.truth_mm, o.volume_photons, as);
+          v.alias_kl = a.kl;
+          v.alias_mm = a.impostor_mm;
+          v.p_confusion = a.p_confusion;
+          spent.ambiguity_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - ambiguity_start).count();
+          spent.ambiguity_renders = ambiguity_model->renders();
+        }
         if (volume_journal) volume_journal->append(to_json(v));
         volume_done[index] = v;
       });
@@ -559,7 +600,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
     bands.push_back(field.depth);
     for (size_t b = 0; b < bands.size(); ++b) {
       const bool whole = b + 1 == bands.size();
-      std::vector<double> err, alpha_err;
+      std::vector<double> err, alpha_err, p_confusion;
       std::vector<glm::dvec3> axis_err, crlb;
       EvaluationRow r;
       double crlb3_sq = 0;
@@ -569,7 +610,8 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
         if (!whole && !(z >= bands[b].x && (z < bands[b].y || (last && z <= bands[b].y)))) continue;
         err.push_back(error_3d_mm(v.estimate, v.truth_mm));
         axis_err.push_back(error_mm(v.estimate, v.truth_mm));
-        alpha_err.push_back(std::abs(v.estimate.alpha - volume_protocol::photons));
+        alpha_err.push_back(std::abs(v.estimate.alpha - o.volume_photons));
+        p_confusion.push_back(v.p_confusion);
         crlb.push_back(v.crlb_mm);
         crlb3_sq += glm::dot(v.crlb_mm, v.crlb_mm);
         r.flagged += v.estimate.flags != vertex_ok;
@@ -580,7 +622,13 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
       r.depth_hi_mm = bands[b].y;
       r.varied = 0.5 * (bands[b].x + bands[b].y);
       r.position_mm = glm::dvec3(NAN);
-      r.photons = volume_protocol::photons;
+      r.photons = o.volume_photons;
+      // The predicted rate: the mean of p_confusion (NaN when any event lacks it).
+      if (!p_confusion.empty()) {
+        double sum = 0;
+        for (double p : p_confusion) sum += p;
+        r.p_confusion_mean = sum / double(p_confusion.size());
+      }
       r.stats.trials_used = int(err.size());
       auto me = mean_std(err), ma = mean_std(alpha_err);
       r.stats.err3d_mean = err.empty() ? NAN : me.mean;
@@ -614,7 +662,6 @@ void write_stats(std::ostream& out, const EvaluationRow& r) {
   out << ',' << csv_number(r.crlb_3d_mm);
   for (const glm::dvec3* v : {&r.axes.efficiency, &r.axes.median_ratio})
     for (int k = 0; k < 3; ++k) out << ',' << csv_number((*v)[k]);
-  out << '\n';
 }
 
 void write_csv(const std::string& path, const std::function<void(std::ostream&)>& body) {
@@ -629,7 +676,7 @@ void write_csv(const std::string& path, const std::function<void(std::ostream&)>
 void write_volume_events(const std::string& path, const std::vector<VolumeEvent>& events) {
   write_csv(path, [&](std::ostream& out) {
     out << "event,x_mm,y_mm,depth_mm,est_x_mm,est_y_mm,est_depth_mm,alpha,err3d_mm,crlb_x_mm,crlb_y_mm,crlb_z_mm,"
-           "flags,fit_pvalue,seconds,renders\n";
+           "flags,fit_pvalue,seconds,renders,alias_kl,alias_x_mm,alias_y_mm,alias_depth_mm,p_confusion\n";
     for (const auto& v : events) {
       const auto& e = v.estimate;
       out << v.index << ',' << format_number(v.truth_mm.x) << ',' << format_number(v.truth_mm.y) << ','
@@ -637,7 +684,9 @@ void write_volume_events(const std::string& path, const std::vector<VolumeEvent>
           << format_number(e.depth_mm) << ',' << format_number(e.alpha) << ','
           << format_number(error_3d_mm(e, v.truth_mm)) << ',' << format_number(v.crlb_mm.x) << ','
           << format_number(v.crlb_mm.y) << ',' << format_number(v.crlb_mm.z) << ',' << flags_to_string(e.flags) << ','
-          << csv_number(e.fit_pvalue) << ',' << csv_number(v.seconds) << ',' << csv_number(v.renders) << '\n';
+          << csv_number(e.fit_pvalue) << ',' << csv_number(v.seconds) << ',' << csv_number(v.renders);
+      for (double x : {v.alias_kl, v.alias_mm.x, v.alias_mm.y, v.alias_mm.z, v.p_confusion}) out << ',' << csv_number(x);
+      out << '\n';
     }
   });
 }
@@ -646,7 +695,8 @@ void write_volume_events(const std::string& path, const std::vector<VolumeEvent>
 void plot_volume(const std::string& dir, const std::vector<const EvaluationRow*>& rows) {
   const char* axis[] = {"x", "y", "depth"};
   std::vector<Series> errors;
-  Series mean{"3D error (mean)", {}, {}, false, true}, catastrophic{"events > 3 mm", {}, {}, false, true};
+  Series mean{"3D error (mean)", {}, {}, false, true}, catastrophic{"measured: events > 3 mm", {}, {}, false, true};
+  Series predicted{"predicted: mean p_confusion", {}, {}, true, true};
   std::vector<Series> rmse(3), crlb(3);
   for (int k = 0; k < 3; ++k) {
     rmse[k] = {std::string("RMSE ") + axis[k], {}, {}, false, true};
@@ -658,6 +708,10 @@ void plot_volume(const std::string& dir, const std::vector<const EvaluationRow*>
     mean.y.push_back(r->stats.err3d_mean);
     catastrophic.x.push_back(r->varied);
     catastrophic.y.push_back(100 * r->axes.catastrophic_rate);
+    if (!std::isnan(r->p_confusion_mean)) {
+      predicted.x.push_back(r->varied);
+      predicted.y.push_back(100 * r->p_confusion_mean);
+    }
     for (int k = 0; k < 3; ++k)
       if (!std::isnan(r->axes.rmse_mm[k])) {
         rmse[k].x.push_back(r->varied);
@@ -676,7 +730,7 @@ void plot_volume(const std::string& dir, const std::vector<const EvaluationRow*>
   plot_lines(dir + "/volume-catastrophic.png",
              {"volume: catastrophic estimates (3D error > 3 mm) by depth band", "depth (mm, band centre)",
               "events > 3 mm (%)", false},
-             {catastrophic});
+             predicted.x.empty() ? std::vector<Series>{catastrophic} : std::vector<Series>{catastrophic, predicted});
 }
 
 }  // namespace
@@ -692,11 +746,12 @@ std::vector<std::string> write_evaluation(const std::string& dir, const Evaluati
     const std::string csv = dir + "/" + name + ".csv", png = dir + "/" + name + ".png";
     if (name == "volume") {
       write_csv(csv, [&](std::ostream& out) {
-        out << "experiment,series,depth_lo_mm,depth_hi_mm,photons," << kStatsHeader << '\n';
+        out << "experiment,series,depth_lo_mm,depth_hi_mm,photons," << kStatsHeader << ",p_confusion_mean\n";
         for (const auto* r : mine) {
           out << r->experiment << ',' << r->series << ',' << format_number(r->depth_lo_mm) << ','
               << format_number(r->depth_hi_mm) << ',' << format_number(r->photons) << ',';
           write_stats(out, *r);
+          out << ',' << csv_number(r->p_confusion_mean) << '\n';
         }
       });
       write_volume_events(dir + "/volume-events.csv", evaluation.volume);
@@ -712,6 +767,7 @@ std::vector<std::string> write_evaluation(const std::string& dir, const Evaluati
             << format_number(r->position_mm.x) << ',' << format_number(r->position_mm.y) << ','
             << format_number(r->position_mm.z) << ',' << format_number(r->photons) << ',';
         write_stats(out, *r);
+        out << '\n';
       }
     });
     // Per curve: the trimmed mean, mean + 1 std, and the CRLB dashed.

@@ -23,6 +23,11 @@
 // err / CRLB over its non-catastrophic events (1 for an efficient estimator),
 // its CRLB the RMS of the events' bounds; the median over events of
 // |err| / CRLB is reported too (0.674 for an efficient, Gaussian estimator).
+// With `volume_ambiguity`, each event also gets the global ambiguity of its
+// true position (host/reconstruct/ambiguity.h, at the event's photons, on the
+// scene's model as `prism crlb --ambiguity` computes it), and each band the
+// mean of p_confusion: the catastrophic rate the figure predicts, beside the
+// rate measured (issue 13's validation).
 //
 // CRLB beside each error: crlb_study (the scene, Poisson sensor, the point,
 // the truth's binning, rays and splat) gives the bound at the scene's emitted
@@ -43,6 +48,7 @@
 
 #include "engine/vk/context.h"
 #include "host/dictionary/store.h"
+#include "host/reconstruct/ambiguity.h"
 #include "host/reconstruct/reconstruct.h"
 #include "host/reconstruct/refine.h"
 #include "host/scene/scene.h"
@@ -93,6 +99,9 @@ struct EvaluationOptions {
   std::vector<std::string> experiments{"single-lines", "photons", "double"};
   int trials = paper_protocol::trials;
   int volume_events = volume_protocol::events;
+  double volume_photons = volume_protocol::photons;  // expected detected photons per volume event
+  bool volume_ambiguity = false;  // each volume event's predicted confusion beside its error
+  AmbiguitySettings ambiguity;    // with volume_ambiguity (dark_rate: from `settings`)
   // The volume's field: NaN bounds take the dictionary grid's extent.
   glm::dvec2 volume_x_mm{NAN, NAN}, volume_y_mm{NAN, NAN}, volume_depth_mm{NAN, NAN};
   double band_mm = volume_protocol::band_mm;
@@ -126,6 +135,8 @@ struct EvaluationCost {
   double scan_s = 0;         // of which the support scans
   double refine_s = 0;       // the refinement, after the search
   uint64_t renders = 0;      // sources the refinement's model rendered (its main cost)
+  double ambiguity_s = 0;    // the volume events' ambiguity (not in the times above)
+  uint64_t ambiguity_renders = 0;
 };
 
 struct EvaluationRow {
@@ -139,6 +150,7 @@ struct EvaluationRow {
   AxisStats axes;
   int flagged = 0;         // trials whose vertex carried a flag
   double crlb_3d_mm = 0;   // volume: RMS over the band's events
+  double p_confusion_mean = NAN;  // volume with ambiguity: the predicted catastrophic rate, mean over events
 };
 
 // One event of the volume experiment.
@@ -150,6 +162,11 @@ struct VolumeEvent {
   // Its cost: its share of its batch's search plus its refinement, and the
   // refinement's renders; NaN when not recorded (an older journal).
   double seconds = NAN, renders = NAN;
+  // With EvaluationOptions::volume_ambiguity, the truth's global ambiguity
+  // (NaN otherwise): the closest impostor's KL divergence (nats), its position
+  // and the predicted probability of a confusion.
+  double alias_kl = NAN, p_confusion = NAN;
+  glm::dvec3 alias_mm{NAN};
 };
 
 struct Evaluation {

@@ -56,6 +56,25 @@ prism::EvaluationOptions search_volume(int events) {
   return o;
 }
 
+// A 7-lenslet thin-lens row (test_refine.cpp's scene) and a 15-PSF
+// dictionary of it, in the test process's scratch folder.
+struct ThinRow {
+  prism::Scene scene;
+  std::string dir;
+  std::unique_ptr<prism::DictionaryReader> reader;
+  explicit ThinRow(const std::string& name) : dir((prism::test::scratch_dir() / name).string()) {
+    scene.name = "thin row";
+    scene.optics = prism::test::small_system(prism::LensModel::thin);
+    prism::DictionaryBuildOptions b;
+    b.grid = {{-2.0, 0.0, 2.0}, {0.0}, {10.0, 15.0, 20.0, 25.0, 30.0}};
+    b.base_binning = 16;
+    b.rays_per_lenslet = 1024;
+    b.splat = prism::Splat::point;
+    prism::build_dictionary(prism::test::gpu(), scene, dir + "/dict", b);
+    reader = std::make_unique<prism::DictionaryReader>(dir + "/dict");
+  }
+};
+
 std::vector<std::string> lines_of(const std::string& path) {
   std::ifstream in(path);
   std::vector<std::string> v;
@@ -357,19 +376,10 @@ TEST_CASE("evaluation protocol: a stopped run resumes from its journal with the 
 }
 
 TEST_CASE("evaluation volume with the refinement: thin-lens row, truth at 4x the model's cells and other strata") {
-  // A 7-lenslet thin-lens row (test_refine.cpp's scene) and a 15-PSF
-  // dictionary of it; the refinement's model: its forward model.
-  prism::Scene scene;
-  scene.name = "thin row";
-  scene.optics = prism::test::small_system(prism::LensModel::thin);
-  const std::string dir = (fs::temp_directory_path() / ("prism-eval-thin-" + std::to_string(::getpid()))).string();
-  prism::DictionaryBuildOptions b;
-  b.grid = {{-2.0, 0.0, 2.0}, {0.0}, {10.0, 15.0, 20.0, 25.0, 30.0}};
-  b.base_binning = 16;
-  b.rays_per_lenslet = 1024;
-  b.splat = prism::Splat::point;
-  prism::build_dictionary(prism::test::gpu(), scene, dir + "/dict", b);
-  prism::DictionaryReader reader(dir + "/dict");
+  // The refinement's model: the row's forward model.
+  ThinRow row("eval-thin");
+  const auto& scene = row.scene;
+  auto& reader = *row.reader;
 
   prism::EvaluationOptions o;
   o.experiments = {"volume"};
@@ -399,6 +409,91 @@ TEST_CASE("evaluation volume with the refinement: thin-lens row, truth at 4x the
     CHECK(std::max({std::abs(z.x), std::abs(z.y), std::abs(z.z)}) < 4.0);  // within 4 sigma on every axis
   }
   CHECK(result.rows.back().axes.catastrophic_rate == 0);
-  fs::remove_all(dir);
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("evaluation volume with --ambiguity: each event's predicted confusion at its truth, band means, journal") {
+  // The thin-lens row again (quick renders), the search alone: the ambiguity
+  // does not depend on the estimate.
+  ThinRow row("eval-ambiguity");
+  const auto& scene = row.scene;
+  auto& reader = *row.reader;
+  const std::string& dir = row.dir;
+
+  prism::EvaluationOptions o;
+  o.experiments = {"volume"};
+  o.model = prism::RefineModel::none;
+  o.volume_events = 3;
+  o.volume_photons = 60;
+  o.volume_ambiguity = true;
+  o.volume_x_mm = {-1.5, 1.5};
+  o.volume_y_mm = {-0.5, 0.5};
+  o.volume_depth_mm = {12, 28};
+  o.band_mm = 8;  // two bands
+  o.seed = 4;
+  o.journal_dir = dir + "/out";
+  const auto result = prism::evaluate(prism::test::gpu(), scene, reader, o);
+  REQUIRE(result.volume.size() == 3);
+  CHECK(result.cost.ambiguity_s > 0);
+  CHECK(result.cost.ambiguity_renders > 0);
+  CHECK(result.cost.renders == 0);  // the search alone: the ambiguity's renders are its own
+
+  // The same figure as `prism crlb --ambiguity` at the event's truth and photons.
+  auto model = prism::make_scene_model(scene, prism::refine_trace_settings(16), &prism::test::gpu());
+  for (const auto& v : result.volume) {
+    CAPTURE(v.index);
+    const prism::Ambiguity a = prism::ambiguity(*model, scene, v.truth_mm, 60.0);
+    // (lavapipe's float sums may come out in another order: 1e-4)
+    CHECK(v.p_confusion == doctest::Approx(a.p_confusion).epsilon(1e-4));
+    CHECK(v.alias_kl == doctest::Approx(a.kl).epsilon(1e-4));
+    CHECK(v.p_confusion >= 0);
+    CHECK(v.p_confusion <= 1);
+    CHECK(glm::length(v.alias_mm - v.truth_mm) >= prism::defaults::catastrophic_error_mm - 1e-9);
+  }
+  // Each band's predicted rate is the mean over its events.
+  double all = 0;
+  for (const auto& v : result.volume) all += v.p_confusion;
+  REQUIRE(result.rows.back().series == "all");
+  CHECK(result.rows.back().p_confusion_mean == doctest::Approx(all / 3));
+  CHECK(result.rows.back().photons == 60);
+  for (const auto& r : result.rows) {
+    if (r.series == "all") continue;
+    double sum = 0;
+    int n = 0;
+    for (const auto& v : result.volume)
+      if (v.truth_mm.z >= r.depth_lo_mm && v.truth_mm.z <= r.depth_hi_mm) sum += v.p_confusion, ++n;
+    if (n) CHECK(r.p_confusion_mean == doctest::Approx(sum / n));
+  }
+  // The files: the events' columns and the bands' predicted rate.
+  const std::string out = dir + "/files";
+  prism::write_evaluation(out, result);
+  auto events = lines_of(out + "/volume-events.csv");
+  REQUIRE(events.size() == 4);
+  CHECK(events[0].find(",alias_kl,alias_x_mm,alias_y_mm,alias_depth_mm,p_confusion") != std::string::npos);
+  CHECK(events[1].back() != ',');  // p_confusion written
+  auto bands = lines_of(out + "/volume.csv");
+  CHECK(bands[0].find(",p_confusion_mean") != std::string::npos);
+  CHECK(bands.back().back() != ',');
+
+  // The journal keeps the figure; another photon count is refused rather
+  // than mixed in, and a run without --ambiguity reports none.
+  o.resume = true;
+  const auto resumed = prism::evaluate(prism::test::gpu(), scene, reader, o);
+  CHECK(resumed.resumed == 3);
+  CHECK(resumed.cost.ambiguity_s == 0);
+  for (size_t i = 0; i < 3; ++i) CHECK(resumed.volume[i].p_confusion == doctest::Approx(result.volume[i].p_confusion));
+  auto other = o;
+  other.volume_photons = 100;
+  CHECK_THROWS_AS(prism::evaluate(prism::test::gpu(), scene, reader, other), prism::JournalError);
+  other = o;
+  other.volume_ambiguity = false;
+  const auto without = prism::evaluate(prism::test::gpu(), scene, reader, other);
+  CHECK(without.resumed == 3);
+  CHECK(std::isnan(without.volume[0].p_confusion));
+  CHECK(std::isnan(without.rows.back().p_confusion_mean));
+  // Asked for without the volume experiment: refused before any work.
+  other = o;
+  other.experiments = {"photons"};
+  CHECK_THROWS_WITH(prism::evaluate(prism::test::gpu(), scene, reader, other), doctest::Contains("--ambiguity"));
   prism::test::check_validation_clean();
 }
