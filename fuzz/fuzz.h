@@ -22,9 +22,12 @@
 #include <filesystem>
 #include <fstream>
 #include <optional>
+#include <sstream>
 #include <string>
 
 #include <nlohmann/json.hpp>
+
+#include "host/util/json_file.h"
 
 namespace prism::fuzz {
 
@@ -44,9 +47,14 @@ void stream_leader_trailer(const uint8_t* data, size_t size);
 // The input as JSON, or nothing when it is not JSON (the parsers' callers
 // report that themselves, naming the file).
 inline std::optional<nlohmann::json> json_of(const uint8_t* data, size_t size) {
-  auto j = nlohmann::json::parse(data, data + size, nullptr, /*allow_exceptions=*/false);
-  if (j.is_discarded()) return std::nullopt;
-  return j;
+  // As the commands read their files (host/util/json_file.h).
+  std::istringstream in(std::string(reinterpret_cast<const char*>(data), size));
+  try {
+    return prism::parse_json_file(in);
+  } catch (const nlohmann::json::exception&) {
+  } catch (const prism::JsonDuplicateKey&) {
+  }
+  return std::nullopt;
 }
 
 // A folder of this process's own, made once, for parsers that read files;

@@ -8,6 +8,7 @@
 
 #include "host/cmd/commands.h"
 #include "host/cmd/options.h"
+#include "host/util/output_file.h"
 #include "host/reconstruct/ambiguity.h"
 #include "host/util/format.h"
 #include "host/util/image_io.h"
@@ -45,6 +46,9 @@ void run(const CrlbArgs& a) {
   if (!a.csv.empty()) check_writable(a.csv);
   if (!a.plot.empty()) check_writable(a.plot);
   if (!a.plot.empty() && a.ambiguity) check_writable(ambiguity_plot_path(a.plot));
+  for (const std::string& scene : a.scenes)
+    for (const auto& [option, out] : {std::pair{"--csv", a.csv}, {"--plot", a.plot}})
+      if (!out.empty()) check_not_input(out, option, {{"--scene", scene}});
   auto depths = parse_list(a.depths, "--depth-mm");
   std::vector<glm::dvec3> positions;
   for (double d : depths) positions.push_back({a.x_mm, a.y_mm, d});

@@ -36,7 +36,7 @@ void run_build(const BuildArgs& a) {
   o.rays_per_lenslet = a.rays;
   o.splat = a.splat.kind();
   o.stratification = a.splat.stratification;
-  check_build_options(a.out, o);  // before the device is set up
+  check_build_options(a.out, scene, o);  // before the device is set up
   vk::Context ctx(vk::ContextOptions{a.device});
   std::printf("# device: %s\n", ctx.describe().c_str());
   Progress progress("prism dictionary build", o.grid.size());

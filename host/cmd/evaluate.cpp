@@ -9,6 +9,7 @@
 #include "host/cmd/commands.h"
 #include "engine/defaults.h"
 #include "host/cmd/options.h"
+#include "host/util/output_file.h"
 #include "host/reconstruct/evaluate.h"
 #include "host/util/progress.h"
 
@@ -45,6 +46,7 @@ glm::dvec2 range_of(const std::vector<double>& v, const char* option) {
 }
 
 void run(EvaluateArgs a) {
+  check_not_input(a.out, "--out", {{"--dictionary", a.dictionary}, {"--scene", a.scene}});
   Scene scene;
   std::unique_ptr<DictionaryReader> reader;
   if (a.scene.empty()) {

@@ -3,6 +3,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <sstream>
+#include <tuple>
 
 #include "host/util/format.h"
 #include "host/util/memory.h"
@@ -132,6 +133,17 @@ void require_in_front(const Scene& scene, double depth_mm, const std::string& op
     throw std::runtime_error(option + ": depth " + format_number(depth_mm) + " mm is not in front of " + scene.name +
                              "'s lenses, which lie " + format_number(wd) +
                              " mm before the scintillator face: give a depth > " + format_number(-wd) + " mm");
+}
+
+void require_in_volume(const Scene& scene, double x_mm, double y_mm, double depth_mm, const std::string& option) {
+  const Volume& v = scene.volume;
+  for (const auto& [name, value, lo, hi] : {std::tuple{"x", x_mm, v.x_min_mm, v.x_max_mm},
+                                            {"y", y_mm, v.y_min_mm, v.y_max_mm},
+                                            {"depth", depth_mm, v.depth_min_mm, v.depth_max_mm}})
+    if (!(value >= lo && value <= hi))
+      throw std::runtime_error(option + ": " + name + " " + format_number(value) + " mm lies outside " + scene.name +
+                               "'s volume (" + name + " " + format_number(lo) + ".." + format_number(hi) +
+                               " mm), where events happen; move the vertex or widen the scene file's \"volume\"");
 }
 
 void require_finite_numbers(CLI::App& app) {

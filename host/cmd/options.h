@@ -54,6 +54,9 @@ glm::dvec3 parse_point(const std::string& text, const std::string& option);
 // A source must be in front of the lenses: depth (from the scintillator face)
 // > -working distance. Throws naming the option and the scene's limit.
 void require_in_front(const Scene& scene, double depth_mm, const std::string& option);
+// Throws naming `option` unless (x, y, depth) lies in the scene's volume
+// (the scintillator, where events happen).
+void require_in_volume(const Scene& scene, double x_mm, double y_mm, double depth_mm, const std::string& option);
 
 // Every number option of `app` and its subcommands (CLI11 type FLOAT) refuses
 // NaN and infinities, naming the option: call once, after every subcommand

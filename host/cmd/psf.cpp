@@ -5,6 +5,7 @@
 #include "engine/ref/forward_ref.h"
 #include "host/cmd/commands.h"
 #include "host/cmd/options.h"
+#include "host/util/output_file.h"
 #include "host/util/image_io.h"
 #include "host/util/memory.h"
 
@@ -25,6 +26,7 @@ std::string preview_path(const std::string& exr) { return exr.substr(0, exr.find
 void run(const PsfArgs& a) {
   check_writable(a.out);
   check_writable(preview_path(a.out));
+  for (const std::string& out : {a.out, preview_path(a.out)}) check_not_input(out, "--out", {{"--scene", a.scene}});
   Scene scene = load_scene(a.scene);
   a.fw.apply(scene);
   glm::dvec3 theta = parse_point(a.source, "--source-mm");

@@ -37,6 +37,7 @@ struct ReconstructArgs {
 
 void run(const ReconstructArgs& a) {
   check_writable(a.out);
+  check_not_input(a.out, "--out", {{"--events", a.events}, {"--dictionary", a.dictionary}, {"--scene", a.scene}});
   DictionaryReader reader(a.dictionary);
   const auto& m = reader.manifest();
   EventReader events(a.events);

@@ -48,11 +48,14 @@ std::vector<EventVertex> parse_vertices(const SimulateArgs& a) {
 
 void run(const SimulateArgs& a) {
   check_writable(a.out);
+  check_not_input(a.out, "--out", {{"--dictionary", a.dictionary}, {"--scene", a.scene}});
   Scene scene = load_scene(a.scene);
   const auto base = parse_vertices(a);
   if (a.jitter_mm < 0) throw std::runtime_error("--jitter-mm must be >= 0");
-  for (const auto& v : base)
+  for (const auto& v : base) {
+    require_in_volume(scene, v.x_mm, v.y_mm, v.depth_mm, "--vertex");
     require_in_front(scene, v.depth_mm - a.jitter_mm, a.jitter_mm > 0 ? "--vertex less --jitter-mm" : "--vertex");
+  }
 
   std::optional<vk::Context> ctx;  // only the forward model needs a device
   std::optional<DictionaryReader> reader;

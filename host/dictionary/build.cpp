@@ -42,9 +42,10 @@ void write_manifest(const std::string& dir, const DictionaryManifest& m) {
 
 }  // namespace
 
-void check_build_options(const std::string& dir, const DictionaryBuildOptions& o) {
+void check_build_options(const std::string& dir, const Scene& scene, const DictionaryBuildOptions& o) {
   try {
     o.grid.validate();
+    o.grid.require_in_front(scene.optics.working_distance_mm);
   } catch (const DictionaryError& e) {
     throw DictionaryError(dir + ": grid: " + e.what() + "; nothing written");
   }
@@ -79,7 +80,7 @@ void check_disk(const std::string& dir, const std::string& first_file, size_t re
 DictionaryBuildReport build_dictionary(vk::Context& ctx, const Scene& scene, const std::string& dir,
                                        const DictionaryBuildOptions& o,
                                        const std::function<void(size_t, size_t)>& progress) {
-  check_build_options(dir, o);
+  check_build_options(dir, scene, o);
   DictionaryManifest wanted = manifest_for(scene, o);
   // One PSF at a time: level 0, its copy in half floats as it is written, and
   // a coarser level with its double accumulator (binned from level 0).

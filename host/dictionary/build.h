@@ -31,11 +31,12 @@ struct DictionaryBuildReport {
 inline constexpr size_t max_dictionary_psfs = 1000000;
 
 // Throws DictionaryError, naming `dir` and the axis, unless the options'
-// grid is valid (DictionaryGrid::validate) and at most max_dictionary_psfs;
+// grid is valid (DictionaryGrid::validate), in front of the scene's lenses
+// and at most max_dictionary_psfs;
 // nothing is written. Callers that must set up a device first check here
 // before it. The build itself also stops after its first PSF file when the
 // rest, at that file's size, would not fit on the disk.
-void check_build_options(const std::string& dir, const DictionaryBuildOptions& options);
+void check_build_options(const std::string& dir, const Scene& scene, const DictionaryBuildOptions& options);
 
 // progress(done, total) is called after each entry (options checked first).
 DictionaryBuildReport build_dictionary(vk::Context& ctx, const Scene& scene, const std::string& dir,

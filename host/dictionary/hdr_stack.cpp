@@ -9,6 +9,7 @@
 #include <stdexcept>
 
 #include "host/util/format.h"
+#include "host/util/json_file.h"
 #include "host/util/image_io.h"
 #include "host/util/memory.h"
 
@@ -84,7 +85,9 @@ HdrStack read_hdr_stack(const std::string& dir) {
   if (!in) fail(file, "missing: not a capture-hdr stack directory");
   nlohmann::json j;
   try {
-    j = nlohmann::json::parse(in);
+    j = parse_json_file(in);
+  } catch (const JsonDuplicateKey& e) {
+    fail(file, e.what());
   } catch (const std::exception& e) {
     fail(file, std::string("not valid JSON: ") + e.what());
   }

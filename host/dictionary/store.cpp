@@ -21,6 +21,7 @@
 #include "engine/defaults.h"
 #include "host/util/format.h"
 #include "host/util/image_io.h"
+#include "host/util/json_file.h"
 
 namespace prism {
 
@@ -93,6 +94,13 @@ void DictionaryGrid::validate() const {
                               str((*v)[i]) + " follows " + str((*v)[i - 1]));
     }
   }
+}
+
+void DictionaryGrid::require_in_front(double working_distance_mm) const {
+  if (!depth_mm.empty() && !(depth_mm.front() > -working_distance_mm))
+    throw DictionaryError("depth " + format_number(depth_mm.front()) + " mm is not in front of the lenses, which lie " +
+                          format_number(working_distance_mm) + " mm before the scintillator face: every depth must be > " +
+                          format_number(-working_distance_mm) + " mm");
 }
 
 std::string DictionaryManifest::file_of(size_t i) const {
@@ -190,9 +198,16 @@ DictionaryManifest DictionaryManifest::from_json(const nlohmann::json& j, const 
   }
   try {
     m.grid.validate();
+    m.grid.require_in_front(m.scene.optics.working_distance_mm);
   } catch (const DictionaryError& e) {
     throw fail("grid", e.what());
   }
+  // A count that disagrees with the grid: an edited grid or a mixed-up folder.
+  if (j.contains("entries") && !(j["entries"].is_number() && j["entries"].get<double>() == double(m.grid.size())))
+    throw fail("entries", "is " + j["entries"].dump() + ", but the grid has " + std::to_string(m.grid.x_mm.size()) +
+                              " x " + std::to_string(m.grid.y_mm.size()) + " x " +
+                              std::to_string(m.grid.depth_mm.size()) + " = " + std::to_string(m.grid.size()) +
+                              " positions");
   if (m.width != ceil_div(m.scene.optics.sensor_width_px, m.base_binning) ||
       m.height != ceil_div(m.scene.optics.sensor_height_px, m.base_binning))
     throw fail("levels.level0_px", "does not match the sensor binned by levels.base_binning");
@@ -258,7 +273,9 @@ DictionaryReader::DictionaryReader(std::string dir, const OpticalSystem* expect)
   if (!in) throw DictionaryError(path + ": no dictionary manifest here; build one with `prism dictionary build`");
   nlohmann::json j;
   try {
-    j = nlohmann::json::parse(in);
+    j = parse_json_file(in);
+  } catch (const JsonDuplicateKey& e) {
+    throw DictionaryError(path + ": " + e.what());
   } catch (const std::exception& e) {
     throw DictionaryError(path + ": not valid JSON (" + e.what() + ")");
   }

@@ -49,6 +49,9 @@ struct DictionaryGrid {
   // finite and strictly increasing (the search and the dictionary model
   // bracket positions between neighbouring nodes).
   void validate() const;
+  // Throws DictionaryError unless every depth lies in front of lenses
+  // `working_distance_mm` before the scintillator face (depth > -that).
+  void require_in_front(double working_distance_mm) const;
 };
 
 struct DictionaryManifest {

@@ -3,9 +3,11 @@
 #include <cmath>
 #include <cstdlib>
 #include <fstream>
+#include <map>
 #include <sstream>
 
 #include "host/util/format.h"
+#include "host/util/json_file.h"
 
 namespace prism {
 
@@ -209,15 +211,23 @@ Scene parse_scene(const json& j, const std::string& origin) {
     std::tie(s.volume.depth_min_mm, s.volume.depth_max_mm) =
         rd.range(v, "depth_mm", "volume.", {s.volume.depth_min_mm, s.volume.depth_max_mm});
   }
+  if (!(s.volume.depth_min_mm > -o.working_distance_mm))
+    rd.fail("volume.depth_mm", "starts at " + format_number(s.volume.depth_min_mm) +
+                                   " mm, not in front of the lenses, which lie working_distance_mm = " +
+                                   format_number(o.working_distance_mm) + " mm before the scintillator face");
   if (j.contains("effects")) {
     const json& es = j["effects"];
     if (!es.is_array()) rd.fail("effects", "must be a list of effect names or {\"name\": ..., parameters}");
+    std::map<std::string, size_t> seen;  // each effect once: a second one's parameters would silently win
     for (size_t i = 0; i < es.size(); ++i) {
       std::string path = "effects[" + std::to_string(i) + "]";
       json e = es[i].is_string() ? json{{"name", es[i]}} : es[i];
       if (!e.is_object() || !e.contains("name") || !e["name"].is_string())
         rd.fail(path, "must be a name or an object with \"name\"");
       std::string name = e["name"];
+      if (auto [first, fresh] = seen.emplace(name, i); !fresh)
+        rd.fail(path + ".name", "'" + name + "' is given twice (also effects[" + std::to_string(first->second) +
+                                    "]); give each effect once");
       path += "." ;
       Effects& fx = o.effects;
       if (name == "scintillator_refraction") {
@@ -264,7 +274,9 @@ Scene load_scene(const std::string& name_or_path) {
   if (!in) return builtin_scene(name_or_path);  // throws, listing the built-ins
   json j;
   try {
-    j = json::parse(in);
+    j = parse_json_file(in);
+  } catch (const JsonDuplicateKey& e) {
+    throw SceneError("scene " + name_or_path + ": " + e.what());
   } catch (const json::parse_error& e) {
     // nlohmann reports a byte offset; turn it into a line number.
     std::ifstream again(name_or_path);

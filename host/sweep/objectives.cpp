@@ -100,6 +100,9 @@ Bound parse_bound(const std::string& text) {
   } catch (const std::exception&) {
     throw SweepError("--bound '" + text + "': '" + text.substr(at + 2) + "' is not a number");
   }
+  // NaN would reject every design (no comparison with it holds).
+  if (!std::isfinite(b.value))
+    throw SweepError("--bound '" + text + "': '" + text.substr(at + 2) + "' is not a finite number");
   return b;
 }
 

@@ -8,6 +8,7 @@
 #include <sstream>
 
 #include "host/util/format.h"
+#include "host/util/json_file.h"
 
 namespace prism {
 
@@ -151,7 +152,9 @@ DesignSpace DesignSpace::load(const std::string& path) {
   if (!in) throw SweepError("space " + path + ": cannot read the file");
   json j;
   try {
-    j = json::parse(in);
+    j = parse_json_file(in);
+  } catch (const JsonDuplicateKey& e) {
+    throw SweepError("space " + path + ": " + e.what());
   } catch (const json::parse_error& e) {
     throw SweepError("space " + path + ": not valid JSON (" + e.what() + ")");
   }

@@ -83,6 +83,25 @@ void check_writable(const std::string& path) {
     throw std::runtime_error("cannot write " + path + ": the folder " + folder.string() + " is not writable");
 }
 
+void check_not_input(const std::string& path, const char* option, std::initializer_list<NamedInput> inputs) {
+  namespace fs = std::filesystem;
+  std::error_code ec;
+  const fs::path out = fs::weakly_canonical(fs::absolute(path, ec), ec);
+  for (const NamedInput& in : inputs) {
+    if (in.path.empty() || !fs::exists(in.path, ec)) continue;  // nothing there to destroy (a built-in scene's name)
+    const fs::path p = fs::weakly_canonical(fs::absolute(in.path, ec), ec);
+    if (out == p)
+      throw std::runtime_error(std::string(option) + " " + path + " is the input given by " + in.option +
+                               "; writing it would destroy that input: choose another path (nothing written)");
+    if (fs::is_directory(p, ec)) {
+      const auto rel = out.lexically_relative(p);
+      if (!rel.empty() && *rel.begin() != "..")
+        throw std::runtime_error(std::string(option) + " " + path + " lies inside " + in.path + ", the folder given by " +
+                                 in.option + "; write outside it (nothing written)");
+    }
+  }
+}
+
 std::string begin_temporary(const std::string& path) {
   remove_stale(path);
   std::string tmp = path + std::string(kSuffix) + std::to_string(::getpid());

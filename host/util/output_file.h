@@ -14,6 +14,19 @@ namespace prism {
 // it for their output files before any work.
 void check_writable(const std::string& path);
 
+// An input of a command: the option that named it and its path (a file, or a
+// folder such as a dictionary; an empty path, or one where nothing exists
+// such as a built-in scene's name, is skipped).
+struct NamedInput {
+  const char* option;
+  std::string path;
+};
+// Throws unless the output `path` (named by `option`) is none of `inputs`
+// and lies in none of the input folders: an output written over an input
+// would destroy it (the events a run reads, a dictionary's manifest).
+// Commands call it with check_writable, before any work.
+void check_not_input(const std::string& path, const char* option, std::initializer_list<NamedInput> inputs);
+
 // The temporary for `path`, registered for removal on an interrupt; stale
 // temporaries of `path` from dead processes are removed first.
 std::string begin_temporary(const std::string& path);

@@ -31,6 +31,16 @@ std::string temp_dir() {
   return d.string();
 }
 
+// `prism ARGS` fails, saying `says`, before any tracing.
+void refused(const std::string& args, const std::string& says) {
+  auto r = prism::test::run_prism(args);
+  CAPTURE(args);
+  INFO(r.output);
+  CHECK(r.status != 0);
+  CHECK(r.output.find(says) != std::string::npos);
+  CHECK(r.output.find("rays/lenslet ...") == std::string::npos);  // nothing traced
+}
+
 }  // namespace
 
 TEST_CASE("prism --help names every subcommand") {
@@ -186,14 +196,6 @@ TEST_CASE("bad input: the error names the problem and nothing is written") {
 
 TEST_CASE("bad numbers, sources behind the lenses and unwritable outputs are refused before any work") {
   std::string dir = temp_dir();
-  auto refused = [&](const std::string& args, const std::string& says) {
-    auto r = prism::test::run_prism(args);
-    CAPTURE(args);
-    INFO(r.output);
-    CHECK(r.status != 0);
-    CHECK(r.output.find(says) != std::string::npos);
-    CHECK(r.output.find("rays/lenslet ...") == std::string::npos);  // nothing traced
-  };
   refused("crlb --x-mm nan --depth-mm 10", "--x-mm: 'nan' is not a finite number");
   // NaN passes CLI11's range checks (every comparison with it is false).
   refused("reconstruct --dictionary " + dir + " --events x --tau-mm nan --out " + dir + "/v.csv",
@@ -215,6 +217,58 @@ TEST_CASE("bad numbers, sources behind the lenses and unwritable outputs are ref
   refused("crlb --scene " + dir + "/s.json --depth-mm 10", "sensor: must be an object with the fields width_px");
   for (const auto& f : std::filesystem::directory_iterator(dir))  // the scene files only
     CHECK((f.path().filename() == "s.json" || f.path().filename() == "big.json"));
+  std::filesystem::remove_all(dir);
+}
+
+TEST_CASE("a second set of bad inputs: outputs over inputs, sources outside the volume, repeated keys") {
+  std::string dir = temp_dir();
+  const std::string d = dir + "/d", events = dir + "/e.events";
+  REQUIRE(prism::test::run_prism("dictionary build --out " + d + " --grid-x-mm 0 --grid-y-mm 0 --grid-depth-mm 10,20 "
+                                 "--binning 16 --splat point --rays 64").status == 0);
+  REQUIRE(prism::test::run_prism("simulate --vertex 0,0,15 --events 3 --binning 16 --splat point --rays 64 --out " +
+                                 events).status == 0);
+  const auto events_size = std::filesystem::file_size(events);
+  std::string manifest;
+  {
+    std::ifstream in(d + "/manifest.json");
+    manifest.assign(std::istreambuf_iterator<char>(in), {});
+  }
+  // An output that would replace an input: refused, the input untouched.
+  refused("reconstruct --dictionary " + d + " --events " + events + " --model none --out " + events,
+          "--out " + events + " is the input given by --events");
+  CHECK(std::filesystem::file_size(events) == events_size);
+  refused("reconstruct --dictionary " + d + " --events " + events + " --model none --out " + d + "/manifest.json",
+          "lies inside " + d + ", the folder given by --dictionary");
+  refused("evaluate --dictionary " + d + " --experiments volume --out " + d, "is the input given by --dictionary");
+  std::ofstream(dir + "/s.json") << R"({"base": "prototype"})";
+  refused("crlb --scene " + dir + "/s.json --depth-mm 10 --csv " + dir + "/s.json", "is the input given by --scene");
+  // Geometry: a vertex outside the scintillator, a grid or a volume behind the lenses.
+  refused("simulate --vertex 1e300,0,20 --out " + dir + "/x.events",
+          "--vertex: x 1e+300 mm lies outside prototype's volume (x -25..25 mm)");
+  refused("dictionary build --out " + dir + "/d2 --grid-x-mm 0 --grid-y-mm 0 --grid-depth-mm=-30,10",
+          "depth -30 mm is not in front of the lenses, which lie 5 mm before the scintillator face");
+  CHECK_FALSE(std::filesystem::exists(dir + "/d2"));
+  std::ofstream(dir + "/v.json") << R"({"base": "prototype", "volume": {"depth_mm": [-100, 10]}})";
+  refused("crlb --scene " + dir + "/v.json --depth-mm 10", "volume.depth_mm: starts at -100 mm, not in front");
+  // A key or an effect given twice: which one was meant is unknown.
+  std::ofstream(dir + "/k.json") << R"({"base": "prototype", "volume": {"x_mm": [-5, 5], "x_mm": [-6, 6]}})";
+  refused("crlb --scene " + dir + "/k.json --depth-mm 10", "key \"volume.x_mm\" is given twice");
+  std::ofstream(dir + "/fx.json") << R"({"base": "prototype", "effects": ["diffraction", {"name": "diffraction"}]})";
+  refused("crlb --scene " + dir + "/fx.json --depth-mm 10", "effects[1].name: 'diffraction' is given twice");
+  // A manifest edited: its count against its grid, a grid behind the lenses, a repeated key.
+  auto edited = [&](const std::string& from, const std::string& to) {
+    std::string text = manifest;
+    const auto at = text.find(from);
+    REQUIRE(at != std::string::npos);
+    text.replace(at, from.size(), to);
+    std::ofstream(d + "/manifest.json") << text;
+  };
+  edited("\"entries\": 2", "\"entries\": 3");
+  refused("dictionary info " + d, "entries: is 3, but the grid has 1 x 1 x 2 = 2 positions");
+  edited("10.0,", "-30.0,");
+  refused("dictionary info " + d, "grid: depth -30 mm is not in front of the lenses");
+  edited("\"entries\": 2", "\"entries\": 2, \"entries\": 2");
+  refused("dictionary info " + d, "key \"entries\" is given twice");
   std::filesystem::remove_all(dir);
 }
 

@@ -1,0 +1,25 @@
+// host/util/json_file.h: files people edit, read with repeated keys refused.
+#include <sstream>
+
+#include "host/util/json_file.h"
+#include "support.h"
+
+namespace {
+nlohmann::json parse(const std::string& text) {
+  std::istringstream in(text);
+  return prism::parse_json_file(in);
+}
+}  // namespace
+
+TEST_CASE("json files: a key given twice in one object is refused, named with its place") {
+  CHECK(parse(R"({"a": 1, "b": {"a": 2}})")["b"]["a"] == 2);  // the same key in another object is fine
+  CHECK(parse(R"([{"x": 1}, {"x": 2}])")[1]["x"] == 2);       // and in sibling objects
+  CHECK(parse(R"({"a": [{"b": {"c": 1}}, {"b": {"c": 2}}]})")["a"][1]["b"]["c"] == 2);
+  CHECK_THROWS_WITH_AS(parse(R"({"a": 1, "a": 2})"), doctest::Contains("key \"a\" is given twice"),
+                       prism::JsonDuplicateKey);
+  CHECK_THROWS_WITH_AS(parse(R"({"v": {"x": [0, 1], "y": 2, "x": 3}})"), doctest::Contains("\"v.x\""),
+                       prism::JsonDuplicateKey);
+  CHECK_THROWS_WITH_AS(parse(R"({"l": [{"x": 1}, {"x": 1, "y": 0, "x": 2}]})"), doctest::Contains("\"l[].x\""),
+                       prism::JsonDuplicateKey);
+  CHECK_THROWS_AS(parse(R"({"a": 1,})"), nlohmann::json::parse_error);  // malformed: nlohmann's own error
+}
