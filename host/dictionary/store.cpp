@@ -369,7 +369,10 @@ const std::string& checked_exr_header(const std::string& path, const DictionaryM
       if (!in || int64_t(in.tellg()) - start != bytes) throw corrupt("holds channels that do not fill its size");
     } else if (type == "preview") {
       const int64_t w = int32(), h = int32();
-      if (!in || w < 0 || h < 0 || 8 + 4 * w * h != bytes) throw corrupt("is a preview image of another size");
+      // w h pixels of 4 bytes after the two sizes; h bounded first, since
+      // 4 w h of two damaged sizes overflows (a long fuzz run's finding).
+      const bool fits = w >= 0 && h >= 0 && bytes >= 8 && (w == 0 || h <= (bytes - 8) / 4 / w);
+      if (!in || !fits || 8 + 4 * w * h != bytes) throw corrupt("is a preview image of another size");
     } else if (type == "tiledesc") {
       // OpenEXR sizes its tile buffers by these before reading a pixel (a
       // 16 x 2.8e8 px tile asked for 1.1 GB): they must be the manifest's.
