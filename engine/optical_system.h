@@ -57,6 +57,9 @@ struct OpticalSystem {
   // through a lenslet's centre: a lateral source shift s moves every lenslet
   // image by -s * magnification(d) on the sensor (the images are inverted).
   double magnification(double depth_mm) const { return lens_to_sensor_mm / (depth_mm + working_distance_mm); }
+  // A source at this depth (from the scintillator face) lies in front of the
+  // lenses, which are working_distance_mm before the face (false for NaN).
+  bool in_front(double depth_mm) const { return depth_mm > -working_distance_mm; }
   // A source at depth d moved by a lenslet-lattice vector times this puts
   // every lenslet image where its neighbour's was (a lattice alias):
   // (D + L) / L = 1 + 1 / magnification(d), D = d + working distance.

@@ -129,7 +129,7 @@ std::string format_list(std::span<const double> values) {
 
 void require_in_front(const Scene& scene, double depth_mm, const std::string& option) {
   const double wd = scene.optics.working_distance_mm;
-  if (!(depth_mm > -wd))
+  if (!scene.optics.in_front(depth_mm))
     throw std::runtime_error(option + ": depth " + format_number(depth_mm) + " mm is not in front of " + scene.name +
                              "'s lenses, which lie " + format_number(wd) +
                              " mm before the scintillator face: give a depth > " + format_number(-wd) + " mm");

@@ -45,7 +45,7 @@ void write_manifest(const std::string& dir, const DictionaryManifest& m) {
 void check_build_options(const std::string& dir, const Scene& scene, const DictionaryBuildOptions& o) {
   try {
     o.grid.validate();
-    o.grid.require_in_front(scene.optics.working_distance_mm);
+    o.grid.require_in_front(scene.optics);
   } catch (const DictionaryError& e) {
     throw DictionaryError(dir + ": grid: " + e.what() + "; nothing written");
   }

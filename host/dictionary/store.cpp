@@ -96,11 +96,12 @@ void DictionaryGrid::validate() const {
   }
 }
 
-void DictionaryGrid::require_in_front(double working_distance_mm) const {
-  if (!depth_mm.empty() && !(depth_mm.front() > -working_distance_mm))
+void DictionaryGrid::require_in_front(const OpticalSystem& optics) const {
+  const double wd = optics.working_distance_mm;
+  if (!depth_mm.empty() && !optics.in_front(depth_mm.front()))
     throw DictionaryError("depth " + format_number(depth_mm.front()) + " mm is not in front of the lenses, which lie " +
-                          format_number(working_distance_mm) + " mm before the scintillator face: every depth must be > " +
-                          format_number(-working_distance_mm) + " mm");
+                          format_number(wd) + " mm before the scintillator face: every depth must be > " +
+                          format_number(-wd) + " mm");
 }
 
 std::string DictionaryManifest::file_of(size_t i) const {
@@ -198,7 +199,7 @@ DictionaryManifest DictionaryManifest::from_json(const nlohmann::json& j, const 
   }
   try {
     m.grid.validate();
-    m.grid.require_in_front(m.scene.optics.working_distance_mm);
+    m.grid.require_in_front(m.scene.optics);
   } catch (const DictionaryError& e) {
     throw fail("grid", e.what());
   }

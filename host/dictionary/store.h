@@ -51,7 +51,7 @@ struct DictionaryGrid {
   void validate() const;
   // Throws DictionaryError unless every depth lies in front of lenses
   // `working_distance_mm` before the scintillator face (depth > -that).
-  void require_in_front(double working_distance_mm) const;
+  void require_in_front(const OpticalSystem& optics) const;
 };
 
 struct DictionaryManifest {

@@ -211,7 +211,7 @@ Scene parse_scene(const json& j, const std::string& origin) {
     std::tie(s.volume.depth_min_mm, s.volume.depth_max_mm) =
         rd.range(v, "depth_mm", "volume.", {s.volume.depth_min_mm, s.volume.depth_max_mm});
   }
-  if (!(s.volume.depth_min_mm > -o.working_distance_mm))
+  if (!o.in_front(s.volume.depth_min_mm))
     rd.fail("volume.depth_mm", "starts at " + format_number(s.volume.depth_min_mm) +
                                    " mm, not in front of the lenses, which lie working_distance_mm = " +
                                    format_number(o.working_distance_mm) + " mm before the scintillator face");
