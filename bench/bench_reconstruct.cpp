@@ -109,7 +109,8 @@ Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, c
     r.out = rec.run(events);
     if (model) {
       RefineSettings rs;
-      if (c.refine == 1) rs.aliases = false, rs.search_starts = 0, rs.ladder_starts = 0, rs.lattice_scan = false;
+      if (c.refine == 1) rs.aliases = false, rs.search_starts = 0, rs.ladder_starts = 0, rs.lattice_scan = false,
+                        rs.reseed = false;
       Refiner refiner(*model, reader.manifest().scene, reader.manifest().level_grid(0), rs);
       for (size_t i = 0; i < events.size(); ++i) r.out[i] = refiner.refine(events[i], std::move(r.out[i]));
     }

@@ -139,13 +139,13 @@ void run(const ReconstructArgs& a) {
   if (refiner)
     std::printf("refinement (%s): %.2f s, %.1f starts and %.1f LM steps per event, %llu renders; %llu poor fits "
                 "sent to the far aliases, %llu poor, marginal or shallow ones had the clicks' votes counted (%llu voted depths scanned); "
-                "%llu of %llu blurred refits lowered the NLL\n",
+                "%llu events of K > 1 re-seeded from their unclaimed clicks; %llu of %llu blurred refits lowered the NLL\n",
                 describe(model, scene).c_str(), refiner->stats().seconds,
                 double(refiner->stats().starts) / double(std::max<uint64_t>(1, done)),
                 double(refiner->stats().iterations) / double(std::max<uint64_t>(1, done)),
                 (unsigned long long)source_model->renders(), (unsigned long long)refiner->stats().rescues,
                 (unsigned long long)refiner->stats().lattice_scans, (unsigned long long)refiner->stats().lattice_depths,
-                (unsigned long long)refiner->stats().continuations_kept, (unsigned long long)refiner->stats().continuations);
+                (unsigned long long)refiner->stats().reseeds, (unsigned long long)refiner->stats().continuations_kept, (unsigned long long)refiner->stats().continuations);
   else
     std::printf("refinement: none (--model none): positions from the dictionary search alone\n");
   if (scored)

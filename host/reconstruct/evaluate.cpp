@@ -382,7 +382,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
                   {"alpha_max", s.alpha_max}, {"min_clicks", s.min_clicks}, {"scan_step_px", s.scan_step_px}}},
       {"refine", {{"model", describe(o.model, scene)}, {"iterations", rs.iterations}, {"aliases", rs.aliases},
                   {"search_starts", rs.search_starts}, {"alias_starts", rs.alias_starts}, {"rescue", rs.rescue},
-                  {"lattice_scan", rs.lattice_scan}, {"near_face_mm", rs.near_face_mm},
+                  {"lattice_scan", rs.lattice_scan}, {"reseed", rs.reseed}, {"near_face_mm", rs.near_face_mm},
                   {"ladder_starts", rs.ladder_starts},
                   {"ladder_reach_px", rs.ladder_reach_px}, {"continuation", rs.continuation},
                   {"pvalue_draws", rs.pvalue_draws}}}};

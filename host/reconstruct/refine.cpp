@@ -535,6 +535,30 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
     }
   }
 
+  if (f.K > 1 && s_.reseed) {
+    // The re-seed (K > 1): the search adds vertices greedily, and a vertex
+    // it placed on light another one half explains can leave a source
+    // unclaimed, while the leftover vertex sits on stray clicks far off,
+    // where its own runners-up, aliases and rungs stay. The unclaimed
+    // source is often among the runners-up of another vertex's scan (both
+    // sources scored there). So each vertex in turn is tried at every
+    // vertex's runners-up, scored against what the others explain. The
+    // fit's p-value cannot gate this: a deep vertex's wide faint images can
+    // stand in for a missing source well enough to pass.
+    ++stats_.reseeds;
+    std::vector<glm::dvec3> pool;
+    for (size_t k : live)
+      for (const glm::dvec4& r : rows[k].runners_up) pool.push_back(glm::dvec3(r));
+    for (size_t k = 0; k < f.K; ++k) {
+      std::vector<glm::dvec3> cand;
+      for (const glm::dvec3& p : pool) {
+        bool taken = false;  // by a vertex already
+        for (size_t j = 0; j < f.K; ++j) taken = taken || glm::length(p - f.theta[j]) < kDistinctStartMm;
+        if (!taken && inside(p)) cand.push_back(p);
+      }
+      probe_best(k, cand, s_.search_starts);
+    }
+  }
   double pvalue = fit_pvalue(f, event.id);
   if (pvalue < defaults::fit_pvalue_flag && s_.rescue && use_aliases && !rescue_lattice_mm_.empty()) {
     // Rescue of a poor fit: near the face the lenslet images lie about a
@@ -551,50 +575,82 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
     for (size_t k = 0; k < f.K; ++k) any = any || f.theta[k].z < s_.near_face_mm;
     return any;
   };
+  // Vertex k moved to `at` (a voted position, a few tenths of a mm off a
+  // site of the alias lattice) and fitted there, so that it lands on that
+  // site's optimum; from it every other site of the lattice inside the field
+  // gets a render and the best are probed.
+  glm::dvec2 lat_a{}, lat_b{};
+  if (!lattice_mm_.empty()) {
+    lat_a = lattice_mm_[0];
+    for (const auto& v : lattice_mm_)
+      if (std::abs(lat_a.x * v.y - lat_a.y * v.x) > 1e-6 * glm::dot(lat_a, lat_a)) lat_b = v;
+  }
+  auto scan_sites = [&](size_t k, glm::dvec3 voted) {
+    Fit g = f.unrendered();
+    g.theta[k] = voted;
+    g.render();
+    ++stats_.starts;
+    stats_.iterations += uint64_t(levenberg_marquardt(g, s_.iterations));
+    const glm::dvec3 at = g.theta[k];
+    if (g.nll < f.nll) f = std::move(g);
+    const double scale = optics_.alias_scale(at.z);
+    const glm::dvec2 sa = lat_a * scale, sb = lat_b * scale;
+    // Sites i a + j b around it (j = 0 for a single row of lenslets):
+    // enough of them to cover the field.
+    const double field = glm::length(glm::dvec2(bounds_.hi - bounds_.lo));
+    const double spacing = lat_b == glm::dvec2(0)
+                                ? glm::length(sa)
+                                : std::abs(sa.x * sb.y - sa.y * sb.x) / std::max(glm::length(sa), glm::length(sb));
+    const int n = int(std::ceil(field / spacing)), n_b = lat_b == glm::dvec2(0) ? 0 : n;
+    std::vector<glm::dvec3> sites;
+    for (int i = -n; i <= n; ++i)
+      for (int j = -n_b; j <= n_b; ++j) {
+        const glm::dvec3 site = at + glm::dvec3(double(i) * sa + double(j) * sb, 0.0);
+        if ((i != 0 || j != 0) && inside(site)) sites.push_back(site);
+      }
+    probe_best(k, sites, s_.alias_starts, kLatticeReachPx);
+  };
+  // The clicks vertex k may claim: those no other vertex explains better
+  // than it does (all of them for K = 1).
+  auto unclaimed_clicks = [&](size_t k) {
+    std::vector<uint32_t> out;
+    for (uint32_t c : f.clicks) {
+      double own = s_.dark_rate, others = 0;  // the largest expected photons at c: vertex k's (or dark), another's
+      for (size_t j = 0; j < f.K; ++j)
+        if (const ModelPixel* m = f.img[j].find(c)) {
+          double& r = j == k ? own : others;
+          r = std::max(r, f.alpha[j] * m->p);
+        }
+      if (!(others > own)) out.push_back(c);
+    }
+    return out;
+  };
   if ((pvalue < defaults::refine_lattice_scan_pvalue || near_face()) && s_.lattice_scan && !lattice_mm_.empty()) {
     // The lattice scan: near the face the search can miss the source's
-    // depth altogether (click_geometry.h). The clicks' votes give a depth
-    // and one site of the alias lattice, a few tenths of a mm off: fitted
-    // there, it lands on that site's optimum, and from it every site inside
-    // the field gets a render, the best are probed. The next best voted
-    // depth is tried while the fit stays poor or marginal and the depth
-    // before it improved the fit: a fit that is poor for another reason
-    // (a biased model, clicks the model does not expect) costs one depth.
-    // An estimate near the face gets the best voted depth whatever its fit:
+    // depth altogether (click_geometry.h). The votes of the clicks vertex k
+    // may claim give a depth and one site of the alias lattice: the vertex
+    // is tried there and on the lattice's other sites (scan_sites). With
+    // K > 1 the clicks the other vertices explain are left out, so that a
+    // vertex the search left on stray light is sent to the source nobody
+    // claims, not to the brightest. The next best voted depth is tried
+    // while the fit stays poor or marginal and the depth before it
+    // improved the fit: a fit that is poor for another reason (a biased
+    // model, clicks the model does not expect) costs one depth. An
+    // estimate near the face gets the best voted depth whatever its fit:
     // there a wrong site can fit as well as the model expects.
     ++stats_.lattice_scans;
-    glm::dvec2 a = lattice_mm_[0], b{};
-    for (const auto& v : lattice_mm_)
-      if (std::abs(a.x * v.y - a.y * v.x) > 1e-6 * glm::dot(a, a)) b = v;
-    const auto peaks =
-        vote_source_positions(optics_, grid_, f.clicks, bounds_.lo, bounds_.hi, defaults::refine_lattice_scan_depths);
-    for (size_t q = 0; q < peaks.size() && (q == 0 || pvalue < defaults::refine_lattice_scan_pvalue); ++q) {
+    std::vector<std::vector<VotePeak>> peaks(f.K);
+    size_t depths = 0;
+    for (size_t k = 0; k < f.K; ++k) {
+      peaks[k] = vote_source_positions(optics_, grid_, unclaimed_clicks(k), bounds_.lo, bounds_.hi,
+                                       defaults::refine_lattice_scan_depths);
+      depths = std::max(depths, peaks[k].size());
+    }
+    for (size_t q = 0; q < depths && (q == 0 || pvalue < defaults::refine_lattice_scan_pvalue); ++q) {
       const double nll_before = f.nll;
       ++stats_.lattice_depths;
-      for (size_t k = 0; k < f.K; ++k) {
-        Fit g = f.unrendered();
-        g.theta[k] = peaks[q].position_mm;
-        g.render();
-        ++stats_.starts;
-        stats_.iterations += uint64_t(levenberg_marquardt(g, s_.iterations));
-        const glm::dvec3 at = g.theta[k];
-        if (g.nll < f.nll) f = std::move(g);
-        const double scale = optics_.alias_scale(at.z);
-        const glm::dvec2 sa = a * scale, sb = b * scale;
-        // Sites i a + j b around it (j = 0 for a single row of lenslets):
-        // enough of them to cover the field.
-        const double field = glm::length(glm::dvec2(bounds_.hi - bounds_.lo));
-        const double spacing = b == glm::dvec2(0) ? glm::length(sa)
-                                                  : std::abs(sa.x * sb.y - sa.y * sb.x) / std::max(glm::length(sa), glm::length(sb));
-        const int n = int(std::ceil(field / spacing)), n_b = b == glm::dvec2(0) ? 0 : n;
-        std::vector<glm::dvec3> sites;
-        for (int i = -n; i <= n; ++i)
-          for (int j = -n_b; j <= n_b; ++j) {
-            const glm::dvec3 site = at + glm::dvec3(double(i) * sa + double(j) * sb, 0.0);
-            if ((i != 0 || j != 0) && inside(site)) sites.push_back(site);
-          }
-        probe_best(k, sites, s_.alias_starts, kLatticeReachPx);
-      }
+      for (size_t k = 0; k < f.K; ++k)
+        if (q < peaks[k].size()) scan_sites(k, peaks[k][q].position_mm);
       if (!(f.nll < nll_before)) break;
       pvalue = fit_pvalue(f, event.id);
     }

@@ -9,7 +9,9 @@
 // aliases and a ladder along the weakest direction, keeping the best, and by
 // trying the aliases out to 2 pitches when the fit is still poor, and every
 // site of the lattice the clicks vote for (click_geometry.h) when it is
-// poor or marginal.
+// poor or marginal. With K > 1 each vertex is also tried at every vertex's
+// runners-up (the re-seed), and votes only with the clicks the others
+// leave: a source the greedy search left unclaimed is found that way.
 //
 // The model of one vertex: P(theta) = b(theta) / sum(b(theta)), b the forward
 // model's expected photons on the click grid, so P sums to 1 on the sensor
@@ -115,6 +117,7 @@ struct RefineSettings {
   int alias_starts = defaults::refine_alias_starts;    // lattice aliases probed per vertex (best by first NLL)
   bool rescue = true;  // a poor fit also tries the aliases out to defaults::refine_rescue_alias_pitches
   bool lattice_scan = true;  // p < defaults::refine_lattice_scan_pvalue: also the sites the clicks vote for
+  bool reseed = true;  // K > 1: each vertex also tried where the clicks the others leave vote for
   double near_face_mm = defaults::refine_near_face_mm;  // a vertex shallower gets the lattice scan whatever
                                                        // its fit, and the continuation
   int ladder_starts = defaults::refine_ladder_starts;  // ladder points probed per vertex (0: no ladder)
@@ -137,6 +140,7 @@ struct RefineStats {
   uint64_t rescues = 0;  // events whose poor fit sent them to the far aliases
   uint64_t lattice_scans = 0;   // events whose poor or marginal fit, or shallow vertex, had the clicks' votes counted
   uint64_t lattice_depths = 0;  // voted depths scanned
+  uint64_t reseeds = 0;  // events (K > 1) whose vertices were re-seeded from the clicks the others leave
   uint64_t continuations = 0, continuations_kept = 0;  // blurred refits, and those that lowered the NLL
   double seconds = 0;
 };
