@@ -13,6 +13,12 @@
 // lattice of the aliases, not which site of it is the source: the
 // likelihood decides that.
 //
+// The votes favour shallow depths: bins are fixed in source mm, and where the
+// magnification is large an image's clicks vote into fewer of them, while
+// one lenslet's image agrees with itself at every depth. A few clicks from
+// one bright image can outvote a source seen through many lenslets, so the
+// best-voted depth is a place to start, not a measurement.
+//
 // Near the scintillator face this finds what the dictionary search misses:
 // only a few lenslet images reach the sensor, a source shifted by a few mm
 // shows other ones, and the nearest node's PSF moved laterally (the search's
