@@ -237,6 +237,16 @@ struct Refiner::Fit {
         if (const ModelPixel* m = img[k].find(clicks[c])) lam[c] += alpha[k] * m->p;
     return lam;
   }
+  // The vertex that explains click c best: the largest expected photons
+  // there, above the dark rate (the first of equals); -1 for the dark.
+  int owner(uint32_t c) const {
+    double top = r->s_.dark_rate;
+    int who = -1;
+    for (size_t k = 0; k < K; ++k)
+      if (const ModelPixel* m = img[k].find(c))
+        if (alpha[k] * m->p > top) top = alpha[k] * m->p, who = int(k);
+    return who;
+  }
   double nll_now() const {
     double f = 0;
     for (size_t k = 0; k < K; ++k) f += img[k].photons > 0 ? alpha[k] : 0.0;
@@ -614,15 +624,8 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
   // than it does (all of them for K = 1).
   auto unclaimed_clicks = [&](size_t k) {
     std::vector<uint32_t> out;
-    for (uint32_t c : f.clicks) {
-      double own = s_.dark_rate, others = 0;  // the largest expected photons at c: vertex k's (or dark), another's
-      for (size_t j = 0; j < f.K; ++j)
-        if (const ModelPixel* m = f.img[j].find(c)) {
-          double& r = j == k ? own : others;
-          r = std::max(r, f.alpha[j] * m->p);
-        }
-      if (!(others > own)) out.push_back(c);
-    }
+    for (uint32_t c : f.clicks)
+      if (const int who = f.owner(c); who < 0 || size_t(who) == k) out.push_back(c);
     return out;
   };
   if ((pvalue < defaults::refine_lattice_scan_pvalue || near_face()) && s_.lattice_scan && !lattice_mm_.empty()) {
@@ -697,14 +700,8 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
   // Rows: refined positions, weights, CRLB; flags redone where the
   // refinement decides them (edge, merged, poor_fit, alpha_*).
   std::vector<uint32_t> owned(f.K, 0);
-  for (uint32_t c : f.clicks) {
-    double top = s_.dark_rate;
-    int who = -1;
-    for (size_t k = 0; k < f.K; ++k)
-      if (const ModelPixel* m = f.img[k].find(c))
-        if (f.alpha[k] * m->p > top) top = f.alpha[k] * m->p, who = int(k);
-    if (who >= 0) ++owned[size_t(who)];
-  }
+  for (uint32_t c : f.clicks)
+    if (const int who = f.owner(c); who >= 0) ++owned[size_t(who)];
   for (size_t j = 0; j < f.K; ++j) {
     ReconstructedVertex& o = rows[live[j]];
     o.x_mm = f.theta[j].x;
