@@ -96,14 +96,19 @@ void run(EvaluateArgs a) {
               "out of RMSE and efficiency\n",
               defaults::catastrophic_error_mm);
   o.journal_dir = a.out;
-  std::printf("# events are kept in %s/*-journal.jsonl as they are done; %s\n", a.out.c_str(),
-              o.resume ? "resuming from what is there" : "a stopped run resumes from there with --resume");
+  if (o.journal_only)
+    std::printf("# from the journals in %s only: nothing reconstructed, points with fewer than 3 trials left out\n",
+                a.out.c_str());
+  else
+    std::printf("# events are kept in %s/*-journal.jsonl as they are done; %s\n", a.out.c_str(),
+                o.resume ? "resuming from what is there" : "a stopped run resumes from there with --resume");
   std::unique_ptr<Progress> progress;
   auto result = evaluate(ctx, scene, *reader, o, [&](size_t done, size_t total) {
     if (!progress) progress = std::make_unique<Progress>("evaluate", total);
     progress->update(done);
   });
   if (progress) progress->finish();
+  for (const auto& e : result.journal_estimators) std::printf("# made by %s\n", e.c_str());
 
   std::printf("%-20s %7s %7s %7s %8s %5s %9s %9s %9s %9s %8s %6s %6s %6s %7s\n", "experiment", "x_mm", "y_mm",
               "depth", "photons", "used", "err3d_mm", "std_mm", "alpha_err", "crlb_3d", "cat_%", "eff_x", "eff_y",
@@ -214,6 +219,10 @@ void add_evaluate(CLI::App& app) {
   c->add_flag("--resume", a->options.resume,
               "reconstruct only the events the journals in --out lack (a run stopped or killed, or one given more "
               "--volume-events); the journals must come from the same options and engine");
+  c->add_flag("--journal-only", a->options.journal_only,
+              "reconstruct nothing: the tables, CSVs and plots from what the journals in --out hold, the events of "
+              "a stopped run or of one still running (points with fewer than 3 trials there are left out); the "
+              "same options as the run that made them");
   c->add_option("--seed", a->options.seed, "random seed of the events")->capture_default_str();
   c->add_flag("--quick", a->quick, "a reduced grid (2 points per line, 2 photon counts, 1 double) with 5 trials");
   c->add_option("--backend", a->backend,

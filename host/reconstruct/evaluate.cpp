@@ -293,6 +293,8 @@ const std::vector<std::string>& evaluation_experiments() {
 Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader& dictionary,
                     const EvaluationOptions& o, const std::function<void(size_t, size_t)>& progress) {
   if (o.trials < 3) throw std::invalid_argument("--trials: at least 3 (the best and the worst are dropped)");
+  if (o.journal_only && o.journal_dir.empty())
+    throw std::invalid_argument("journal_only: name the directory whose journals to report (journal_dir)");
   const auto& m = dictionary.manifest();
   if (o.level < 0 || o.level >= m.levels)
     throw std::invalid_argument("click level " + std::to_string(o.level) + " is not stored in the dictionary");
@@ -396,9 +398,27 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   auto open_journal = [&](std::optional<Journal>& j, const std::string& name, const json& header,
                           const std::string& mismatch) {
     const std::string path = o.journal_dir + "/" + name;
-    std::filesystem::create_directories(o.journal_dir);
-    if (!o.resume) std::filesystem::remove(path);
-    j.emplace(path, header, mismatch);
+    if (!o.journal_only) {
+      std::filesystem::create_directories(o.journal_dir);
+      if (!o.resume) std::filesystem::remove(path);
+      j.emplace(path, header, mismatch);
+      return;
+    }
+    // Read only: the events (seed, truth, scene, points) must be this
+    // run's; the estimator is whatever made the journal, reported as such.
+    if (!std::filesystem::exists(path))
+      throw std::runtime_error(path + ": no journal to report from; run prism evaluate with the same options "
+                               "and without --journal-only first");
+    json events = header;
+    events.erase("search");
+    events.erase("refine");
+    j.emplace(path, events,
+              "give --journal-only the options of the run that made it (--seed, --experiments, --trials, the "
+              "truth's --rays and splat, the scene and dictionary)",
+              /*read_only=*/true);
+    const json& made = j->header();
+    result.journal_estimators.push_back(path + ": search " + (made.contains("search") ? made["search"].dump() : "?") +
+                                        ", refine " + (made.contains("refine") ? made["refine"].dump() : "?"));
   };
   // The protocol's trials already in its journal: point -> trial -> estimate.
   std::optional<Journal> points_journal;
@@ -502,7 +522,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
     std::vector<std::shared_ptr<const PsfSampler>> held;
     std::vector<ClickSource> sources;
     for (int trial = 0; trial < o.trials; ++trial) {
-      if (trials_done[pi].count(trial)) continue;
+      if (trials_done[pi].count(trial) || o.journal_only) continue;
       if (sources.empty())
         for (const auto& v : p.vertices) {
           held.push_back(truth.psf(v.position));
@@ -525,6 +545,10 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
       });
     std::vector<std::vector<ReconstructedVertex>> estimates;
     for (auto& [trial, estimate] : trials_done[pi]) estimates.push_back(std::move(estimate));
+    if (estimates.size() < 3) {  // only from a journal of a stopped run: too few trials to trim
+      bound += n;
+      continue;
+    }
     std::vector<glm::dvec3> truth_mm;
     for (const auto& v : p.vertices) truth_mm.push_back(v.position);
     for (const auto& est : estimates) {
@@ -555,7 +579,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
 
   if (volume) {
     std::vector<size_t> pending;
-    for (size_t i = 0; i < volume_positions.size(); ++i)
+    for (size_t i = 0; i < volume_positions.size() && !o.journal_only; ++i)
       if (!volume_done[i]) pending.push_back(i);
     const size_t batch = 32;
     for (size_t first = 0; first < pending.size(); first += batch) {
@@ -594,7 +618,8 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
         volume_done[index] = v;
       });
     }
-    for (const auto& v : volume_done) result.volume.push_back(*v);
+    for (const auto& v : volume_done)
+      if (v) result.volume.push_back(*v);  // all of them unless journal_only
     // By depth band, then the whole field.
     auto bands = depth_bands(field.depth, o.band_mm);
     bands.push_back(field.depth);

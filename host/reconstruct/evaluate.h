@@ -126,6 +126,12 @@ struct EvaluationOptions {
   // replaced. Empty: none.
   std::string journal_dir;
   bool resume = false;
+  // The figures from what the journals hold, reconstructing nothing: a
+  // stopped (or running) evaluation's results so far. Points with fewer than
+  // 3 trials there are left out; the journals must exist and hold this run's
+  // events (seed, truth, scene, points), made by any search and refinement
+  // (Evaluation::journal_estimators says which).
+  bool journal_only = false;
 };
 
 // What the reconstructions of an evaluation cost.
@@ -174,6 +180,8 @@ struct Evaluation {
   std::vector<VolumeEvent> volume;  // every event of the volume experiment
   size_t resumed = 0;               // events read from the journals (not in `cost`)
   EvaluationCost cost;              // what this run's reconstructions cost
+  // journal_only: per journal read, the search and refinement settings that made it.
+  std::vector<std::string> journal_estimators;
 };
 
 // Valid experiment names, in the order they run.

@@ -11,9 +11,12 @@ namespace prism {
 
 using json = nlohmann::json;
 
-Journal::Journal(std::string path, const json& header, const std::string& on_mismatch) : path_(std::move(path)) {
+Journal::Journal(std::string path, const json& header, const std::string& on_mismatch, bool read_only)
+    : path_(std::move(path)), read_only_(read_only) {
   std::ifstream in(path_);
+  if (!in && read_only) throw JournalError("cannot read " + path_);
   if (!in) {
+    header_ = header;
     write_atomically(path_, [&](const std::string& tmp) {
       std::ofstream out(tmp);
       out << header.dump() << '\n';
@@ -43,13 +46,14 @@ Journal::Journal(std::string path, const json& header, const std::string& on_mis
           throw JournalError(path_ + " was made with a different " + it.key() + " (" +
                              (j.contains(it.key()) ? j[it.key()].dump() : "none") + ", this run: " +
                              it.value().dump() + "); " + on_mismatch);
+      header_ = j;
     } else {
       records_.push_back(std::move(j));
     }
     good.push_back(line);
   }
   if (line_no == 0) throw JournalError(path_ + " is empty; remove it to start over");
-  if (torn) {
+  if (torn && !read_only) {
     write_atomically(path_, [&](const std::string& tmp) {
       std::ofstream out(tmp);
       for (const auto& g : good) out << g << '\n';
@@ -61,6 +65,7 @@ Journal::Journal(std::string path, const json& header, const std::string& on_mis
 void Journal::append(const json& record) const {
   // One write() of a whole line with O_APPEND, then fsync: a kill leaves
   // either the line or (at worst) a torn last line, which the reader drops.
+  if (read_only_) throw JournalError(path_ + " was opened to be read only");
   const std::string line = record.dump() + "\n";
   const int fd = ::open(path_.c_str(), O_WRONLY | O_APPEND);
   if (fd < 0) throw JournalError("cannot append to " + path_);

@@ -22,15 +22,21 @@ class Journal {
   // header must have every key of `header` with the same value (else
   // JournalError naming the key, both values and `on_mismatch`, what the
   // user should do), and its records are read.
-  Journal(std::string path, const nlohmann::json& header, const std::string& on_mismatch);
+  // read_only: never created or rewritten (a torn last line is dropped in
+  // memory only), for reading a journal that another process may be
+  // appending to; append() then throws.
+  Journal(std::string path, const nlohmann::json& header, const std::string& on_mismatch, bool read_only = false);
 
   const std::vector<nlohmann::json>& records() const { return records_; }
   const std::string& path() const { return path_; }
+  const nlohmann::json& header() const { return header_; }  // the file's own (its first line)
   void append(const nlohmann::json& record) const;  // throws JournalError when it cannot
 
  private:
   std::string path_;
   std::vector<nlohmann::json> records_;
+  nlohmann::json header_;
+  bool read_only_ = false;
 };
 
 }  // namespace prism

@@ -305,6 +305,19 @@ TEST_CASE("evaluation volume: a stopped run resumes from its journal, which must
     cut.write(lines[4].data(), std::streamsize(lines[4].size() / 2));
   }
   o.volume_events = 6;  // and asked for one more event
+  {  // The journal alone: its three events, nothing reconstructed or written.
+    prism::EvaluationOptions only = o;
+    only.journal_only = true;
+    const auto bytes = std::filesystem::file_size(journal);
+    const auto so_far = prism::evaluate(prism::test::gpu(), scene, *d.reader, only);
+    CHECK(so_far.cost.events == 0);
+    REQUIRE(so_far.volume.size() == 3);
+    for (size_t i = 0; i < 3; ++i) CHECK(so_far.volume[i].estimate.x_mm == whole.volume[i].estimate.x_mm);
+    CHECK(std::filesystem::file_size(journal) == bytes);  // the torn line left for the run to mend
+    const prism::Journal reader(journal, nlohmann::json::object(), "", /*read_only=*/true);
+    CHECK(reader.records().size() == 3);
+    CHECK_THROWS_AS(reader.append({{"index", 9}}), prism::JournalError);
+  }
   o.resume = true;
   const auto resumed = prism::evaluate(prism::test::gpu(), scene, *d.reader, o);
   CHECK(resumed.resumed == 3);
@@ -353,6 +366,33 @@ TEST_CASE("evaluation protocol: a stopped run resumes from its journal with the 
   {  // stopped after five of the eight events
     std::ofstream cut(journal, std::ios::trunc);
     for (size_t i = 0; i < 6; ++i) cut << lines[i] << '\n';
+  }
+  {  // The journal alone: the 50-photon point (trials 0..3), not the 400 (1 trial); nothing reconstructed.
+    prism::EvaluationOptions only = o;
+    only.journal_only = true;
+    const auto so_far = prism::evaluate(prism::test::gpu(), scene, *d.reader, only);
+    CHECK(so_far.resumed == 5);
+    CHECK(so_far.cost.events == 0);
+    REQUIRE(so_far.rows.size() == 1);
+    CHECK(so_far.rows[0].photons == whole.rows[0].photons);
+    CHECK(so_far.rows[0].stats.err3d_mean == doctest::Approx(whole.rows[0].stats.err3d_mean).epsilon(1e-12));
+    CHECK(so_far.rows[0].crlb_3d_mm == doctest::Approx(whole.rows[0].crlb_3d_mm).epsilon(1e-12));
+    CHECK(lines_of(journal).size() == 6);  // read, not written
+    // Another estimator reads the same events and says what made them.
+    only.settings.newton_iterations += 1;
+    const auto again = prism::evaluate(prism::test::gpu(), scene, *d.reader, only);
+    CHECK(again.rows.size() == 1);
+    REQUIRE(again.journal_estimators.size() == 1);
+    CHECK(again.journal_estimators[0].find("\"newton_iterations\":" +
+                                           std::to_string(o.settings.newton_iterations)) != std::string::npos);
+    only.seed = 99;  // other events: refused
+    CHECK_THROWS_WITH_AS(prism::evaluate(prism::test::gpu(), scene, *d.reader, only), doctest::Contains("different seed"),
+                         prism::JournalError);
+    only.seed = o.seed;
+    only.journal_dir = d.dir + "/no-journal-here";
+    CHECK_THROWS_WITH_AS(prism::evaluate(prism::test::gpu(), scene, *d.reader, only),
+                         doctest::Contains("no journal to report from"), std::runtime_error);
+    CHECK_FALSE(std::filesystem::exists(only.journal_dir));
   }
   o.resume = true;
   const auto resumed = prism::evaluate(prism::test::gpu(), scene, *d.reader, o);
