@@ -221,8 +221,9 @@ void add_evaluate(CLI::App& app) {
               "--volume-events); the journals must come from the same options and engine");
   c->add_flag("--journal-only", a->options.journal_only,
               "reconstruct nothing: the tables, CSVs and plots from what the journals in --out hold, the events of "
-              "a stopped run or of one still running (points with fewer than 3 trials there are left out); the "
-              "same options as the run that made them");
+              "a stopped run or of one still running (points with fewer than 3 trials there are left out); give the "
+              "events' options of the run that made them (seed, experiments, trials, field, truth), its search "
+              "and refinement are read from the journals and printed");
   c->add_option("--seed", a->options.seed, "random seed of the events")->capture_default_str();
   c->add_flag("--quick", a->quick, "a reduced grid (2 points per line, 2 photon counts, 1 double) with 5 trials");
   c->add_option("--backend", a->backend,
