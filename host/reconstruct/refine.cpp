@@ -23,33 +23,46 @@ const ModelPixel* SourceImage::find(uint32_t index) const {
 }
 
 SourceImage blurred(const SourceImage& image, double sigma_px, const AnalysisGrid& grid) {
-  if (!(sigma_px > 0)) return image;
+  if (!(sigma_px > 0) || image.pixels.empty()) return image;
+  // The Gaussian is separable: along rows, then along columns, on a dense
+  // window around the image's pixels (light that leaves the grid is lost).
   const int radius = int(std::ceil(defaults::refine_blur_radius_sigmas * sigma_px));
-  std::vector<double> taps;  // (2 radius + 1)^2, normalised
+  std::vector<double> taps;  // 2 radius + 1, normalised
   double total = 0;
-  for (int dy = -radius; dy <= radius; ++dy)
-    for (int dx = -radius; dx <= radius; ++dx)
-      total += taps.emplace_back(std::exp(-double(dx * dx + dy * dy) / (2 * sigma_px * sigma_px)));
+  for (int d = -radius; d <= radius; ++d) total += taps.emplace_back(std::exp(-double(d * d) / (2 * sigma_px * sigma_px)));
   for (double& t : taps) t /= total;
-  std::unordered_map<uint32_t, size_t> at;
+  const int W = grid.width;
+  int c0 = W, c1 = -1, r0 = grid.height, r1 = -1;
+  for (const ModelPixel& m : image.pixels) {
+    const int col = int(m.index % uint32_t(W)), row = int(m.index / uint32_t(W));
+    c0 = std::min(c0, col), c1 = std::max(c1, col), r0 = std::min(r0, row), r1 = std::max(r1, row);
+  }
+  const int x0 = std::max(0, c0 - radius), x1 = std::min(W - 1, c1 + radius);
+  const int y0 = std::max(0, r0 - radius), y1 = std::min(grid.height - 1, r1 + radius);
+  const size_t w = size_t(x1 - x0 + 1), h = size_t(y1 - y0 + 1);
+  // (p, dp/dx, dp/dy, dp/ddepth) per window pixel.
+  std::vector<glm::dvec4> rows_done(w * h, glm::dvec4(0.0)), out_px(w * h, glm::dvec4(0.0));
+  for (const ModelPixel& m : image.pixels) {
+    const int col = int(m.index % uint32_t(W)), row = int(m.index / uint32_t(W));
+    const glm::dvec4 v(m.p, m.g);
+    for (int d = -radius; d <= radius; ++d)
+      if (const int c = col + d; c >= x0 && c <= x1)
+        rows_done[size_t(row - y0) * w + size_t(c - x0)] += taps[size_t(d + radius)] * v;
+  }
+  for (size_t y = 0; y < h; ++y)
+    for (size_t x = 0; x < w; ++x) {
+      const glm::dvec4 v = rows_done[y * w + x];
+      if (v == glm::dvec4(0.0)) continue;
+      for (int d = -radius; d <= radius; ++d)
+        if (const long r = long(y) + d; r >= 0 && r < long(h)) out_px[size_t(r) * w + x] += taps[size_t(d + radius)] * v;
+    }
   SourceImage out;
   out.photons = image.photons;
-  for (const ModelPixel& m : image.pixels) {
-    const int col = int(m.index % uint32_t(grid.width)), row = int(m.index / uint32_t(grid.width));
-    size_t t = 0;
-    for (int dy = -radius; dy <= radius; ++dy)
-      for (int dx = -radius; dx <= radius; ++dx, ++t) {
-        const int c = col + dx, r = row + dy;
-        if (c < 0 || r < 0 || c >= grid.width || r >= grid.height) continue;  // off the sensor: lost, as light is
-        const uint32_t index = uint32_t(r) * uint32_t(grid.width) + uint32_t(c);
-        auto [it, fresh] = at.try_emplace(index, out.pixels.size());
-        if (fresh) out.pixels.push_back({index, 0.0, glm::dvec3(0.0)});
-        ModelPixel& o = out.pixels[it->second];
-        o.p += taps[t] * m.p;
-        o.g += taps[t] * m.g;
-      }
-  }
-  std::sort(out.pixels.begin(), out.pixels.end(), [](const ModelPixel& a, const ModelPixel& b) { return a.index < b.index; });
+  for (size_t y = 0; y < h; ++y)  // row-major: sorted by index
+    for (size_t x = 0; x < w; ++x)
+      if (const glm::dvec4 v = out_px[y * w + x]; v != glm::dvec4(0.0))
+        out.pixels.push_back({uint32_t(size_t(y0) + y) * uint32_t(W) + uint32_t(size_t(x0) + x), v.x,
+                              glm::dvec3(v.y, v.z, v.w)});
   return out;
 }
 
@@ -134,6 +147,7 @@ std::unique_ptr<SourceModel> make_scene_model(const Scene& scene, const TraceSet
                         std::to_string(grid.width) + " x " + std::to_string(grid.height) + " px)");
   memory.add("a render's pixels, each with its gradient in double", double(sizeof(ModelPixel)) * px);
   if (!ctx) memory.add("the CPU reference's sparse image", ref::SparseImage::bytes_per_pixel * px);
+  memory.add("the blur's two dense windows, 4 doubles per pixel each", 2 * sizeof(glm::dvec4) * px);
   if (ctx) memory.add("a render read back from the device, 4 floats per pixel", 16 * px);
   if (ctx) memory.add_device_buffers(double(ForwardVulkan::device_bytes_at_most(grid, settings.splat)), ctx->is_cpu());
   memory.require_within_limit("Use coarser clicks (events at a larger binning) or --model dictionary");
