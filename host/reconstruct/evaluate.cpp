@@ -386,7 +386,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
                   {"search_starts", rs.search_starts}, {"alias_starts", rs.alias_starts}, {"rescue", rs.rescue},
                   {"lattice_scan", rs.lattice_scan}, {"reseed", rs.reseed}, {"near_face_mm", rs.near_face_mm},
                   {"ladder_starts", rs.ladder_starts},
-                  {"ladder_reach_px", rs.ladder_reach_px}, {"continuation", rs.continuation},
+                  {"ladder_reach_px", rs.ladder_reach_px}, {"continuation", rs.continuation}, {"site_blur_px", rs.site_blur_px},
                   {"pvalue_draws", rs.pvalue_draws}}}};
   // Coarse to fine only where the scan is coarser than the select level (a
   // journal of the exhaustive scan keeps its header).

@@ -385,9 +385,10 @@ Refiner::Refiner(SourceModel& model, const Scene& scene, const AnalysisGrid& cli
       lattice_mm_(lattice_vectors(scene.optics)),
       rescue_lattice_mm_(lattice_vectors(scene.optics, defaults::refine_rescue_alias_pitches)) {
   if (s_.iterations < 1 || s_.alias_starts < 0 || s_.search_starts < 0 || s_.ladder_starts < 0 || s_.ladder_reach_px < 0 ||
-      s_.pvalue_draws < 1)
+      s_.pvalue_draws < 1 || !(s_.site_blur_px >= 0))
     throw std::invalid_argument(
-        "refinement: iterations and p-value draws must be >= 1, search, alias and ladder starts and the ladder's reach >= 0");
+        "refinement: iterations and p-value draws must be >= 1, search, alias and ladder starts, the ladder's reach and the "
+        "sites' blur >= 0");
 }
 
 // Goodness of fit: T = sum over pixels of the binary NLL, observed against
@@ -455,12 +456,21 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
   // runners-up (other planes and nodes), the lattice aliases of the current
   // estimate and its ladder. Each is probed for a few steps; one that has overtaken
   // the best is followed to convergence.
-  auto try_start = [&](size_t k, glm::dvec3 at, double alpha) {
+  // With blur_px > 0 the start is fitted with blurred images first (the
+  // sharp likelihood's cliffs stop a start a few tenths of a mm off), then
+  // probed sharp like any other.
+  auto try_start = [&](size_t k, glm::dvec3 at, double alpha, double blur_px = 0) {
     Fit g = f.unrendered();
     g.theta[k] = glm::clamp(at, bounds_.lo, bounds_.hi);
     g.alpha[k] = std::min(alpha, s_.alpha_max);
-    g.render();
     ++stats_.starts;
+    if (blur_px > 0) {
+      g.blur_px = blur_px;
+      g.render();
+      stats_.iterations += uint64_t(levenberg_marquardt(g, s_.iterations));
+      g.blur_px = 0;
+    }
+    g.render();
     int taken = levenberg_marquardt(g, std::min(s_.iterations, kProbeSteps));
     if (g.nll < f.nll && taken == kProbeSteps) taken += levenberg_marquardt(g, s_.iterations - taken);
     stats_.iterations += uint64_t(taken);
@@ -472,9 +482,12 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
   // -shift / magnification, near enough), and the candidate moved with the
   // best: sites predicted a few tenths of a mm off, where sharp images
   // near the face score as badly as wrong ones.
-  auto probe_best = [&](size_t k, std::vector<glm::dvec3> cand, int n, int reach_px = 0) {
+  // With blur_px > 0 the images are scored blurred, and the best fitted
+  // blurred first (try_start).
+  auto probe_best = [&](size_t k, std::vector<glm::dvec3> cand, int n, int reach_px = 0, double blur_px = 0) {
     if (cand.empty() || n <= 0) return;
     auto imgs = model_.render(cand);
+    for (auto& im : imgs) im = blurred(im, blur_px, grid_);
     Fit others = f;
     others.alpha[k] = 0;
     const auto background = others.click_rates();
@@ -507,7 +520,7 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
     }
     std::sort(scored.begin(), scored.end());
     for (size_t t = 0; t < scored.size() && t < size_t(n); ++t)
-      try_start(k, cand[std::get<1>(scored[t])], std::get<2>(scored[t]));
+      try_start(k, cand[std::get<1>(scored[t])], std::get<2>(scored[t]), blur_px);
   };
   auto inside = [&](glm::dvec3 a) {
     return glm::all(glm::greaterThanEqual(a, bounds_.lo)) && glm::all(glm::lessThanEqual(a, bounds_.hi));
@@ -632,7 +645,8 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
         const glm::dvec3 site = at + glm::dvec3(double(i) * sa + double(j) * sb, 0.0);
         if ((i != 0 || j != 0) && inside(site)) sites.push_back(site);
       }
-    probe_best(k, sites, s_.alias_starts, kLatticeReachPx);
+    const double blur_px = at.z < s_.near_face_mm ? s_.site_blur_px : 0.0;
+    probe_best(k, sites, s_.alias_starts, kLatticeReachPx, blur_px);
   };
   // The clicks vertex k may claim: those no other vertex explains better
   // than it does (all of them for K = 1).

@@ -9,7 +9,10 @@
 // aliases and a ladder along the weakest direction, keeping the best, and by
 // trying the aliases out to 2 pitches when the fit is still poor, and every
 // site of the lattice the clicks vote for (click_geometry.h) when it is
-// poor or marginal. With K > 1 each vertex is also tried at every vertex's
+// poor or marginal (near the face those sites are scored and first fitted
+// with blurred images: the search's wrong answer there is an alias at
+// another depth, and the source's own site lies a little off the lattice
+// built from it). With K > 1 each vertex is also tried at every vertex's
 // runners-up (the re-seed), and votes only with the clicks the others
 // leave: a source the greedy search left unclaimed is found that way.
 //
@@ -124,6 +127,8 @@ struct RefineSettings {
   int ladder_reach_px = defaults::refine_ladder_reach_px;  // each rung's image also scored moved by up to this
                                                           // many click-grid pixels
   bool continuation = true;  // near the face: refit from the estimate with blurred images, then sharp (refine.cpp)
+  double site_blur_px = defaults::refine_site_blur_px;  // near the face: the lattice scan's sites scored and first
+                                                      // fitted with images blurred by this sigma (0: sharp)
   int pvalue_draws = defaults::fit_pvalue_draws; // Monte Carlo events per goodness-of-fit p-value
   double dark_rate = ReconstructionSettings{}.dark_rate;
   double alpha_max = ReconstructionSettings{}.alpha_max;
