@@ -4,6 +4,7 @@
 #include <chrono>
 #include <cmath>
 #include <limits>
+#include <optional>
 #include <random>
 #include <tuple>
 #include <unordered_map>
@@ -670,19 +671,32 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
     // estimate near the face gets the best voted depth whatever its fit:
     // there a wrong site can fit as well as the model expects.
     ++stats_.lattice_scans;
-    std::vector<std::vector<VotePeak>> peaks(f.K);
-    size_t depths = 0;
-    for (size_t k = 0; k < f.K; ++k) {
-      peaks[k] = vote_source_positions(optics_, grid_, unclaimed_clicks(k), bounds_.lo, bounds_.hi,
-                                       defaults::refine_lattice_scan_depths);
-      depths = std::max(depths, peaks[k].size());
-    }
-    for (size_t q = 0; q < depths && (q == 0 || pvalue < defaults::refine_lattice_scan_pvalue); ++q) {
+    // Vertex k's q-th voted position, from the clicks the others leave now.
+    auto voted = [&](size_t k, size_t q) -> std::optional<glm::dvec3> {
+      auto peaks = vote_source_positions(optics_, grid_, unclaimed_clicks(k), bounds_.lo, bounds_.hi, q + 1);
+      if (q < peaks.size()) return peaks[q].position_mm;
+      return std::nullopt;
+    };
+    for (size_t q = 0; q < size_t(defaults::refine_lattice_scan_depths) &&
+                       (q == 0 || pvalue < defaults::refine_lattice_scan_pvalue);
+         ++q) {
       const double nll_before = f.nll;
       ++stats_.lattice_depths;
-      for (size_t k = 0; k < f.K; ++k)
-        if (q < peaks[k].size()) scan_sites(k, peaks[k][q].position_mm);
-      if (!(f.nll < nll_before)) break;
+      // With K > 1 a vertex's votes change when another one moves: one
+      // scanned while the others were still wrong voted with their light.
+      // So the pass over the vertices is repeated, with fresh votes, while
+      // it improves the fit (at most K passes).
+      bool voted_any = false;
+      for (size_t pass = 0; pass < f.K; ++pass) {
+        const double pass_before = f.nll;
+        for (size_t k = 0; k < f.K; ++k)
+          if (auto at = voted(k, q)) {
+            voted_any = true;
+            scan_sites(k, *at);
+          }
+        if (!(f.nll < pass_before)) break;
+      }
+      if (!voted_any || !(f.nll < nll_before)) break;
       pvalue = fit_pvalue(f, event.id);
     }
   }
