@@ -488,7 +488,8 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
   auto probe_best = [&](size_t k, std::vector<glm::dvec3> cand, int n, int reach_px = 0, double blur_px = 0) {
     if (cand.empty() || n <= 0) return;
     auto imgs = model_.render(cand);
-    for (auto& im : imgs) im = blurred(im, blur_px, grid_);
+    if (blur_px > 0)
+      for (auto& im : imgs) im = blurred(im, blur_px, grid_);
     Fit others = f;
     others.alpha[k] = 0;
     const auto background = others.click_rates();
