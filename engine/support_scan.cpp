@@ -3,7 +3,9 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <limits>
 #include <map>
+#include <numeric>
 #include <string>
 
 #include "engine/vk/error.h"
@@ -18,7 +20,8 @@ namespace {
 struct ScanOut {
   int32_t shift_x, shift_y;
   float score, nll, alpha;
-  uint32_t newton, shifts, pad;
+  uint32_t newton, shifts;
+  float bound;
 };
 static_assert(sizeof(ScanOut) == 32);
 
@@ -49,7 +52,7 @@ struct SupportScanVulkan::Impl {
           sizeof(shared::ScanParams), std::vector<uint32_t>{half ? 1u : 0u});
     else
       k = std::make_unique<vk::Kernel>(
-          ctx, "support_scan", std::span<const uint32_t>(spv_support_scan, std::size(spv_support_scan)), 7,
+          ctx, "support_scan", std::span<const uint32_t>(spv_support_scan, std::size(spv_support_scan)), 8,
           sizeof(shared::ScanParams), std::vector<uint32_t>{half ? 1u : 0u, serial_scan ? 1u : 0u, serial_fit ? 1u : 0u});
     return *k;
   }
@@ -78,6 +81,8 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
   last_kernel_ms_ = 0;
   last_device_bytes_ = 0;
   last_fallbacks_ = 0;
+  last_fits_ = 0;
+  last_candidates_ = 0;
   if (n_events == 0 || n_psf == 0) return out;
   if (level.width > 65535 || level.height > 65535)
     throw vk::Error("support scan: a scan level of " + std::to_string(level.width) + " x " +
@@ -209,6 +214,7 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
     }
     const uint64_t blocks = (max_shifts + block - 1) / block;
     vk::Buffer block_best(ctx, std::max<uint64_t>(8, ne * n_psf * blocks * 8));
+    vk::Buffer no_list(ctx, 8);  // phases 0 and 1 read no candidate list
     last_device_bytes_ += block_best.bytes();
     p.block_shifts = uint32_t(block);
     p.blocks = uint32_t(blocks);
@@ -216,20 +222,22 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
     vk::Stream stream(ctx, 2 * uint32_t(ranges.size()) + 2);
     p.event_first = 0;
     p.event_count = uint32_t(ne);
+    // Phases 0 and 1 over every (PSF, event): a workgroup per (PSF, event[,
+    // block]), or one invocation each when serial.
     auto record = [&](vk::Stream& st, vk::Kernel& k, uint32_t phase, bool serial) {
       p.phase = phase;
       for (const Range& r : ranges) {
         p.psf_first = r.first;
         p.psf_count = r.count;
         const vk::Buffer* chunk = level.chunks.at(r.chunk);
-        // A workgroup per (PSF, event[, block]), or one invocation when serial.
         const uint32_t x = serial ? (r.count + uint32_t(group) - 1) / uint32_t(group) : r.count;
         const uint32_t z = phase == 0 ? uint32_t(blocks) : 1u;
         if (dense)
           st.dispatch(k, {chunk, &psfs, b_images.get(), &results, &block_best}, &p, x, uint32_t(ne), z);
         else
-          st.dispatch(k, {chunk, &psfs, b_events.get(), b_clicks.get(), b_rates.get(), &results, &block_best}, &p,
-                      x, uint32_t(ne), z);
+          st.dispatch(k, {chunk, &psfs, b_events.get(), b_clicks.get(), b_rates.get(), &results, &block_best,
+                          &no_list},
+                      &p, x, uint32_t(ne), z);
       }
       st.barrier();
     };
@@ -237,21 +245,99 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
     record(stream, kernel, 1, serial_fit);
     last_kernel_ms_ += stream.submit();
     results.download(raw.data(), ne * n_psf * sizeof(ScanOut));
-    const bool unfinished = std::any_of(raw.begin(), raw.begin() + long(ne * n_psf),
-                                        [](const ScanOut& o) { return o.newton == shared::FIT_UNFINISHED; });
-    if (serial_fit && unfinished) {
-      // A serial fit ran out of loop budget: this batch's weights again in
-      // workgroups (the blocks' bests are still on the device).
-      vk::Stream again(ctx, uint32_t(ranges.size()) + 1);
-      record(again, impl_->kernel(serial_scan, false), 1, false);
-      last_kernel_ms_ += again.submit();
-      results.download(raw.data(), ne * n_psf * sizeof(ScanOut));
-      ++last_fallbacks_;
+    last_candidates_ += ne * n_psf;
+
+    if (!dense) {
+      // Phase 2: the weights of a list of (event, PSF) candidates, per chunk.
+      auto dispatch_fits = [&](const std::vector<glm::uvec2>& list, bool serial) {
+        vk::Buffer b_list(ctx, list.size() * sizeof(glm::uvec2));
+        b_list.upload(list.data(), list.size() * sizeof(glm::uvec2));
+        vk::Stream st(ctx, uint32_t(ranges.size()) + 1);
+        vk::Kernel& k = impl_->kernel(serial_scan, serial);
+        p.phase = 2;
+        size_t first = 0;
+        for (const Range& r : ranges) {
+          size_t end = first;
+          while (end < list.size() && list[end].y < r.first + r.count) ++end;
+          if (end == first) continue;
+          p.list_first = uint32_t(first);
+          p.list_count = uint32_t(end - first);
+          // Serial: one invocation per entry; workgroups: one per entry, in rows.
+          const uint32_t max_x = ctx.properties().limits.maxComputeWorkGroupCount[0];
+          const uint32_t x = serial ? (p.list_count + uint32_t(group) - 1) / uint32_t(group)
+                                    : std::min(p.list_count, max_x);
+          const uint32_t y = serial ? 1u : (p.list_count + x - 1) / x;
+          st.dispatch(k, {level.chunks.at(r.chunk), &psfs, b_events.get(), b_clicks.get(), b_rates.get(), &results,
+                          &block_best, &b_list},
+                      &p, x, y);
+          first = end;
+        }
+        last_kernel_ms_ += st.submit();
+        results.download(raw.data(), ne * n_psf * sizeof(ScanOut));
+      };
+      auto fit_list = [&](std::vector<glm::uvec2> list) {
+        if (list.empty()) return;
+        std::stable_sort(list.begin(), list.end(), [](glm::uvec2 a, glm::uvec2 b) { return a.y < b.y; });
+        dispatch_fits(list, serial_fit);
+        last_fits_ += list.size();
+        // A serial fit that ran out of loop budget: those candidates again in workgroups.
+        std::vector<glm::uvec2> again;
+        for (glm::uvec2 em : list)
+          if (raw[size_t(em.x) * n_psf + em.y].newton == shared::FIT_UNFINISHED) again.push_back(em);
+        if (serial_fit && !again.empty()) {
+          dispatch_fits(again, false);
+          ++last_fallbacks_;
+        }
+      };
+      std::vector<glm::uvec2> list;
+      if (s.fit_margin_nll < 0) {
+        for (uint32_t e = 0; e < ne; ++e)
+          for (uint32_t m = 0; m < n_psf; ++m) list.push_back({e, m});
+        fit_list(list);
+      } else {
+        // First the candidates with the lowest bounds, then every one whose
+        // bound does not exceed what they reached (ScanSettings).
+        const size_t keep = size_t(std::max(1, s.fit_keep)), first_round = std::min(n_psf, 2 * keep);
+        std::vector<uint32_t> order(n_psf);
+        for (uint32_t e = 0; e < ne; ++e) {
+          const ScanOut* row = &raw[size_t(e) * n_psf];
+          std::iota(order.begin(), order.end(), 0u);
+          std::nth_element(order.begin(), order.begin() + long(first_round - 1), order.end(),
+                           [&](uint32_t a, uint32_t b) { return row[a].bound < row[b].bound; });
+          for (size_t j = 0; j < first_round; ++j) list.push_back({e, order[j]});
+        }
+        fit_list(list);
+        list.clear();
+        std::vector<float> fitted;
+        for (uint32_t e = 0; e < ne; ++e) {
+          const ScanOut* row = &raw[size_t(e) * n_psf];
+          fitted.clear();
+          for (size_t m = 0; m < n_psf; ++m)
+            if (row[m].newton != shared::FIT_SKIPPED) fitted.push_back(row[m].nll);
+          std::sort(fitted.begin(), fitted.end());
+          const double limit = std::max(double(fitted.front()) + s.fit_margin_nll,
+                                        double(fitted[std::min(keep, fitted.size()) - 1]));
+          // Float slack: the bound and the NLLs are sums of ~clicks float terms.
+          const double slack = 1e-4 * (1.0 + std::abs(limit));
+          for (uint32_t m = 0; m < n_psf; ++m)
+            if (row[m].newton == shared::FIT_SKIPPED && double(row[m].bound) <= limit + slack) list.push_back({e, m});
+        }
+        fit_list(list);
+      }
     }
     for (size_t i = 0; i < ne * n_psf; ++i) {
       const ScanOut& o = raw[i];
-      out[e0 * n_psf + i] = {glm::ivec2(o.shift_x, o.shift_y), o.score, o.nll, o.alpha, o.newton, o.shifts};
+      const bool fitted = o.newton != shared::FIT_SKIPPED;
+      out[e0 * n_psf + i] = {glm::ivec2(o.shift_x, o.shift_y),
+                             o.score,
+                             fitted ? o.nll : std::numeric_limits<float>::infinity(),
+                             fitted ? o.alpha : 0.0f,
+                             fitted ? o.newton : 0u,
+                             o.shifts,
+                             o.bound,
+                             fitted};
     }
+    if (dense) last_fits_ += ne * n_psf;
   }
   return out;
 }

@@ -3,15 +3,18 @@
 // PSF): every shift of the lattice within +-radius is scored by
 //   <g, P(shifted)> = S(shift) - sum_clicks w_c P(c - shift),
 // w_c = 1 / (1 - exp(-lambda_c)) of the event's current model at click c,
-// S from the summed-area table in four look-ups; the best shift's weight is
-// then fitted by projected Newton on the NLL
+// S from the summed-area table in four look-ups (phase 0); at the best
+// shift, a lower bound on the NLL any weight can reach there, from one pass
+// over the clicks (phase 1, likelihood.glsl's nll_lower_bound); and for the
+// candidates the launcher lists, those whose bound can still win, the weight
+// fitted by projected Newton on the NLL (phase 2)
 //   f(alpha) = alpha S - sum_clicks [lambda_c + log(1 - exp(-lambda_c))],
 //   lambda_c = background_c + alpha P_c.
 // Work per (event, PSF) is shifts x clicks, never shifts x pixels.
 //
-// Two layouts per phase (SERIAL_SCAN, SERIAL_FIT): a workgroup per (event,
-// PSF) whose 64 invocations split the shifts (phase 0) or the clicks
-// (phase 1) and meet in shared-memory reductions, or one invocation per
+// Two layouts per phase (SERIAL_SCAN for phase 0, SERIAL_FIT for phases 1
+// and 2): a workgroup per (event, PSF) whose 64 invocations split the shifts
+// or the clicks and meet in shared-memory reductions, or one invocation per
 // (event, PSF) running over them alone. On a CPU device (llvmpipe) a
 // workgroup barrier is dear and most of the 64 invocations sit idle through
 // a coarse level's few shifts and the Newton steps, so the second is several
@@ -19,7 +22,7 @@
 // workgroup's invocations read neighbouring values of one PSF and share the
 // cache). Its blocks of shifts are sized by the launcher to the loop budget;
 // a weight fit that would pass the budget stops and says so, and the
-// launcher fits that batch again in workgroups.
+// launcher fits that candidate again in workgroups.
 #version 460
 #extension GL_GOOGLE_include_directive : require
 #define PRISM_FN
@@ -33,7 +36,10 @@ layout(std430, binding = 3) readonly buffer Clicks { uint click_xy[]; };       /
 // Per click: lambda of the event's current model (dark rate included) and the
 // gradient weight 1 / (1 - exp(-lambda)), formed once on the host in double.
 layout(std430, binding = 4) readonly buffer Rates { vec2 rate_weight[]; };
-layout(std430, binding = 5) writeonly buffer Out { ScanOut results[]; };       // [event][PSF]
+layout(std430, binding = 5) buffer Out { ScanOut results[]; };                 // [event][PSF]
+// Phase 2: the candidates whose weights to fit, (event, PSF) pairs; the
+// entries of one dispatch lie in its chunk.
+layout(std430, binding = 7) readonly buffer FitList { uvec2 fit_list[]; };
 
 uint first_click, click_count, p_base;
 ScanPsf psf;
@@ -71,13 +77,18 @@ bool within_budget() {
   return !exhausted;
 }
 
+// The NLL less its terms free of alpha (the clicks the PSF does not reach;
+// fit_listed adds them once): the line search compares values of a few
+// tens, not of thousands, where float resolves the steps near the optimum.
 float objective(float alpha) {
   // Past the budget: +inf ends the backtracking, and with it the fit.
   if (!within_budget()) return 1.0f / 0.0f;
   float part = 0.0f;
   for (uint c = lane(); c < click_count; c += lanes()) {
     ivec2 q = click_at(c) - best_shift;
-    float lambda = rate_weight[first_click + c].x + alpha * psf_value(p_base, q.x, q.y);
+    float p = psf_value(p_base, q.x, q.y);
+    if (p <= 0.0f) continue;
+    float lambda = rate_weight[first_click + c].x + alpha * p;
     part += lambda + log_click(lambda);
   }
   return alpha * best_mass - lanes_sum(part);
@@ -97,12 +108,8 @@ vec2 slope_curvature(float alpha) {
   return vec2(best_mass - s.x, s.y);
 }
 
-// The (event, PSF) of this invocation: its workgroup's, or in the serial
-// layout its own (false past the dispatch's PSFs).
-bool locate(bool serial) {
-  uint m = P.psf_first + (serial ? gl_GlobalInvocationID.x : gl_WorkGroupID.x);
-  if (serial && m >= P.psf_first + P.psf_count) return false;
-  uint e = P.event_first + gl_WorkGroupID.y;
+// This invocation's (event e, PSF m).
+void locate_pair(uint e, uint m) {
   psf = psfs[m];
   uvec2 ec = event_clicks[e];
   first_click = ec.x;
@@ -111,6 +118,14 @@ bool locate(bool serial) {
   n = lattice_half(psf.radius);
   shifts = uint((2 * n + 1) * (2 * n + 1));
   row = e * P.psf_total + m;
+}
+
+// The (event, PSF) of this invocation in phases 0 and 1: its workgroup's, or
+// in the serial layout its own (false past the dispatch's PSFs).
+bool locate(bool serial) {
+  uint m = P.psf_first + (serial ? gl_GlobalInvocationID.x : gl_WorkGroupID.x);
+  if (serial && m >= P.psf_first + P.psf_count) return false;
+  locate_pair(P.event_first + gl_WorkGroupID.y, m);
   return true;
 }
 
@@ -144,36 +159,83 @@ void score_block() {
   if (serial || gl_LocalInvocationID.x == 0u) block_best[row * P.blocks + gl_WorkGroupID.z] = BlockBest(best, arg);
 }
 
-void main() {
-  if (P.phase == 0u) {
-    score_block();
-    return;
-  }
+// Phase 1: the best block's shift, and a bound on the NLL a weight can
+// reach there. The candidate is left unfitted (FIT_SKIPPED) for phase 2.
+void bound_best() {
   if (!locate(SERIAL_FIT == 1u)) return;
-
   float best_score;
   best_shift = lattice_shift(best_of_blocks(row, best_score), n);
   best_mass = mass_shifted(psf.sat_word, best_shift.x, best_shift.y);
-
-  // The weight at that shift.
-  spent = click_count + P.blocks;
-  float reached = 0.0f;
+  // Over the reached clicks: their count, sum P, sum log P, sum b / P; and
+  // the terms free of alpha (nll_lower_bound).
+  vec2 count_mass = vec2(0.0f), logp_ratio = vec2(0.0f);
+  float fixed_part = 0.0f;
   for (uint c = lane(); c < click_count; c += lanes()) {
     ivec2 q = click_at(c) - best_shift;
-    reached += psf_value(p_base, q.x, q.y) > 0.0f ? 1.0f : 0.0f;
+    float p = psf_value(p_base, q.x, q.y);
+    float b = rate_weight[first_click + c].x;
+    if (p > 0.0f) {
+      count_mass += vec2(1.0f, p);
+      logp_ratio += vec2(log(p), b / p);
+      fixed_part -= b;
+    } else {
+      fixed_part -= b + log_click(b);
+    }
   }
-  WeightFit fit = fit_weight(initial_alpha(lanes_sum(reached), best_mass));
-
+  count_mass = lanes_sum2(count_mass);
+  logp_ratio = lanes_sum2(logp_ratio);
+  fixed_part = lanes_sum(fixed_part);
   if (lane() == 0u) {
     ScanOut o;
     o.shift_x = best_shift.x;
     o.shift_y = best_shift.y;
     o.score = best_score;
-    o.nll = fit.f;
-    o.alpha = fit.alpha;
-    o.newton = exhausted ? FIT_UNFINISHED : fit.iterations;
+    o.nll = 0.0f;
+    o.alpha = 0.0f;
+    o.newton = FIT_SKIPPED;
     o.shifts = shifts;
-    o.pad = 0u;
+    o.bound = nll_lower_bound(count_mass.x, count_mass.y, logp_ratio.x, logp_ratio.y, fixed_part, best_mass,
+                              P.alpha_max);
     results[row] = o;
   }
+}
+
+// Phase 2: the weight of one listed candidate at phase 1's shift. In
+// workgroups the dispatch may hold a few more groups than entries; they fit
+// the last entry again and write nothing (no return before the barriers).
+void fit_listed() {
+  const bool serial = SERIAL_FIT == 1u;
+  uint k = serial ? gl_GlobalInvocationID.x : gl_WorkGroupID.y * gl_NumWorkGroups.x + gl_WorkGroupID.x;
+  if (serial && k >= P.list_count) return;
+  bool writes = k < P.list_count;
+  uvec2 em = fit_list[P.list_first + min(k, P.list_count - 1u)];
+  locate_pair(em.x, em.y);
+  best_shift = ivec2(results[row].shift_x, results[row].shift_y);
+  best_mass = mass_shifted(psf.sat_word, best_shift.x, best_shift.y);
+
+  spent = click_count + P.blocks;  // as when phase 1 also read the blocks: the same budget, the same fits
+  // The clicks reached, for Newton's start; the NLL's terms of the others.
+  vec2 reached_fixed = vec2(0.0f);
+  for (uint c = lane(); c < click_count; c += lanes()) {
+    ivec2 q = click_at(c) - best_shift;
+    float b = rate_weight[first_click + c].x;
+    reached_fixed += psf_value(p_base, q.x, q.y) > 0.0f ? vec2(1.0f, 0.0f) : vec2(0.0f, b + log_click(b));
+  }
+  reached_fixed = lanes_sum2(reached_fixed);
+  WeightFit fit = fit_weight(initial_alpha(reached_fixed.x, best_mass));
+
+  if (writes && lane() == 0u) {
+    results[row].nll = fit.f - reached_fixed.y;
+    results[row].alpha = fit.alpha;
+    results[row].newton = exhausted ? FIT_UNFINISHED : fit.iterations;
+  }
+}
+
+void main() {
+  if (P.phase == 0u)
+    score_block();
+  else if (P.phase == 1u)
+    bound_best();
+  else
+    fit_listed();
 }

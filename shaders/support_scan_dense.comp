@@ -116,7 +116,7 @@ void main() {
     o.alpha = fit.alpha;
     o.newton = fit.iterations;
     o.shifts = shifts;
-    o.pad = 0u;
+    o.bound = fit.f;
     results[row] = o;
   }
 }

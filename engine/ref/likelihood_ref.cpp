@@ -16,6 +16,27 @@ double click_curvature(double lambda) {
 
 double click_weight(double lambda) { return 1.0 / -std::expm1(-lambda); }
 
+double nll_lower_bound(std::span<const double> p, double s, std::span<const double> background, double alpha_max) {
+  // Terms free of alpha exactly; over the reached clicks
+  // -log(1 - exp(-lambda)) >= -log(lambda) = -log(P_c) - log(alpha + b_c / P_c),
+  // and sum_c log(alpha + r_c) <= n log(alpha + mean r) (log is concave).
+  double fixed = 0, n = 0, q = 0, log_p = 0, ratio = 0;
+  for (size_t c = 0; c < background.size(); ++c) {
+    const double b = background[c];
+    fixed -= b;
+    if (p[c] > 0) {
+      n += 1, q += p[c], log_p += std::log(p[c]), ratio += b / p[c];
+    } else {
+      fixed -= log_click(b);
+    }
+  }
+  const double off_clicks = s - q;  // the mass the clicks do not see
+  if (n == 0) return fixed + std::min(0.0, alpha_max * off_clicks);
+  // alpha off_clicks - n log(alpha + ratio / n): convex, its minimum where the slope is 0.
+  const double a = off_clicks > 0 ? std::clamp(n / off_clicks - ratio / n, 0.0, alpha_max) : alpha_max;
+  return fixed + a * off_clicks - log_p - n * std::log(a + ratio / n);
+}
+
 double fit_weights(std::span<const std::vector<double>* const> p, std::span<const double> s,
                    std::span<const double> background, std::vector<double>& alpha, int max_iterations,
                    double alpha_max) {

@@ -30,6 +30,12 @@ double fit_weights(std::span<const std::vector<double>* const> p, std::span<cons
                    std::span<const double> background, std::vector<double>& alpha, int max_iterations,
                    double alpha_max);
 
+// A lower bound on min over 0 <= alpha <= alpha_max of the one-weight NLL
+// above (K = 1, P_c = p[c]) without fitting it: the reference of
+// likelihood.glsl's nll_lower_bound, which says how it is made, here from
+// the clicks themselves in double.
+double nll_lower_bound(std::span<const double> p, double s, std::span<const double> background, double alpha_max);
+
 // A start for Newton when a weight has none: the clicks the PSF reaches over
 // its on-sensor mass, within [1e-3, alpha_max].
 double initial_alpha(std::span<const double> p, double s, double alpha_max);

@@ -136,6 +136,10 @@ void run(const ReconstructArgs& a) {
   const auto t = pool.timings();
   std::printf("time: support scans %.2f s, the rest on the host %.2f s%s\n", t.scan_s, t.host_s,
               threads > 1 ? " (summed over threads)" : "");
+  if (t.scan_candidates > 0)
+    std::printf("weights fitted in the scans: %llu of %llu (event, PSF) candidates (%.1f%%; the rest bounded out)\n",
+                (unsigned long long)t.scan_fits, (unsigned long long)t.scan_candidates,
+                100.0 * double(t.scan_fits) / double(t.scan_candidates));
   if (refiner)
     std::printf("refinement (%s): %.2f s, %.1f starts and %.1f LM steps per event, %llu renders; %llu poor fits "
                 "sent to the far aliases, %llu poor, marginal or shallow ones had the clicks' votes counted (%llu voted depths scanned); "

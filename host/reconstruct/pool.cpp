@@ -79,6 +79,9 @@ ReconstructionTimings ReconstructionPool::timings() const {
     sum.scan_kernel_ms += t.scan_kernel_ms;
     sum.host_s += t.host_s;
     sum.scans += t.scans;
+    sum.scan_fallbacks += t.scan_fallbacks;
+    sum.scan_fits += t.scan_fits;
+    sum.scan_candidates += t.scan_candidates;
     sum.scan_device_bytes = std::max(sum.scan_device_bytes, t.scan_device_bytes);
   }
   return sum;

@@ -58,6 +58,11 @@ struct ReconstructionSettings {
                                  // candidates are then re-searched +-(step - 1) around their best
   ScanLayout scan_layout = ScanLayout::automatic;  // device layout of the scan's weight fits (engine/support_scan.h);
                                               // the same results either way
+  // The device scan fits the weights only of PSFs whose NLL bound shows they
+  // can still be carried or selected (engine/support_scan.h, ScanSettings);
+  // true: of every PSF, as before the bound (the same vertices; benchmarks
+  // compare the two).
+  bool fit_all_weights = false;
 };
 
 enum class ReconstructionBackend { cpu, vulkan, dense };
@@ -126,7 +131,9 @@ struct ReconstructionTimings {
   double host_s = 0;         // everything else: gradients, refinement, weights, descent, depth
   uint64_t scans = 0;        // events x passes scanned
   uint64_t scan_device_bytes = 0;  // peak event/result buffers of one scan call
-  uint64_t scan_fallbacks = 0;     // device batches whose serial weight fits ran out of loop budget
+  uint64_t scan_fallbacks = 0;     // device rounds of weight fits whose serial fits ran out of loop budget
+  uint64_t scan_fits = 0;          // weights the scans fitted ...
+  uint64_t scan_candidates = 0;    // ... of (event, PSF) candidates scanned
 };
 
 // Reconstructs batches of events with one backend. The events of a batch go

@@ -75,14 +75,29 @@ int select_level(const ReconstructionSettings& s, int click_level) {
 }
 
 namespace {
-// The device's results of event j as scores.
+// The device's results of event j as scores (a PSF whose weight was not
+// fitted has NLL +inf).
 std::vector<SupportScore> to_scores(const std::vector<ScanResult>& results, size_t j, size_t n_psf) {
   std::vector<SupportScore> scored(n_psf);
   for (size_t psf = 0; psf < n_psf; ++psf) {
     const ScanResult& r = results[j * n_psf + psf];
-    scored[psf] = {psf, r.shift, double(r.nll), double(r.alpha)};
+    scored[psf] = {psf, r.shift, double(r.nll), double(r.alpha), double(r.nll_bound)};
   }
   return scored;
+}
+
+// Which weights the device scan fits: those that can still be carried from
+// a coarse scan (the carry margin) or be among the candidates for the
+// click level (refine_candidates); search.cpp ranks them.
+ScanSettings scan_settings(const ReconstructionSettings& s, const DictionaryService& d, int click_level) {
+  ScanSettings scan{s.scan_step_px, s.newton_iterations, s.alpha_max};
+  const int Ls = detail::search_level_of(d, s, click_level);
+  const int Lf = std::clamp(select_level(s, click_level), click_level, Ls);
+  if (!s.fit_all_weights) {
+    scan.fit_margin_nll = Ls > Lf ? s.carry_margin_nll : 0.0;
+    scan.fit_keep = std::max(1, s.refine_candidates);
+  }
+  return scan;
 }
 }  // namespace
 
@@ -154,9 +169,11 @@ std::vector<std::vector<SupportScore>> Reconstructor::first_scan(std::span<const
   }
   std::vector<ScanEvent> inputs;
   for (size_t i : active) inputs.push_back(fits[i].scan_input(backend_ == ReconstructionBackend::dense));
-  ScanSettings scan{s_.scan_step_px, s_.newton_iterations, s_.alpha_max};
+  const ScanSettings scan = scan_settings(s_, d_, level_);
   auto results = device_->run(scan_level_, inputs, scan);
   timings_.scan_fallbacks += device_->last_fallbacks();
+  timings_.scan_fits += device_->last_fits();
+  timings_.scan_candidates += device_->last_candidates();
   for (size_t j = 0; j < active.size(); ++j) out[active[j]] = to_scores(results, j, d_.manifest().grid.size());
   return out;
 }
@@ -170,7 +187,7 @@ std::vector<std::vector<ReconstructedVertex>> Reconstructor::run(std::span<const
   std::vector<EventFit> fits;
   fits.reserve(events.size());
   for (const Event& e : events) fits.emplace_back(e, level_, d_, s_);
-  ScanSettings scan{s_.scan_step_px, s_.newton_iterations, s_.alpha_max};
+  const ScanSettings scan = scan_settings(s_, d_, level_);
   const size_t n_psf = m.grid.size();
   double host_s = seconds(t0, clock::now());
   // K passes in lockstep: each pass scans every event that wants a vertex.
@@ -199,6 +216,8 @@ std::vector<std::vector<ReconstructedVertex>> Reconstructor::run(std::span<const
     auto c = clock::now();
     timings_.scan_kernel_ms += device_->last_kernel_ms();
     timings_.scan_fallbacks += device_->last_fallbacks();
+    timings_.scan_fits += device_->last_fits();
+    timings_.scan_candidates += device_->last_candidates();
     timings_.scan_device_bytes = std::max(timings_.scan_device_bytes, device_->last_device_bytes());
     for (size_t j = 0; j < active.size(); ++j) fits[active[j]].add_vertex(to_scores(results, j, n_psf));
     timings_.scan_s += seconds(b, c);

@@ -1,7 +1,7 @@
 // Device math of the binary-sensor likelihood (paper eq. 12; DESIGN.md
 // "Reconstruction"): a pixel with rate lambda clicks with probability
 // 1 - exp(-lambda). The three per-click terms the support search needs, in
-// float, finite for every lambda > 0, plus the scan's push constants.
+// float, finite for every lambda > 0, plus a lower bound on a candidate's NLL and the scan's push constants.
 //
 // Same GLSL/C++ subset as dual.glsl; engine/support_scan.h compiles it as C++
 // so tests call the very functions the kernels run. The double-precision
@@ -48,10 +48,43 @@ PRISM_FN float click_curvature(float lambda) {
   return exp(-lambda) / p / p;
 }
 
+// A lower bound on what one candidate's NLL can reach over its weight,
+//   min over 0 <= alpha <= alpha_max of
+//   f(alpha) = alpha S - sum_c [lambda_c + log(1 - exp(-lambda_c))],  lambda_c = b_c + alpha P_c,
+// from sums over the clicks at its shift, without fitting the weight (the
+// support scan fits weights only for candidates whose bound can still win).
+// The clicks it does not reach (P_c = 0) give terms free of alpha, summed
+// exactly in `fixed_part` (-b_c - log(1 - exp(-b_c)) each) along with -b_c of
+// the reached ones. Of those, `reached` clicks with mass `q` (sum P_c),
+// `log_p` (sum log P_c) and `ratio` (sum b_c / P_c): 1 - exp(-lambda) <=
+// lambda gives -log(1 - exp(-lambda_c)) >= -log P_c - log(alpha + b_c / P_c),
+// and the concavity of log sum_c log(alpha + r_c) <= n log(alpha + ratio / n)
+// (nearly equal: b_c / P_c << alpha wherever the candidate explains a click).
+// What is left, alpha (S - q) - log_p - n log(alpha + ratio / n), is convex
+// in alpha with its minimum in closed form. Exact (to rounding) when no click
+// is reached.
+// The double reference is ref::nll_lower_bound.
+PRISM_FN float nll_lower_bound(float reached, float q, float log_p, float ratio, float fixed_part, float s,
+                               float alpha_max) {
+  float free_mass = s - q;  // S - sum_c P_c >= 0 up to rounding: the mass off the clicks
+  // The sums came from float terms: the bound allows for their rounding
+  // (2e-4 of their magnitudes; the tests measure the float form against the
+  // double one at up to 1e-5).
+  if (reached <= 0.0f) return fixed_part + min(0.0f, alpha_max * free_mass) - 2e-4f * (abs(fixed_part) + 1.0f);
+  float a = alpha_max;  // free_mass <= 0: the bound falls all the way to alpha_max
+  if (free_mass > 0.0f) a = clamp(reached / free_mass - ratio / reached, 0.0f, alpha_max);
+  float spread = reached * log(a + ratio / reached);
+  float rounding = 2e-4f * (abs(fixed_part) + abs(log_p) + abs(a * free_mass) + abs(spread) + 1.0f);
+  return fixed_part + a * free_mass - log_p - spread - rounding;
+}
+
 // ScanOut.newton of a serial weight fit that ran out of loop budget (support_scan.comp).
 const uint FIT_UNFINISHED = 0xffffffffu;
+// ScanOut.newton of a candidate whose weight was not fitted: its NLL bound
+// could not win (support_scan.comp, phase 1).
+const uint FIT_SKIPPED = 0xfffffffeu;
 
-// Push constants of both support-scan kernels (std430, 60 bytes).
+// Push constants of both support-scan kernels (std430, 68 bytes).
 struct ScanParams {
   uint psf_first;     // dictionary entry of the first PSF in this dispatch (its chunk)
   uint psf_count;     // PSFs in this dispatch
@@ -65,9 +98,12 @@ struct ScanParams {
   float half_scale;   // half-float PSF values are stored times this (the dictionary's 2^15)
   float alpha_max;    // upper bound on a weight, expected photons
   uint dense_words;   // uint words per event image of the dense kernel (0 for the sparse one)
-  uint phase;         // 0: score one block of shifts per workgroup (z); 1: pick the best block, fit the weight
+  uint phase;         // 0: score one block of shifts per workgroup (z); 1: pick the best block and bound the
+                      // NLL there (the dense kernel: fit the weight); 2: fit the weights of a list of candidates
   uint block_shifts;  // shifts per block: keeps one invocation's loop iterations bounded (see support_scan.cpp)
   uint blocks;        // blocks per (event, PSF)
+  uint list_first;    // phase 2: first entry of the candidate list in this dispatch
+  uint list_count;    // phase 2: its entries
 };
 
 #endif

@@ -2,9 +2,11 @@
 // reductions): the dictionary's scan level as stored on the device, the
 // per-PSF table, the output record, and sums over the workgroup.
 //
-// Each kernel runs in two phases (two dispatches): phase 0 scores one block
-// of the shift lattice per workgroup and keeps the block's best; phase 1
-// picks the best block's shift and fits the weight there. Blocks bound the
+// Each kernel runs in phases (dispatches): phase 0 scores one block of the
+// shift lattice per workgroup and keeps the block's best; phase 1 picks the
+// best block's shift and fits the weight there (dense) or bounds the NLL the
+// weight can reach (sparse: support_scan.comp's phase 2 then fits the weights
+// of the candidates the launcher lists, those whose bound can still win). Blocks bound the
 // loop iterations of one invocation: Mesa's llvmpipe (lavapipe) ends every
 // shader loop after 65535 iterations of all loops together, silently, so an
 // unsplit scan of 529 shifts x 7875 pixels came back wrong there.
@@ -44,9 +46,10 @@ struct ScanOut {
   float score;  // <g, P(shifted)> = S - sum_clicks w P (sparse) or the dense sum
   float nll;    // the NLL of this vertex against the event's background, at alpha
   float alpha;  // expected photons, projected Newton on alpha >= 0
-  uint newton;  // Newton iterations taken; FIT_UNFINISHED: the serial fit ran out of loop budget
+  uint newton;  // Newton iterations taken; FIT_UNFINISHED: the serial fit ran out of loop budget;
+                // FIT_SKIPPED: not fitted (nll and alpha are not set)
   uint shifts;  // shifts tried
-  uint pad;
+  float bound;  // a lower bound on nll (likelihood.glsl's nll_lower_bound; the dense kernel: nll itself)
 };
 
 float psf_value(uint base, int x, int y) {
