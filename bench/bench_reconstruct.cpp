@@ -8,7 +8,7 @@
 //
 //   bench_reconstruct [--device D] [--dictionary DIR] [--out DIR] [--events-per-position N] [--groups G,...]
 //
-// --groups runs only those groups of rows (backend, tier, coarse, layout,
+// --groups runs only those groups of rows (backend, tier, coarse, bound, layout,
 // step, precision, K, refine); the ratios print where their rows ran.
 //
 // Without --dictionary it builds (or resumes) the paper's 1210-PSF grid at
@@ -84,6 +84,7 @@ struct Config {
   int refine = 0;
   ScanLayout layout = ScanLayout::automatic;  // the sparse kernel's layout (engine/support_scan.h)
   double carry_margin_nll = ReconstructionSettings{}.carry_margin_nll;  // coarse to fine (reconstruct.h)
+  bool fit_all_weights = false;  // the scan fits every PSF's weight (the path before the NLL bound)
 };
 
 Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, const std::vector<Event>& events,
@@ -95,6 +96,7 @@ Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, c
   s.scan_step_px = c.step;
   s.scan_layout = c.layout;
   s.carry_margin_nll = c.carry_margin_nll;
+  s.fit_all_weights = c.fit_all_weights;
   DictionaryService service(reader, device ? &ctx : nullptr, c.scan_level, {}, c.half);
   Row r;
   r.group = c.group;
@@ -167,7 +169,7 @@ int main(int argc, char** argv) {
     else if (a == "--groups") only = "," + value() + ",";
     else {
       std::fprintf(stderr, "usage: bench_reconstruct [--device D] [--dictionary DIR] [--out DIR] "
-                           "[--events-per-position N] [--groups backend,tier,coarse,layout,step,precision,K,refine]\n");
+                           "[--events-per-position N] [--groups backend,tier,coarse,bound,layout,step,precision,K,refine]\n");
       return a == "--help" || a == "-h" ? 0 : 2;
     }
   }
@@ -265,6 +267,14 @@ int main(int argc, char** argv) {
     c.carry_margin_nll = 0;
     fixed8[level] = &run(c, single, single_truth);
   }
+  // Weights fitted only where the NLL bound can still win (the tier rows)
+  // against every PSF's weight fitted, as before the bound.
+  std::map<int, const Row*> every_weight;
+  for (int level : {2, 3, 4}) {
+    Config c{"bound", "level " + std::to_string(level) + ", every weight fitted", B::vulkan, level, 1, false, 1, 3};
+    c.fit_all_weights = true;
+    every_weight[level] = &run(c, single, single_truth);
+  }
   // The kernel's layouts (engine/support_scan.h): the tier rows ran the
   // default for this device; these force workgroups throughout (a GPU's).
   std::map<int, const Row*> workgroups;
@@ -325,6 +335,11 @@ int main(int argc, char** argv) {
                   level, ReconstructionSettings{}.carry_margin_nll, tier[2]->seconds_per_event / tier[level]->seconds_per_event,
                   tier[level]->err_mean_mm, tier[2]->err_mean_mm, tier[level]->err_median_mm, tier[2]->err_median_mm,
                   f->err_mean_mm, f->err_median_mm);
+  for (auto [level, a] : every_weight)
+    if (ran(*a) && ran(*tier[level]))
+      std::printf("  level %d, weights fitted where the NLL bound can win vs every weight fitted: %.2fx faster, same "
+                  "vertices %s\n",
+                  level, a->seconds_per_event / tier[level]->seconds_per_event, same_vertices(*a, *tier[level]) ? "yes" : "NO");
   for (auto [level, w] : workgroups)
     if (ran(*w) && ran(*tier[level]))
       std::printf("  level %d, this device's layout vs workgroups throughout: %.2fx faster, same vertices %s\n", level,
