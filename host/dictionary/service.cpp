@@ -1,6 +1,7 @@
 #include "host/dictionary/service.h"
 
 #include <algorithm>
+#include <array>
 #include <cstring>
 
 namespace prism {
@@ -141,27 +142,27 @@ std::vector<float> DictionaryService::values(size_t i, int level, std::span<cons
   const DictionaryManifest& m = reader_.manifest();
   int t = m.tile_px, w = m.level_width(level), h = m.level_height(level);
   std::vector<float> out(pixels.size(), 0.0f);
-  // The tiles this call has touched, so that a pixel in one of them costs no
-  // look-up in the cache (an event's clicks fall in a few tiles). Valid until
-  // a fetch evicts: an evicted tile's values are gone.
+  // The tiles this call has touched, direct-mapped by tile coordinates, so
+  // that a pixel in one of them costs no look-up in the cache (an event's
+  // clicks fall in a few tiles). Valid until a fetch evicts: an evicted
+  // tile's values are gone.
   struct Seen {
-    int tx, ty;
-    const float* p;
+    int tx = -1, ty = -1;
+    const float* p = nullptr;
   };
-  std::vector<Seen> seen;
+  std::array<Seen, 32> seen{};
   for (size_t k = 0; k < pixels.size(); ++k) {
     glm::ivec2 px = pixels[k];
     if (px.x < 0 || px.y < 0 || px.x >= w || px.y >= h) continue;  // off the sensor: no light
     const int tx = px.x / t, ty = px.y / t;
-    auto it = std::find_if(seen.begin(), seen.end(), [&](const Seen& s) { return s.tx == tx && s.ty == ty; });
-    if (it == seen.end()) {
+    Seen& slot = seen[size_t(tx * 7 + ty) % seen.size()];
+    if (slot.tx != tx || slot.ty != ty) {
       const uint64_t evictions = stats_.evictions;
       const float* p = tile(i, level, tx, ty).data();
-      if (stats_.evictions != evictions) seen.clear();
-      seen.push_back({tx, ty, p});
-      it = seen.end() - 1;
+      if (stats_.evictions != evictions) seen.fill(Seen{});
+      slot = {tx, ty, p};
     }
-    out[k] = it->p[size_t(px.y % t) * t + px.x % t];
+    out[k] = slot.p[size_t(px.y - ty * t) * t + size_t(px.x - tx * t)];
   }
   return out;
 }

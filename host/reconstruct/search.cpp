@@ -59,15 +59,42 @@ Vertex EventFit::refine(std::vector<SupportScore> scored, std::vector<Vertex>& r
     selected.push_back(c);
   }
   if (Lf < Ls) {
-    // Ranked again by the NLL at the select level, the weight refitted there.
+    // Ranked again by the NLL at the select level, the weight refitted there:
+    // in the order of their lower bounds on it (ref::nll_lower_bound), until
+    // the next bound exceeds the keep-th NLL fitted so far; the rest cannot be
+    // among the keep best, and are dropped unfitted.
     const auto background = rates(Lf, vs_);
-    for (SupportScore& c : selected) {
+    struct Carried {
+      double bound;
+      size_t j;
+      std::vector<double> p;
+      double s;
+    };
+    std::vector<Carried> carried;
+    for (size_t j = 0; j < selected.size(); ++j) {
+      const SupportScore& c = selected[j];
       const auto v = values_at(c.psf, Lf, c.shift);
-      const std::vector<double> p(v.begin(), v.end());
-      c.nll = fit_one(p, sensor_mass(c.psf, Lf, c.shift), background, c.alpha);
+      Carried k{0, j, std::vector<double>(v.begin(), v.end()), sensor_mass(c.psf, Lf, c.shift)};
+      k.bound = ref::nll_lower_bound(k.p, k.s, background, s_.alpha_max);
+      carried.push_back(std::move(k));
     }
-    std::stable_sort(selected.begin(), selected.end(), by_nll);
-    selected.resize(keep);
+    std::stable_sort(carried.begin(), carried.end(), [](const Carried& a, const Carried& b) { return a.bound < b.bound; });
+    std::vector<double> best_nlls;  // the keep lowest NLLs fitted so far, ascending
+    std::vector<size_t> fitted;
+    for (Carried& k : carried) {
+      if (best_nlls.size() >= keep && k.bound > best_nlls.back()) break;
+      SupportScore& c = selected[k.j];
+      c.nll = fit_one(k.p, k.s, background, c.alpha);
+      fitted.push_back(k.j);
+      best_nlls.insert(std::upper_bound(best_nlls.begin(), best_nlls.end(), c.nll), c.nll);
+      if (best_nlls.size() > keep) best_nlls.pop_back();
+    }
+    std::sort(fitted.begin(), fitted.end());  // the carry's order, for the same ties as fitting all
+    std::vector<SupportScore> ranked;
+    for (size_t j : fitted) ranked.push_back(selected[j]);
+    std::stable_sort(ranked.begin(), ranked.end(), by_nll);
+    ranked.resize(std::min(keep, ranked.size()));
+    selected = std::move(ranked);
   }
   auto background_click = rates(level_, vs_);
   std::vector<std::pair<double, Vertex>> tried;
