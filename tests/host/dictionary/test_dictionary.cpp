@@ -314,6 +314,28 @@ TEST_CASE("streaming serves a dictionary several times larger than its budget") 
     }
     CHECK(svc.stats().host_bytes <= budget.host_bytes);
   }
+  // One call over every tile of a PSF's level 0, twice over and interleaved:
+  // more tiles than the budget holds, so fetches within the call evict tiles
+  // the call has already used (values() must not read them after).
+  {
+    const int t = m.tile_px;
+    std::vector<glm::ivec2> px;
+    for (int pass = 0; pass < 2; ++pass)
+      for (int ty = 0; ty * t < m.height; ++ty)
+        for (int tx = 0; tx * t < m.width; ++tx) {
+          px.push_back({tx * t + (pass * 7) % t, ty * t + (pass * 5) % t});
+          px.push_back({std::min(m.width - 1, (tx / 2) * t + 3), std::min(m.height - 1, ty * t + 1)});
+        }
+    REQUIRE(uint64_t(px.size() / 2) * uint64_t(t) * uint64_t(t) * sizeof(float) > budget.host_bytes / 4);
+    const uint64_t before = svc.stats().evictions;
+    const size_t i = m.grid.size() / 2;
+    auto v = svc.values(i, 0, px);
+    for (size_t k = 0; k < px.size(); ++k) {
+      CAPTURE(k);
+      CHECK(v[k] == truth[i].p[size_t(px[k].y) * m.width + px[k].x]);
+    }
+    CHECK(svc.stats().evictions > before);
+  }
   CHECK(svc.stats().host_peak_bytes <= budget.host_bytes);
   CHECK(svc.stats().evictions > 0);
   CHECK(svc.stats().device_bytes <= budget.device_bytes);
