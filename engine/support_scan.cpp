@@ -249,8 +249,10 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
 
     if (!dense) {
       // Phase 2: the weights of a list of (event, PSF) candidates, per chunk.
+      const uint64_t scan_bytes = last_device_bytes_;
       auto dispatch_fits = [&](const std::vector<glm::uvec2>& list, bool serial) {
         vk::Buffer b_list(ctx, list.size() * sizeof(glm::uvec2));
+        last_device_bytes_ = std::max(last_device_bytes_, scan_bytes + b_list.bytes());
         b_list.upload(list.data(), list.size() * sizeof(glm::uvec2));
         vk::Stream st(ctx, uint32_t(ranges.size()) + 1);
         vk::Kernel& k = impl_->kernel(serial_scan, serial);
@@ -298,12 +300,14 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
         // First the candidates with the lowest bounds, then every one whose
         // bound does not exceed what they reached (ScanSettings).
         const size_t keep = size_t(std::max(1, s.fit_keep)), first_round = std::min(n_psf, 2 * keep);
+        // A bound that is not a number bounds nothing: such a candidate goes first.
+        auto bound_of = [](const ScanOut& o) { return std::isnan(o.bound) ? -INFINITY : o.bound; };
         std::vector<uint32_t> order(n_psf);
         for (uint32_t e = 0; e < ne; ++e) {
           const ScanOut* row = &raw[size_t(e) * n_psf];
           std::iota(order.begin(), order.end(), 0u);
           std::nth_element(order.begin(), order.begin() + long(first_round - 1), order.end(),
-                           [&](uint32_t a, uint32_t b) { return row[a].bound < row[b].bound; });
+                           [&](uint32_t a, uint32_t b) { return bound_of(row[a]) < bound_of(row[b]); });
           for (size_t j = 0; j < first_round; ++j) list.push_back({e, order[j]});
         }
         fit_list(list);
@@ -320,7 +324,7 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
           // Float slack: the bound and the NLLs are sums of ~clicks float terms.
           const double slack = 1e-4 * (1.0 + std::abs(limit));
           for (uint32_t m = 0; m < n_psf; ++m)
-            if (row[m].newton == shared::FIT_SKIPPED && double(row[m].bound) <= limit + slack) list.push_back({e, m});
+            if (row[m].newton == shared::FIT_SKIPPED && double(bound_of(row[m])) <= limit + slack) list.push_back({e, m});
         }
         fit_list(list);
       }

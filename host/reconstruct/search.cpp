@@ -76,6 +76,7 @@ Vertex EventFit::refine(std::vector<SupportScore> scored, std::vector<Vertex>& r
       const auto v = values_at(c.psf, Lf, c.shift);
       Carried k{0, j, std::vector<double>(v.begin(), v.end()), sensor_mass(c.psf, Lf, c.shift)};
       k.bound = ref::nll_lower_bound(k.p, k.s, background, s_.alpha_max);
+      if (std::isnan(k.bound)) k.bound = -INFINITY;  // bounds nothing: fitted first
       carried.push_back(std::move(k));
     }
     std::stable_sort(carried.begin(), carried.end(), [](const Carried& a, const Carried& b) { return a.bound < b.bound; });
