@@ -46,6 +46,11 @@ int scan_radius_px(const DictionaryManifest& m, double tau_mm, size_t psf, int l
 // The level the scan runs on: settings.search_level, or the service's coarse
 // level when it is -1; never finer than the clicks.
 int search_level_of(const DictionaryService& d, const ReconstructionSettings& s, int click_level);
+// The level the carried PSFs are ranked on (select_level(), between the
+// clicks' level and the search level): coarse to fine when it is finer than
+// the search level. The device scan's choice of which weights to fit
+// (reconstructor.cpp) rests on the same level as the pruning (search.cpp).
+int select_level_of(int search_level, const ReconstructionSettings& s, int click_level);
 
 class EventFit {
  public:

@@ -92,7 +92,7 @@ std::vector<SupportScore> to_scores(const std::vector<ScanResult>& results, size
 ScanSettings scan_settings(const ReconstructionSettings& s, const DictionaryService& d, int click_level) {
   ScanSettings scan{s.scan_step_px, s.newton_iterations, s.alpha_max};
   const int Ls = detail::search_level_of(d, s, click_level);
-  const int Lf = std::clamp(select_level(s, click_level), click_level, Ls);
+  const int Lf = detail::select_level_of(Ls, s, click_level);
   if (!s.fit_all_weights) {
     scan.fit_margin_nll = Ls > Lf ? s.carry_margin_nll : 0.0;
     scan.fit_keep = std::max(1, s.refine_candidates);

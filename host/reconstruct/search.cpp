@@ -21,7 +21,7 @@ namespace prism::detail {
 
 Vertex EventFit::refine(std::vector<SupportScore> scored, std::vector<Vertex>& runners_up) {
   const int Ls = search_level_, step = std::max(1, s_.scan_step_px);
-  const int Lf = std::clamp(select_level(s_, level_), level_, Ls);
+  const int Lf = select_level_of(Ls, s_, level_);
   auto by_nll = [](const SupportScore& a, const SupportScore& b) {
     return a.nll < b.nll || (a.nll == b.nll && a.psf < b.psf);
   };
