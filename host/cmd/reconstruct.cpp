@@ -193,7 +193,7 @@ void add_reconstruct(CLI::App& app) {
       ->capture_default_str()->check(CLI::NonNegativeNumber);
   c->add_option("--tau-mm", a->settings.tau_mm, "lateral search half-width around each grid node, source mm")
       ->capture_default_str()->check(CLI::NonNegativeNumber);
-  c->add_option("--budget-mib", a->budget_mib, "host memory for summed-area tables and tiles, all threads together")
+  c->add_option("--budget-mib", a->budget_mib, "host memory for summed-area tables, tiles and open PSF files, all threads together")
       ->capture_default_str()->check(CLI::PositiveNumber);
   c->add_option("--threads", a->threads, "worker threads of the cpu backend")->capture_default_str()->check(CLI::Range(1u, 256u));
   c->callback([a] { run(*a); });

@@ -118,17 +118,21 @@ const std::vector<float>& DictionaryService::tile(size_t i, int level, int tx, i
   ++stats_.tile_misses;
   int t = reader_.manifest().tile_px;
   uint64_t bytes = uint64_t(t) * t * sizeof(float);
-  if (stats_.host_bytes + bytes > budget_.host_bytes && lru_.empty())
+  // A file opened for the tile counts too, unless it takes a closed one's place.
+  const bool file_open = std::any_of(files_.begin(), files_.end(), [&](const PsfFile& f) { return f.index() == i; });
+  const bool file_added = !file_open && int(files_.size()) < std::max(1, budget_.open_files);
+  const uint64_t need = bytes + (file_added ? PsfFile::bytes(reader_.manifest()) : 0);
+  if (stats_.host_bytes + need > budget_.host_bytes && lru_.empty())
     throw DictionaryError(reader_.dir() + ": the host budget of " + mib(budget_.host_bytes) +
                           " leaves no room for one tile; raise it");
   // Make room first, so the budget holds at every moment.
-  while (stats_.host_bytes + bytes > budget_.host_bytes && !lru_.empty()) {
+  while (stats_.host_bytes + need > budget_.host_bytes && !lru_.empty()) {
     tiles_.erase(lru_.back());
     lru_.pop_back();
     account(-int64_t(bytes));
     ++stats_.evictions;
   }
-  PsfWindow w = reader_.read_window(i, level, tx * t, ty * t, t, t);
+  PsfWindow w = open_file(i).read_window(level, tx * t, ty * t, t, t);
   std::vector<float> p(size_t(t) * t, 0.0f);  // tiles at the level's edge are padded with zeros
   for (int y = 0; y < w.height; ++y)
     std::copy_n(&w.p[size_t(y) * w.width], w.width, &p[size_t(y) * t]);
@@ -136,6 +140,23 @@ const std::vector<float>& DictionaryService::tile(size_t i, int level, int tx, i
   lru_.push_front(key);
   account(int64_t(bytes));
   return tiles_.emplace(key, Tile{std::move(p), lru_.begin()}).first->second.p;
+}
+
+PsfFile& DictionaryService::open_file(size_t i) {
+  auto it = std::find_if(files_.begin(), files_.end(), [&](const PsfFile& f) { return f.index() == i; });
+  if (it != files_.end()) {
+    files_.splice(files_.begin(), files_, it);
+    return files_.front();
+  }
+  const int64_t bytes = int64_t(PsfFile::bytes(reader_.manifest()));
+  if (int(files_.size()) >= std::max(1, budget_.open_files)) {
+    files_.pop_back();
+    account(-bytes);
+  }
+  files_.emplace_front(reader_, i);
+  account(bytes);
+  ++stats_.file_opens;
+  return files_.front();
 }
 
 std::vector<float> DictionaryService::values(size_t i, int level, std::span<const glm::ivec2> pixels) {

@@ -23,14 +23,19 @@
 namespace prism {
 
 struct ServiceBudget {
-  uint64_t host_bytes = 1ull << 30;    // summed-area tables + tile cache
+  uint64_t host_bytes = 1ull << 30;    // summed-area tables + tile cache + open files
   uint64_t device_bytes = 1ull << 30;  // resident coarse level
+  // PSF files kept open between tile reads (most recently read first): an
+  // event's carried PSFs are read level after level, tile after tile, so a
+  // few open files spare most reopenings.
+  int open_files = 16;
 };
 
 struct ServiceStats {
   uint64_t host_bytes = 0, host_peak_bytes = 0, device_bytes = 0;
   uint64_t tile_hits = 0, tile_misses = 0, evictions = 0;
   uint64_t bytes_read = 0;  // decoded tile bytes fetched from disk
+  uint64_t file_opens = 0;  // PSF files opened for tiles (the coarse level's reads not counted)
 };
 
 class DictionaryService {
@@ -76,6 +81,7 @@ class DictionaryService {
     std::list<TileKey>::iterator lru;
   };
   const std::vector<float>& tile(size_t i, int level, int tx, int ty);
+  PsfFile& open_file(size_t i);
   void account(int64_t delta);
 
   const DictionaryReader& reader_;
@@ -87,6 +93,7 @@ class DictionaryService {
   std::vector<SummedArea> sats_;
   std::map<TileKey, Tile> tiles_;
   std::list<TileKey> lru_;  // front: most recent
+  std::list<PsfFile> files_;  // open PSF files, front: most recently read
   ServiceStats stats_;
 };
 

@@ -436,12 +436,35 @@ PsfLevel DictionaryReader::read_level(size_t i, int level) const {
 }
 
 PsfWindow DictionaryReader::read_window(size_t i, int level, int x0, int y0, int width, int height) const {
-  std::string path = path_of(i);
-  if (level < 0 || level >= m_.levels)
-    throw DictionaryError(path + ": level " + std::to_string(level) + " of " + std::to_string(m_.levels));
-  return exr_call(path, [&] {
-    OpenPsf f(path, m_, i);
-    int lw = f.file.levelWidth(level), lh = f.file.levelHeight(level);
+  return PsfFile(*this, i).read_window(level, x0, y0, width, height);
+}
+
+struct PsfFile::Open : OpenPsf {
+  using OpenPsf::OpenPsf;
+};
+
+PsfFile::PsfFile(const DictionaryReader& reader, size_t i)
+    : m_(&reader.manifest()), path_(reader.path_of(i)), index_(i) {
+  f_ = exr_call(path_, [&] { return std::make_unique<Open>(path_, *m_, i); });
+}
+PsfFile::~PsfFile() = default;
+PsfFile::PsfFile(PsfFile&&) noexcept = default;
+PsfFile& PsfFile::operator=(PsfFile&&) noexcept = default;
+
+uint64_t PsfFile::bytes(const DictionaryManifest& m) {
+  uint64_t tiles = 0;
+  for (int l = 0; l < m.levels; ++l)
+    tiles += uint64_t(ceil_div(m.level_width(l), m.tile_px)) * uint64_t(ceil_div(m.level_height(l), m.tile_px));
+  // 8-byte offsets per tile; a tile's compressed and decoded buffers (half).
+  return 8 * tiles + 3 * uint64_t(m.tile_px) * uint64_t(m.tile_px) * sizeof(half);
+}
+
+PsfWindow PsfFile::read_window(int level, int x0, int y0, int width, int height) {
+  if (level < 0 || level >= m_->levels)
+    throw DictionaryError(path_ + ": level " + std::to_string(level) + " of " + std::to_string(m_->levels));
+  return exr_call(path_, [&] {
+    Imf::TiledInputFile& file = f_->file;
+    int lw = file.levelWidth(level), lh = file.levelHeight(level);
     int x1 = std::min(x0 + width, lw), y1 = std::min(y0 + height, lh);
     x0 = std::max(x0, 0);
     y0 = std::max(y0, 0);
@@ -449,18 +472,18 @@ PsfWindow DictionaryReader::read_window(size_t i, int level, int x0, int y0, int
     out.p.assign(size_t(out.width) * out.height, 0.0f);
     if (out.p.empty()) return out;
     // OpenEXR fills whole tiles: read into a tile-aligned buffer, then crop.
-    int t = m_.tile_px;
+    int t = m_->tile_px;
     int tx0 = x0 / t, tx1 = (x1 - 1) / t, ty0 = y0 / t, ty1 = (y1 - 1) / t;
     int bx = tx0 * t, by = ty0 * t, bw = (tx1 + 1) * t - bx, bh = (ty1 + 1) * t - by;
     std::vector<half> buf(size_t(bw) * bh);
     Imf::FrameBuffer fb;
     fb.insert("Y", Imf::Slice(Imf::HALF, (char*)(buf.data() - bx - size_t(by) * bw), sizeof(half),
                               sizeof(half) * size_t(bw)));
-    f.file.setFrameBuffer(fb);
-    f.file.readTiles(tx0, tx1, ty0, ty1, level, level);
+    file.setFrameBuffer(fb);
+    file.readTiles(tx0, tx1, ty0, ty1, level, level);
     for (int y = y0; y < y1; ++y)
       for (int x = x0; x < x1; ++x)
-        out.p[size_t(y - y0) * out.width + (x - x0)] = float(buf[size_t(y - by) * bw + (x - bx)]) * f.inv_scale;
+        out.p[size_t(y - y0) * out.width + (x - x0)] = float(buf[size_t(y - by) * bw + (x - bx)]) * f_->inv_scale;
     return out;
   });
 }

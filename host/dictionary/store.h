@@ -7,6 +7,7 @@
 // so that small probabilities do not underflow half precision.
 #pragma once
 #include <cstdint>
+#include <memory>
 #include <stdexcept>
 #include <string>
 #include <vector>
@@ -118,6 +119,32 @@ class DictionaryReader {
  private:
   std::string dir_;
   DictionaryManifest m_;
+};
+
+// One PSF file opened and checked against the manifest once, then read many
+// times: a tile read through it costs its decompression alone, where
+// DictionaryReader::read_window opens the file and checks its header again
+// (8x the time of a 64 px tile at 110 um). The reader must outlive it.
+class PsfFile {
+ public:
+  PsfFile(const DictionaryReader& reader, size_t i);
+  ~PsfFile();
+  PsfFile(PsfFile&&) noexcept;
+  PsfFile& operator=(PsfFile&&) noexcept;
+
+  size_t index() const { return index_; }
+  // Pixels [x0, x0 + width) x [y0, y0 + height) of `level`, cropped to it.
+  PsfWindow read_window(int level, int x0, int y0, int width, int height);
+  // What an open file holds in memory (its tile offset tables and one
+  // tile's buffers), for budgets.
+  static uint64_t bytes(const DictionaryManifest& m);
+
+ private:
+  struct Open;  // the OpenEXR file, kept out of this header
+  std::unique_ptr<Open> f_;
+  const DictionaryManifest* m_ = nullptr;
+  std::string path_;
+  size_t index_ = 0;
 };
 
 // Summed-area table of one PSF level: the mass inside any rectangle of pixels

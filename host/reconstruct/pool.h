@@ -17,7 +17,7 @@ struct PoolOptions {
   ReconstructionBackend backend = ReconstructionBackend::vulkan;
   vk::Context* ctx = nullptr;        // required by the device backends
   unsigned threads = 1;              // workers of the cpu backend (the device backends use one)
-  uint64_t host_budget_bytes = 1ull << 30;  // summed-area tables and tiles, all workers together
+  uint64_t host_budget_bytes = 1ull << 30;  // summed-area tables, tiles and open files, all workers together
   bool device_half = false;          // the scan level on the device as half floats
 };
 

@@ -345,6 +345,53 @@ TEST_CASE("streaming serves a dictionary several times larger than its budget") 
   prism::test::check_validation_clean();
 }
 
+TEST_CASE("the service keeps a few PSF files open: tiles read through them are the reader's, and the budget counts them") {
+  auto& d = small();
+  prism::DictionaryReader r(d.dir);
+  const auto& m = r.manifest();
+  // One open file read many times equals the reader, which opens it per read.
+  prism::PsfFile f(r, 1);
+  for (int level : {0, 1, 4})
+    for (glm::ivec4 w : {glm::ivec4(0, 0, 64, 64), glm::ivec4(70, 130, 90, 40), glm::ivec4(-5, -5, 1000, 1000)}) {
+      CAPTURE(level);
+      CAPTURE(w.x);
+      CHECK(f.read_window(level, w.x, w.y, w.z, w.w).p == r.read_window(1, level, w.x, w.y, w.z, w.w).p);
+    }
+  CHECK_THROWS_WITH_AS(f.read_window(m.levels, 0, 0, 1, 1), doctest::Contains(r.path_of(1).c_str()), prism::DictionaryError);
+
+  // Two files kept open, four PSFs read in turn: a file still open is not
+  // reopened, one closed to make room is.
+  prism::ServiceBudget budget;
+  budget.open_files = 2;
+  prism::DictionaryService svc(r, nullptr, 3, budget);
+  // (PSF, level) read in turn and the files opened so far; each read touches
+  // tiles not read before, and a PSF that is still open is read in between.
+  const std::vector<glm::ivec2> px = {{10, 10}, {100, 20}, {m.width - 1, m.height - 1}};
+  struct Read {
+    size_t psf;
+    int level;
+    uint64_t opens;
+  };
+  for (Read read : {Read{0, 0, 1}, Read{0, 1, 1}, Read{1, 0, 2}, Read{0, 2, 2}, Read{2, 0, 3}, Read{1, 1, 4},
+                    Read{2, 1, 4}, Read{0, 3, 5}}) {
+    CAPTURE(read.psf);
+    CAPTURE(read.level);
+    auto v = svc.values(read.psf, read.level, px);
+    auto want = r.read_level(read.psf, read.level);
+    for (size_t k = 0; k < px.size(); ++k) {
+      const bool on = px[k].x < want.width && px[k].y < want.height;
+      CHECK(v[k] == (on ? want.p[size_t(px[k].y) * want.width + px[k].x] : 0.0f));
+    }
+    CHECK(svc.stats().file_opens == read.opens);
+  }
+  // The host budget counts the tables, the tiles and the open files.
+  uint64_t tables = 0;
+  for (size_t i = 0; i < m.grid.size(); ++i) tables += svc.coarse_mass(i).bytes();
+  const uint64_t tile_bytes = uint64_t(m.tile_px) * m.tile_px * sizeof(float);
+  CHECK(svc.stats().evictions == 0);
+  CHECK(svc.stats().host_bytes == tables + svc.stats().tile_misses * tile_bytes + 2 * prism::PsfFile::bytes(m));
+}
+
 TEST_CASE("the full 1210-PSF prototype dictionary builds, reads back and is tier-consistent") {
   std::string dir = (fs::temp_directory_path() / ("prism-dict-1210-" + std::to_string(::getpid()))).string();
   fs::remove_all(dir);
