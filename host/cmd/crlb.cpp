@@ -255,7 +255,7 @@ void add_crlb(CLI::App& app) {
               "probability that the reconstruction confuses the two (columns alias_kl, alias_x_mm, alias_y_mm, "
               "alias_depth_mm, p_confusion; with --plot also PLOT-ambiguity.png)");
   c->add_option("--separation-mm", a->separation_mm, "with --ambiguity: the least distance of an impostor (3D)")
-      ->capture_default_str()->check(CLI::PositiveNumber);
+      ->capture_default_str()->check(positive_number);
   a->fw.add_to(c, defaults::analysis_binning);
   c->callback([a] { run(*a); });
 }

@@ -11,6 +11,7 @@
 #include "engine/hdr_merge.h"
 #include "engine/ref/hdr_merge_ref.h"
 #include "host/cmd/commands.h"
+#include "host/cmd/options.h"
 #include "host/dictionary/hdr_stack.h"
 #include "host/util/image_io.h"
 
@@ -161,14 +162,14 @@ void add_dictionary_merge_hdr(CLI::App& dictionary) {
       ->check(CLI::Range(0.0, 0.5));
   c->add_option("--floor-sigmas", o.floor_sigmas, "valid only if raw - dark > this many dark-noise sigmas")
       ->capture_default_str()
-      ->check(CLI::NonNegativeNumber);
+      ->check(non_negative_number);
   c->add_option("--floor-min-dn", o.floor_min_dn, "... and raw - dark > this many DN (quantisation)")
       ->capture_default_str()
-      ->check(CLI::NonNegativeNumber);
+      ->check(non_negative_number);
   c->add_option("--hot-dark-spreads", o.hot_dark_spreads,
                 "reject pixels whose dark level exceeds the frame median by this many robust spreads")
       ->capture_default_str()
-      ->check(CLI::PositiveNumber);
+      ->check(positive_number);
   c->add_option("--dark-model", o.dark_model,
                 "dark level against T: linear (offset + rate*T, needs darks at 2+ times), constant, or auto")
       ->capture_default_str()

@@ -187,14 +187,14 @@ void add_evaluate(CLI::App& app) {
       ->capture_default_str()->check(CLI::Range(1, 10000000));
   c->add_option("--volume-photons", a->options.volume_photons,
                 "volume: expected detected photons of each event (the CRLB and the ambiguity at the same count)")
-      ->capture_default_str()->check(CLI::PositiveNumber);
+      ->capture_default_str()->check(positive_number);
   c->add_flag("--ambiguity", a->options.volume_ambiguity,
               "volume: also each event's global ambiguity at its true position, as `prism crlb --ambiguity` "
               "(columns alias_kl, alias_*_mm, p_confusion in volume-events.csv), and per depth band the "
               "catastrophic rate it predicts (mean p_confusion) beside the rate measured; about 60 renders per event");
   c->add_option("--separation-mm", a->options.ambiguity.min_separation_mm,
                 "with --ambiguity: the least distance of an impostor (3D)")
-      ->capture_default_str()->check(CLI::PositiveNumber);
+      ->capture_default_str()->check(positive_number);
   c->add_option("--volume-x-mm", a->volume_x, "volume: x range lo,hi (default: the dictionary grid's)")
       ->delimiter(',')->expected(2);
   c->add_option("--volume-y-mm", a->volume_y, "volume: y range lo,hi (default: the dictionary grid's)")
@@ -202,7 +202,7 @@ void add_evaluate(CLI::App& app) {
   c->add_option("--volume-depth-mm", a->volume_depth, "volume: depth range lo,hi (default: the dictionary grid's)")
       ->delimiter(',')->expected(2);
   c->add_option("--band-mm", a->options.band_mm, "volume: width of the depth bands reported")
-      ->capture_default_str()->check(CLI::PositiveNumber);
+      ->capture_default_str()->check(positive_number);
   c->add_option("--trials", a->options.trials, "events per point (best and worst dropped); --quick: 5")
       ->capture_default_str()->check(CLI::Range(3, 100000));
   c->add_option("--out", a->out,
@@ -232,7 +232,8 @@ void add_evaluate(CLI::App& app) {
       ->capture_default_str()->check(CLI::IsMember({"vulkan", "dense", "cpu"}));
   c->add_option("--level", a->options.settings.search_level,
                 "dictionary level of the support scan (default: as `prism reconstruct`, coarse to fine from a "
-                "level chosen by a budget of shifts per click)");
+                "level chosen by a budget of shifts per click)")
+      ->check(non_negative_number);
   c->add_option("--precision", a->precision, "device backends: the scan level's values as float or half")
       ->capture_default_str()->check(CLI::IsMember({"float", "half"}));
   c->add_option("--device", a->device, "Vulkan device for the reconstruction, the event truth and the CRLB (see "

@@ -25,7 +25,7 @@ void ForwardOptions::add_to(CLI::App* app, unsigned default_binning) {
       ->capture_default_str()->check(CLI::Range(1u, 1024u));
   app->add_option("--lens-model", lens_model, "override the scene's lens model")->check(CLI::IsMember({"thin", "real"}));
   app->add_option("--photons", photons, "photons emitted by the source (default: the scene's, 6280 for built-ins)")
-      ->check(CLI::PositiveNumber);
+      ->check(positive_number);
   app->add_option("--backend", backend, "vulkan (kernels on the device) or cpu (double-precision reference)")
       ->capture_default_str()->check(CLI::IsMember({"vulkan", "cpu"}));
   app->add_option("--fisher-estimator", estimator,
@@ -145,6 +145,22 @@ void require_in_volume(const Scene& scene, double x_mm, double y_mm, double dept
                                "'s volume (" + name + " " + format_number(lo) + ".." + format_number(hi) +
                                " mm), where events happen; move the vertex or widen the scene file's \"volume\"");
 }
+
+namespace {
+// `text` as a finite number at least (or above) zero; "" when it is one.
+std::string sign_check(const std::string& text, bool zero_allowed) {
+  char* end = nullptr;
+  const double v = std::strtod(text.c_str(), &end);
+  if (end == text.c_str() || *end != '\0') return "'" + text + "' is not a number";
+  if (!std::isfinite(v)) return "'" + text + "' is not a finite number";
+  if (zero_allowed ? v < 0 : v <= 0) return text + (zero_allowed ? " must be >= 0" : " must be > 0");
+  return "";
+}
+}  // namespace
+
+// No names: the help's type column stays as CLI11 writes it.
+const CLI::Validator positive_number([](std::string& text) { return sign_check(text, false); }, "");
+const CLI::Validator non_negative_number([](std::string& text) { return sign_check(text, true); }, "");
 
 void require_finite_numbers(CLI::App& app) {
   // No name: the help's type column stays as CLI11 writes it.

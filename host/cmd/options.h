@@ -58,6 +58,12 @@ void require_in_front(const Scene& scene, double depth_mm, const std::string& op
 // (the scintillator, where events happen).
 void require_in_volume(const Scene& scene, double x_mm, double y_mm, double depth_mm, const std::string& option);
 
+// Checks for number options that say what is wrong in words ("--photons: 0
+// must be > 0"), where CLI11's PositiveNumber and NonNegativeNumber print a
+// range up to the largest double; both refuse NaN and infinities.
+extern const CLI::Validator positive_number;
+extern const CLI::Validator non_negative_number;
+
 // Every number option of `app` and its subcommands (CLI11 type FLOAT) refuses
 // NaN and infinities, naming the option: call once, after every subcommand
 // has added its options.

@@ -11,6 +11,7 @@
 #include <span>
 
 #include "host/cmd/commands.h"
+#include "host/cmd/options.h"
 #include "host/reconstruct/match.h"
 #include "host/reconstruct/pool.h"
 #include "host/reconstruct/refine.h"
@@ -56,7 +57,8 @@ void run(const ReconstructArgs& a) {
   if (on_device) ctx = std::make_unique<vk::Context>(vk::ContextOptions{a.device});
   po.ctx = ctx.get();
   po.threads = a.threads;
-  po.host_budget_bytes = uint64_t(a.budget_mib * double(1 << 20));
+  // Saturated: a budget past 8 EiB is refused by the memory check below, naming --budget-mib.
+  po.host_budget_bytes = uint64_t(std::min(a.budget_mib * double(1 << 20), 0x1p63));
   po.device_half = a.precision == "half";
   ReconstructionPool pool(reader, level, s, po);
 
@@ -187,14 +189,15 @@ void add_reconstruct(CLI::App& app) {
   c->add_option("--level", a->level, "dictionary level of the scan over all PSFs (default: the finest from the clicks' level + 2 up "
                  "whose shifts over all PSFs stay within a budget per click; level 4 for the default dictionary at "
                  "110 um clicks); one coarser than the clicks' level + 2 is searched coarse to fine: every PSF "
-                 "within --carry-margin of its best NLL goes down to the clicks' level + 2 and is ranked again there");
+                 "within --carry-margin of its best NLL goes down to the clicks' level + 2 and is ranked again there")
+      ->check(non_negative_number);
   c->add_option("--carry-margin", a->settings.carry_margin_nll,
                 "coarse to fine: NLL margin of the PSFs carried from a coarse scan (0: its 8 best alone)")
-      ->capture_default_str()->check(CLI::NonNegativeNumber);
+      ->capture_default_str()->check(non_negative_number);
   c->add_option("--tau-mm", a->settings.tau_mm, "lateral search half-width around each grid node, source mm")
-      ->capture_default_str()->check(CLI::NonNegativeNumber);
+      ->capture_default_str()->check(non_negative_number);
   c->add_option("--budget-mib", a->budget_mib, "host memory for summed-area tables, tiles and open PSF files, all threads together")
-      ->capture_default_str()->check(CLI::PositiveNumber);
+      ->capture_default_str()->check(positive_number);
   c->add_option("--threads", a->threads, "worker threads of the cpu backend")->capture_default_str()->check(CLI::Range(1u, 256u));
   c->callback([a] { run(*a); });
 }

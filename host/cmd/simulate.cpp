@@ -146,7 +146,7 @@ void add_simulate(CLI::App& app) {
                 "repeat for K vertices per event")
       ->required();
   c->add_option("--alpha", a->alpha, "expected photons detected per vertex where --vertex gives none")
-      ->capture_default_str()->check(CLI::NonNegativeNumber);
+      ->capture_default_str()->check(non_negative_number);
   c->add_option("--events", a->events, "number of events")->capture_default_str();
   c->add_option("--out", a->out, "event file to write (format: host/events/EVENTS.md)")->required();
   c->add_option("--truth", a->truth, "forward: ray-traced model at the exact positions; dictionary: shifted "

@@ -161,35 +161,48 @@ DictionaryManifest DictionaryManifest::from_json(const nlohmann::json& j, const 
                               std::to_string(dictionary_format_version) + "; rebuild the dictionary with this prism");
   DictionaryManifest m;
   try {
-    m.source = j.at("source");
-    m.scene = parse_scene(j.at("scene"), path + " (scene)");
-    const auto& g = j.at("grid");
-    m.grid.x_mm = g.at("x_mm").get<std::vector<double>>();
-    m.grid.y_mm = g.at("y_mm").get<std::vector<double>>();
-    m.grid.depth_mm = g.at("depth_mm").get<std::vector<double>>();
-    const auto& lv = j.at("levels");
+    // Each field read names itself when it is missing or of the wrong type.
+    auto field = [&](const std::string& name, auto&& read) {
+      try {
+        return read();
+      } catch (const nlohmann::json::exception&) {
+        throw fail(name, "missing or of the wrong type");
+      }
+    };
+    m.source = field("source", [&] { return j.at("source").get<std::string>(); });
+    m.scene = parse_scene(field("scene", [&] { return j.at("scene"); }), path + " (scene)");
+    auto axis = [&](const char* name) {
+      return field(std::string("grid.") + name + " (a list of numbers)",
+                   [&] { return j.at("grid").at(name).get<std::vector<double>>(); });
+    };
+    m.grid.x_mm = axis("x_mm");
+    m.grid.y_mm = axis("y_mm");
+    m.grid.depth_mm = axis("depth_mm");
     // Integers read checked: a wrapped 2^40 or a 0 would divide by zero later.
-    auto integer = [&](const nlohmann::json& v, const std::string& field, double lo, double hi) {
+    auto integer = [&](const std::string& name, auto&& read, double lo, double hi) {
+      const nlohmann::json v = field(name, read);
       if (!v.is_number() || v.get<double>() != std::floor(v.get<double>()) || v.get<double>() < lo ||
           v.get<double>() > hi)
-        throw fail(field, "must be an integer in " + format_number(lo) + ".." + format_number(hi) + ", got " + v.dump());
+        throw fail(name, "must be an integer in " + format_number(lo) + ".." + format_number(hi) + ", got " + v.dump());
       return int(v.get<double>());
     };
     const auto& sensor = m.scene.optics;
-    m.base_binning = integer(lv.at("base_binning"), "levels.base_binning", 1,
+    m.base_binning = integer("levels.base_binning", [&] { return j.at("levels").at("base_binning"); }, 1,
                              std::min(sensor.sensor_width_px, sensor.sensor_height_px));
-    m.width = integer(lv.at("level0_px").at(0), "levels.level0_px[0]", 1, sensor.sensor_width_px);
-    m.height = integer(lv.at("level0_px").at(1), "levels.level0_px[1]", 1, sensor.sensor_height_px);
-    m.levels = integer(lv.at("count"), "levels.count", 1, 64);
-    m.tile_px = integer(j.at("storage").at("tile_px"), "storage.tile_px", 1, 1 << 16);
-    m.rays_per_lenslet = unsigned(j.contains("rays_per_lenslet")
-                                      ? integer(j.at("rays_per_lenslet"), "rays_per_lenslet", 0, 1 << 30)
-                                      : 0);
+    m.width = integer("levels.level0_px[0]", [&] { return j.at("levels").at("level0_px").at(0); }, 1,
+                      sensor.sensor_width_px);
+    m.height = integer("levels.level0_px[1]", [&] { return j.at("levels").at("level0_px").at(1); }, 1,
+                       sensor.sensor_height_px);
+    m.levels = integer("levels.count", [&] { return j.at("levels").at("count"); }, 1, 64);
+    m.tile_px = integer("storage.tile_px", [&] { return j.at("storage").at("tile_px"); }, 1, 1 << 16);
+    m.rays_per_lenslet = unsigned(
+        j.contains("rays_per_lenslet") ? integer("rays_per_lenslet", [&] { return j.at("rays_per_lenslet"); }, 0, 1 << 30)
+                                       : 0);
     if (j.contains("splat") && !(j["splat"] == "point" || j["splat"] == "footprint"))
       throw fail("splat", "must be \"point\" or \"footprint\", got " + j["splat"].dump());
     m.splat = splat_from_string(j.contains("splat") ? j["splat"].get<std::string>() : std::string("point"));
-    m.stratification =
-        unsigned(j.contains("stratification") ? integer(j.at("stratification"), "stratification", 0, 1 << 30) : 0);
+    m.stratification = unsigned(
+        j.contains("stratification") ? integer("stratification", [&] { return j.at("stratification"); }, 0, 1 << 30) : 0);
   } catch (const SceneError&) {
     throw;
   } catch (const DictionaryError&) {
@@ -209,6 +222,33 @@ DictionaryManifest DictionaryManifest::from_json(const nlohmann::json& j, const 
                               " x " + std::to_string(m.grid.y_mm.size()) + " x " +
                               std::to_string(m.grid.depth_mm.size()) + " = " + std::to_string(m.grid.size()) +
                               " positions");
+  // Fields that repeat what the scene or this format version already fixes
+  // must agree with it: an edit there would describe files that do not exist.
+  const auto& optics = m.scene.optics;
+  if (j.contains("sensor")) {
+    const auto& sj = j["sensor"];
+    for (const auto& [field, want] : {std::pair<const char*, double>{"width_px", optics.sensor_width_px},
+                                      {"height_px", optics.sensor_height_px},
+                                      {"pixel_um", optics.pixel_um}})
+      if (!sj.is_object() || !sj.contains(field) || !sj[field].is_number() || sj[field].get<double>() != want)
+        throw fail(std::string("sensor.") + field,
+                   "is " + (sj.is_object() && sj.contains(field) ? sj[field].dump() : std::string("missing")) +
+                       ", but the manifest's scene has " + format_number(want) +
+                       "; the two describe the same sensor and must agree");
+  }
+  const nlohmann::json storage = j.at("storage");
+  for (const auto& [field, want] : {std::pair<const char*, nlohmann::json>{"pixel", "half"},
+                                    {"compression", "zip"},
+                                    {"scale_log2", kScaleLog2}})
+    if (storage.contains(field) && storage[field] != want)
+      throw fail(std::string("storage.") + field, "is " + storage[field].dump() + "; format version " +
+                                                      std::to_string(dictionary_format_version) + " stores " +
+                                                      want.dump());
+  if (m.source != "synthesised" && m.source != "calibrated")
+    throw fail("source", "must be \"synthesised\" or \"calibrated\", got \"" + m.source + "\"");
+  if ((m.source == "synthesised") != (m.rays_per_lenslet > 0))
+    throw fail("source", "is \"" + m.source + "\" with rays_per_lenslet " + std::to_string(m.rays_per_lenslet) +
+                             ": a synthesised dictionary was rendered with rays (> 0), a calibrated one was not (0)");
   if (m.width != ceil_div(m.scene.optics.sensor_width_px, m.base_binning) ||
       m.height != ceil_div(m.scene.optics.sensor_height_px, m.base_binning))
     throw fail("levels.level0_px", "does not match the sensor binned by levels.base_binning");

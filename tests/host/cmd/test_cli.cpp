@@ -200,6 +200,12 @@ TEST_CASE("bad numbers, sources behind the lenses and unwritable outputs are ref
   // NaN passes CLI11's range checks (every comparison with it is false).
   refused("reconstruct --dictionary " + dir + " --events x --tau-mm nan --out " + dir + "/v.csv",
           "--tau-mm: 'nan' is not a finite number");
+  // Signs and infinities said in words, not as a range up to the largest double.
+  refused("crlb --depth-mm 10 --photons 0", "--photons: 0 must be > 0");
+  refused("reconstruct --dictionary " + dir + " --events x --carry-margin inf --out " + dir + "/v.csv",
+          "--carry-margin: 'inf' is not a finite number");
+  refused("reconstruct --dictionary " + dir + " --events x --level -1 --out " + dir + "/v.csv", "--level: -1 must be >= 0");
+  refused("evaluate --dictionary " + dir + " --level -2 --out " + dir + "/e", "--level: -2 must be >= 0");
   refused("crlb --depth-mm=-10", "--depth-mm: depth -10 mm is not in front of prototype's lenses");
   refused("psf --source-mm 0,0,-5 --out " + dir + "/p.exr", "--source-mm: depth -5 mm is not in front");
   refused("simulate --vertex 0,0,1 --jitter-mm 7 --out " + dir + "/e.events", "--vertex less --jitter-mm");

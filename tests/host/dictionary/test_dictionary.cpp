@@ -214,6 +214,21 @@ TEST_CASE("corrupt files, wrong versions and another sensor give errors naming t
   edited("levels.count", nlohmann::json::json_pointer("/levels/count"), good["levels"]["count"].get<int>() + 1);
   edited("levels.level0_px", nlohmann::json::json_pointer("/levels/level0_px/0"), good["levels"]["level0_px"][0].get<int>() - 1);
   edited("rays_per_lenslet: must be an integer", nlohmann::json::json_pointer("/rays_per_lenslet"), -4);
+  // Copies of what the scene or the format fixes must agree with it; fields of
+  // the wrong type are named, not reported as a JSON library's message.
+  using ptr = nlohmann::json::json_pointer;
+  edited("sensor.pixel_um: is 7.0, but the manifest's scene has 6.9", ptr("/sensor/pixel_um"), 7.0);
+  edited("sensor.width_px", ptr("/sensor/width_px"), 6000);
+  edited("storage.scale_log2: is 14; format version 1 stores 15", ptr("/storage/scale_log2"), 14);
+  edited("storage.compression", ptr("/storage/compression"), "piz");
+  edited("storage.pixel", ptr("/storage/pixel"), "float");
+  edited("source: must be \"synthesised\" or \"calibrated\"", ptr("/source"), "measured");
+  edited("source: is \"calibrated\" with rays_per_lenslet 1024", ptr("/source"), "calibrated");
+  edited("source: missing or of the wrong type", ptr("/source"), 5);
+  edited("grid.x_mm (a list of numbers): missing or of the wrong type", ptr("/grid/x_mm"), "a");
+  edited("levels.level0_px[0]: missing or of the wrong type", ptr("/levels/level0_px"), 5);
+  edited("storage.tile_px: missing or of the wrong type", ptr("/storage"), 3);
+  edited("levels.base_binning: missing or of the wrong type", ptr("/levels"), nullptr);
   j["version"] = 99;
   std::ofstream(manifest) << j.dump();
   CHECK_THROWS_WITH_AS(prism::DictionaryReader{copy}, doctest::Contains("version"), prism::DictionaryError);

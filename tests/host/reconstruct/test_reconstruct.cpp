@@ -540,6 +540,11 @@ TEST_CASE("prism reconstruct: CSV rows per vertex, summary, and errors that say 
   CHECK_MESSAGE(over.output.find("summed-area tables and tiles (--budget-mib): 1.00 GiB") != std::string::npos,
                 over.output);
   CHECK(over.output.find("Use a smaller --budget-mib or a coarser --level") != std::string::npos);
+  // A budget past what 64 bits count is refused the same way (it once wrapped to 0 MiB).
+  auto huge = prism::test::run_prism("reconstruct --dictionary " + d.dir + "/dict --events " + events +
+                                     " --vertices 1 --out " + csv + " --budget-mib 1e30");
+  CHECK(huge.status != 0);
+  CHECK_MESSAGE(huge.output.find("(--budget-mib): 8.00 EiB") != std::string::npos, huge.output);
   auto missing = prism::test::run_prism("reconstruct --dictionary " + d.dir + "/dict --events " + d.dir +
                                         "/none.events --vertices 1 --out " + csv);
   CHECK(missing.status != 0);
