@@ -77,6 +77,18 @@ void run(EvaluateArgs a) {
   o.volume_x_mm = range_of(a.volume_x, "--volume-x-mm");
   o.volume_y_mm = range_of(a.volume_y, "--volume-y-mm");
   o.volume_depth_mm = range_of(a.volume_depth, "--volume-depth-mm");
+  // The box must lie where events happen (the scene's volume), as simulate's --vertex must.
+  {
+    const Volume& v = scene.volume;
+    const glm::dvec3 mid{(v.x_min_mm + v.x_max_mm) / 2, (v.y_min_mm + v.y_max_mm) / 2,
+                         (v.depth_min_mm + v.depth_max_mm) / 2};
+    for (int end = 0; end < 2; ++end) {
+      if (!std::isnan(o.volume_x_mm.x)) require_in_volume(scene, o.volume_x_mm[end], mid.y, mid.z, "--volume-x-mm");
+      if (!std::isnan(o.volume_y_mm.x)) require_in_volume(scene, mid.x, o.volume_y_mm[end], mid.z, "--volume-y-mm");
+      if (!std::isnan(o.volume_depth_mm.x))
+        require_in_volume(scene, mid.x, mid.y, o.volume_depth_mm[end], "--volume-depth-mm");
+    }
+  }
   o.model = choose_refine_model(a.model, m, !a.scene.empty(), a.dictionary);
 
   o.backend = backend_from_string(a.backend);

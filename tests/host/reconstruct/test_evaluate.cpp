@@ -222,6 +222,11 @@ TEST_CASE("prism evaluate: --quick from the CLI, and errors that say what to do"
                                       "--volume-depth-mm 20,10 --out " + out);
   CHECK(empty.status != 0);
   CHECK(empty.output.find("--volume-depth-mm: give lo,hi") != std::string::npos);
+  // A box beyond the scene's volume (here behind the lenses) is refused, as --vertex is.
+  auto behind = prism::test::run_prism("evaluate --dictionary " + d.dir + "/dict --experiments volume "
+                                       "--volume-depth-mm=-50,5 --out " + out);
+  CHECK(behind.status != 0);
+  CHECK_MESSAGE(behind.output.find("--volume-depth-mm: depth -50 mm lies outside") != std::string::npos, behind.output);
   auto binning = prism::test::run_prism("evaluate --dictionary " + d.dir + "/dict --binning 24 --out " + out);
   CHECK(binning.status != 0);
   CHECK(binning.output.find("--binning 24") != std::string::npos);
