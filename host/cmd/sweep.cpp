@@ -249,8 +249,10 @@ void run(const SweepArgs& a) {
   if (!ranked.empty() && ranked.front()->valid) {
     double best = objective_value(ranked.front()->objectives, a.objective);
     double proto = objective_value(baselines.front().objectives, a.objective);
-    std::printf("# best-1 (%s/best-1.json): %s = %s vs prototype %s (%+.2f%%); %zu designs scored this run, %zu replayed%s\n",
-                a.out.c_str(), a.objective.c_str(), format_number(best).c_str(), format_number(proto).c_str(), 100 * (best / proto - 1), fresh - sweep.replayed(),
+    // --keep 0 writes no design file: then none is named.
+    const std::string file = a.keep > 0 ? " (" + a.out + "/best-1.json)" : "";
+    std::printf("# best-1%s: %s = %s vs prototype %s (%+.2f%%); %zu designs scored this run, %zu replayed%s\n",
+                file.c_str(), a.objective.c_str(), format_number(best).c_str(), format_number(proto).c_str(), 100 * (best / proto - 1), fresh - sweep.replayed(),
                 sweep.replayed(), sweep.exhausted() ? ", space exhausted" : "");
   }
 

@@ -277,8 +277,8 @@ Scene load_scene(const std::string& name_or_path) {
     j = parse_json_file(in);
   } catch (const JsonDuplicateKey& e) {
     throw SceneError("scene " + name_or_path + ": " + e.what());
-  } catch (const json::parse_error& e) {
-    // nlohmann reports a byte offset; turn it into a line number.
+  } catch (const JsonSyntaxError& e) {
+    // FILE:LINE first, as compilers write it, for editors to jump to.
     std::ifstream again(name_or_path);
     std::string text((std::istreambuf_iterator<char>(again)), {});
     size_t line = 1 + std::count(text.begin(), text.begin() + std::min(text.size(), e.byte), '\n');

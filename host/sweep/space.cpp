@@ -155,7 +155,7 @@ DesignSpace DesignSpace::load(const std::string& path) {
     j = parse_json_file(in);
   } catch (const JsonDuplicateKey& e) {
     throw SweepError("space " + path + ": " + e.what());
-  } catch (const json::parse_error& e) {
+  } catch (const JsonSyntaxError& e) {
     throw SweepError("space " + path + ": not valid JSON (" + e.what() + ")");
   }
   return parse(j, path, std::filesystem::path(path).parent_path().string());

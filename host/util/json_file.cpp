@@ -43,7 +43,14 @@ nlohmann::json parse_json_file(std::istream& in) {
     }
     return true;
   };
-  return json::parse(in, track);
+  try {
+    return json::parse(in, track);
+  } catch (const json::parse_error& e) {
+    // what(): "[json.exception.parse_error.101] parse error at line ...": the tag is for programmers.
+    const std::string what = e.what();
+    const size_t tag_end = what.rfind("] ", what.find(" parse error"));
+    throw JsonSyntaxError(tag_end == std::string::npos ? what : what.substr(tag_end + 2), e.byte);
+  }
 }
 
 }  // namespace prism

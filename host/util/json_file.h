@@ -16,8 +16,16 @@ struct JsonDuplicateKey : std::runtime_error {
   using std::runtime_error::runtime_error;
 };
 
-// As nlohmann::json::parse(in) (its parse_error for malformed text), and
-// throws JsonDuplicateKey for a repeated key.
+// Text that is not JSON; the message says where and why in the parser's
+// words ("parse error at line 3, column 7: syntax error ..."), without the
+// library's exception tag.
+struct JsonSyntaxError : std::runtime_error {
+  JsonSyntaxError(const std::string& what, size_t byte) : std::runtime_error(what), byte(byte) {}
+  size_t byte;  // where the parser stopped, from the start of the text
+};
+
+// As nlohmann::json::parse(in), but malformed text throws JsonSyntaxError
+// and a repeated key JsonDuplicateKey.
 nlohmann::json parse_json_file(std::istream& in);
 
 }  // namespace prism

@@ -21,5 +21,13 @@ TEST_CASE("json files: a key given twice in one object is refused, named with it
                        prism::JsonDuplicateKey);
   CHECK_THROWS_WITH_AS(parse(R"({"l": [{"x": 1}, {"x": 1, "y": 0, "x": 2}]})"), doctest::Contains("\"l[].x\""),
                        prism::JsonDuplicateKey);
-  CHECK_THROWS_AS(parse(R"({"a": 1,})"), nlohmann::json::parse_error);  // malformed: nlohmann's own error
+  // Malformed: where and why in the parser's words, without the library's tag.
+  CHECK_THROWS_WITH_AS(parse(R"({"a": 1,})"), doctest::Contains("parse error at line 1, column 9"), prism::JsonSyntaxError);
+  try {
+    parse("[1,\n 2,,]");
+    FAIL("a second comma in a row was read as JSON");
+  } catch (const prism::JsonSyntaxError& e) {
+    CHECK(std::string(e.what()).find("json.exception") == std::string::npos);
+    CHECK(e.byte == 8);
+  }
 }
