@@ -92,7 +92,15 @@ DictionaryBuildReport build_dictionary(vk::Context& ctx, const Scene& scene, con
       double(ForwardVulkan::device_bytes_at_most(AnalysisGrid::of(scene.optics, unsigned(o.base_binning)), o.splat)),
       ctx.is_cpu());
   memory.require_within_limit("Use a coarser --binning");
-  std::filesystem::create_directories(dir + "/psf");
+  {
+    // Said in words, where create_directories would throw "Not a directory [DIR/psf]".
+    std::error_code ec;
+    for (const std::string& d : {dir, dir + "/psf"})
+      if (std::filesystem::exists(d, ec) && !std::filesystem::is_directory(d, ec))
+        throw DictionaryError(d + ": is a file, not a folder; give --out a new or dictionary folder");
+    std::filesystem::create_directories(dir + "/psf", ec);
+    if (ec) throw DictionaryError(dir + "/psf: cannot create the folder (" + ec.message() + ")");
+  }
   if (std::filesystem::exists(dir + "/manifest.json")) {
     // Resume only the very same dictionary.
     DictionaryReader existing(dir);

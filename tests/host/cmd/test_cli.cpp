@@ -210,6 +210,10 @@ TEST_CASE("bad numbers, sources behind the lenses and unwritable outputs are ref
   refused("psf --source-mm 0,0,-5 --out " + dir + "/p.exr", "--source-mm: depth -5 mm is not in front");
   refused("simulate --vertex 0,0,1 --jitter-mm 7 --out " + dir + "/e.events", "--vertex less --jitter-mm");
   refused("crlb --depth-mm 10 --csv " + dir, "cannot write " + dir + ": it is a directory");
+  std::ofstream(dir + "/a-file") << "x";
+  refused("dictionary build --out " + dir + "/a-file --grid-depth-mm 5 --binning 16",
+          dir + "/a-file: is a file, not a folder");
+  std::filesystem::remove(dir + "/a-file");
   refused("crlb --depth-mm 10 --plot " + dir + "/none/x.png", "the folder " + dir + "/none does not exist");
   refused("psf --source-mm 0,0,10 --out " + dir + "/none/p.exr", "the folder " + dir + "/none does not exist");
   // Work and memory bounded before they are used.
