@@ -44,7 +44,7 @@ struct CrlbArgs {
 
 void run(const CrlbArgs& a) {
   if (!a.csv.empty()) check_writable(a.csv);
-  if (!a.plot.empty()) check_writable(a.plot);
+  if (!a.plot.empty()) check_writable(a.plot), check_plot_path(a.plot);
   if (!a.plot.empty() && a.ambiguity) check_writable(ambiguity_plot_path(a.plot));
   for (const std::string& scene : a.scenes)
     for (const auto& [option, out] : {std::pair{"--csv", a.csv}, {"--plot", a.plot}})

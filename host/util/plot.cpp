@@ -12,10 +12,20 @@
 
 namespace prism {
 
-void plot_lines(const std::string& path, const PlotSpec& spec, const std::vector<Series>& series) {
+namespace {
+// PLplot's output device for a file name; throws unless it ends in .png or .svg.
+const char* plot_device(const std::string& path) {
   std::string ext = path.substr(path.find_last_of('.') + 1);
   const char* device = ext == "svg" ? "svgcairo" : ext == "png" ? "pngcairo" : nullptr;
   if (!device) throw std::runtime_error("plot " + path + ": use a .png or .svg file name");
+  return device;
+}
+}  // namespace
+
+void check_plot_path(const std::string& path) { (void)plot_device(path); }
+
+void plot_lines(const std::string& path, const PlotSpec& spec, const std::vector<Series>& series) {
+  const char* device = plot_device(path);
   double xmin = std::numeric_limits<double>::infinity(), xmax = -xmin, ymin = xmin, ymax = -xmin;
   auto ty = [&](double v) { return spec.log_y ? std::log10(v) : v; };
   auto tx = [&](double v) { return spec.log_x ? std::log10(v) : v; };

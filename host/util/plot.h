@@ -19,5 +19,8 @@ struct PlotSpec {
 };
 
 void plot_lines(const std::string& path, const PlotSpec& spec, const std::vector<Series>& series);
+// Throws unless `path` names a file plot_lines can draw (.png or .svg): for
+// commands to check before their work, as check_writable.
+void check_plot_path(const std::string& path);
 
 }  // namespace prism

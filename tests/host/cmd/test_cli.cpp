@@ -215,6 +215,7 @@ TEST_CASE("bad numbers, sources behind the lenses and unwritable outputs are ref
           dir + "/a-file: is a file, not a folder");
   std::filesystem::remove(dir + "/a-file");
   refused("crlb --depth-mm 10 --plot " + dir + "/none/x.png", "the folder " + dir + "/none does not exist");
+  refused("crlb --depth-mm 10 --plot " + dir + "/c.txt", "plot " + dir + "/c.txt: use a .png or .svg file name");
   refused("psf --source-mm 0,0,10 --out " + dir + "/none/p.exr", "the folder " + dir + "/none does not exist");
   // Work and memory bounded before they are used.
   refused("crlb --depth-mm=-1e308:1e308:1e300", "--depth-mm: '-1e308:1e308:1e300' gives too many values; at most");
