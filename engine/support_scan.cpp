@@ -102,7 +102,8 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
   vk::Buffer psfs(ctx, n_psf * sizeof(ScanPsf));
   psfs.upload(level.psfs.data(), n_psf * sizeof(ScanPsf));
   vk::Buffer results(ctx, batch * n_psf * sizeof(ScanOut));
-  last_device_bytes_ += psfs.bytes() + results.bytes();
+  // What one batch holds on the device; the run's figure is the largest batch's.
+  const uint64_t run_bytes = psfs.bytes() + results.bytes();
 
   shared::ScanParams p{};
   p.psf_total = uint32_t(n_psf);
@@ -144,6 +145,7 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
   for (size_t e0 = 0; e0 < n_events; e0 += batch) {
     const size_t ne = std::min(batch, n_events - e0);
     std::unique_ptr<vk::Buffer> b_events, b_clicks, b_rates, b_images;
+    uint64_t batch_bytes = run_bytes;
     if (!dense) {
       std::vector<uint32_t> ranges_words, xy;
       std::vector<float> rw;
@@ -165,8 +167,7 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
       b_clicks->upload(std::span<const uint32_t>(xy));
       b_rates = std::make_unique<vk::Buffer>(ctx, rw.size() * 4);
       b_rates->upload(std::span<const float>(rw));
-      last_device_bytes_ = std::max(last_device_bytes_, psfs.bytes() + results.bytes() + b_events->bytes() +
-                                                            b_clicks->bytes() + b_rates->bytes());
+      batch_bytes += b_events->bytes() + b_clicks->bytes() + b_rates->bytes();
     } else {
       std::vector<uint32_t> words(ne * dense_words, 0);
       for (size_t e = 0; e < ne; ++e) {
@@ -188,7 +189,7 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
       }
       b_images = std::make_unique<vk::Buffer>(ctx, words.size() * 4);
       b_images->upload(std::span<const uint32_t>(words));
-      last_device_bytes_ = std::max(last_device_bytes_, psfs.bytes() + results.bytes() + b_images->bytes());
+      batch_bytes += b_images->bytes();
     }
 
     // Blocks of shifts per workgroup (phase 0): on a CPU device, few enough
@@ -215,7 +216,8 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
     const uint64_t blocks = (max_shifts + block - 1) / block;
     vk::Buffer block_best(ctx, std::max<uint64_t>(8, ne * n_psf * blocks * 8));
     vk::Buffer no_list(ctx, 8);  // phases 0 and 1 read no candidate list
-    last_device_bytes_ += block_best.bytes();
+    batch_bytes += block_best.bytes();
+    last_device_bytes_ = std::max(last_device_bytes_, batch_bytes);
     p.block_shifts = uint32_t(block);
     p.blocks = uint32_t(blocks);
 
@@ -249,7 +251,7 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
 
     if (!dense) {
       // Phase 2: the weights of a list of (event, PSF) candidates, per chunk.
-      const uint64_t scan_bytes = last_device_bytes_;
+      const uint64_t scan_bytes = batch_bytes;
       auto dispatch_fits = [&](const std::vector<glm::uvec2>& list, bool serial) {
         vk::Buffer b_list(ctx, list.size() * sizeof(glm::uvec2));
         last_device_bytes_ = std::max(last_device_bytes_, scan_bytes + b_list.bytes());
