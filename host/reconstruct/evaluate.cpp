@@ -348,19 +348,26 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
     return std::pair(glm::dvec3(b.crlb.x_mm, b.crlb.y_mm, b.crlb.depth_mm) * scale, b.crlb.r3_mm * scale);
   };
 
-  ForwardTruth truth(ctx, scene, t, 64);
   ReconstructionSettings s = o.settings;
   if (s.search_level < 0) s.search_level = default_search_level(m, o.level, s.tau_mm);
   const bool on_device = o.backend != ReconstructionBackend::cpu;
-  DictionaryService service(dictionary, on_device ? &ctx : nullptr, s.search_level, {}, o.device_half);
+  // What renders and reconstructs events; a report from the journals alone
+  // needs none of it (and skips the dictionary's coarse level and the models).
+  std::optional<ForwardTruth> truth;
+  std::unique_ptr<DictionaryService> service;
+  if (!o.journal_only) {
+    truth.emplace(ctx, scene, t, 64);
+    service = std::make_unique<DictionaryService>(dictionary, on_device ? &ctx : nullptr, s.search_level,
+                                                  ServiceBudget{}, o.device_half);
+  }
   std::map<int, std::unique_ptr<Reconstructor>> reconstructors;  // per K
   std::unique_ptr<SourceModel> source_model;
   std::unique_ptr<Refiner> refiner;
   // Its own model (not the refinement's), so that the refinement's renders
   // per event stay its own.
   std::unique_ptr<SourceModel> ambiguity_model;
-  if (o.volume_ambiguity) ambiguity_model = make_scene_model(scene, model_settings, &ctx);
-  if (refining) {
+  if (o.volume_ambiguity && !o.journal_only) ambiguity_model = make_scene_model(scene, model_settings, &ctx);
+  if (refining && !o.journal_only) {
     source_model = make_refine_model(o.model, scene, dictionary, o.level, &ctx);
     RefineSettings rs = o.refine;
     rs.dark_rate = s.dark_rate;
@@ -480,7 +487,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
     ReconstructionSettings ks = s;
     ks.vertices = k;
     auto& r = reconstructors[k];
-    if (!r) r = std::make_unique<Reconstructor>(service, o.level, ks, o.backend, &ctx);
+    if (!r) r = std::make_unique<Reconstructor>(*service, o.level, ks, o.backend, &ctx);
     const auto before = r->timings();
     auto start = std::chrono::steady_clock::now();
     auto estimates = r->run(events);
@@ -525,7 +532,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
       if (trials_done[pi].count(trial) || o.journal_only) continue;
       if (sources.empty())
         for (const auto& v : p.vertices) {
-          held.push_back(truth.psf(v.position));
+          held.push_back(truth->psf(v.position));
           sources.push_back({held.back().get(), v.photons});
         }
       Event& e = events.emplace_back();
@@ -589,7 +596,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
         const size_t index = pending[first + i];
         auto& e = events[i];
         e.id = volume_first_id + index;
-        auto psf = truth.psf(volume_positions[index]);
+        auto psf = truth->psf(volume_positions[index]);
         const ClickSource source{psf.get(), o.volume_photons};
         sample_clicks(std::span(&source, 1), volume_rngs[index], e.clicks);
       }
