@@ -122,9 +122,6 @@ const std::vector<float>& DictionaryService::tile(size_t i, int level, int tx, i
   const bool file_open = std::any_of(files_.begin(), files_.end(), [&](const PsfFile& f) { return f.index() == i; });
   const bool file_added = !file_open && int(files_.size()) < std::max(1, budget_.open_files);
   const uint64_t need = bytes + (file_added ? PsfFile::bytes(reader_.manifest()) : 0);
-  if (stats_.host_bytes + need > budget_.host_bytes && lru_.empty())
-    throw DictionaryError(reader_.dir() + ": the host budget of " + mib(budget_.host_bytes) +
-                          " leaves no room for one tile; raise it");
   // Make room first, so the budget holds at every moment.
   while (stats_.host_bytes + need > budget_.host_bytes && !lru_.empty()) {
     tiles_.erase(lru_.back());
@@ -132,6 +129,9 @@ const std::vector<float>& DictionaryService::tile(size_t i, int level, int tx, i
     account(-int64_t(bytes));
     ++stats_.evictions;
   }
+  if (stats_.host_bytes + need > budget_.host_bytes)
+    throw DictionaryError(reader_.dir() + ": the host budget of " + mib(budget_.host_bytes) +
+                          " leaves no room for one tile and its open file; raise it");
   PsfWindow w = open_file(i).read_window(level, tx * t, ty * t, t, t);
   std::vector<float> p(size_t(t) * t, 0.0f);  // tiles at the level's edge are padded with zeros
   for (int y = 0; y < w.height; ++y)

@@ -405,6 +405,13 @@ TEST_CASE("the service keeps a few PSF files open: tiles read through them are t
   const uint64_t tile_bytes = uint64_t(m.tile_px) * m.tile_px * sizeof(float);
   CHECK(svc.stats().evictions == 0);
   CHECK(svc.stats().host_bytes == tables + svc.stats().tile_misses * tile_bytes + 2 * prism::PsfFile::bytes(m));
+  // Room for the tables and one tile but not its file: refused, not exceeded.
+  prism::ServiceBudget tight;
+  tight.host_bytes = tables + tile_bytes;
+  prism::DictionaryService small_svc(r, nullptr, 3, tight);
+  CHECK_THROWS_WITH_AS(small_svc.values(0, 0, px), doctest::Contains("leaves no room for one tile and its open file"),
+                       prism::DictionaryError);
+  CHECK(small_svc.stats().host_peak_bytes <= tight.host_bytes);
 }
 
 TEST_CASE("the full 1210-PSF prototype dictionary builds, reads back and is tier-consistent") {
