@@ -9,13 +9,21 @@
 //   bench_reconstruct [--device D] [--dictionary DIR] [--out DIR] [--events-per-position N] [--groups G,...]
 //
 // --groups runs only those groups of rows (backend, tier, coarse, bound, layout,
-// step, precision, K, refine); the ratios print where their rows ran.
+// step, precision, K, refine, native); the ratios print where their rows ran.
+//
+// native: clicks at the sensor's own 6.9 um pixels against a full-resolution
+// dictionary, and the same events binned 16 x 16 (110 um) against the same
+// dictionary's level 4. Its dictionary (--native-dictionary DIR, or built once
+// in /tmp: x, y in -5, 0, 5 mm, depths 15, 20, 25, binning 1, footprint at
+// 1024 cells, about 3 minutes on lavapipe) is small: the rows compare the two
+// click grids on the same events, not the 1210-PSF grid's accuracy.
 //
 // Without --dictionary it builds (or resumes) the paper's 1210-PSF grid at
 // 16 x 16 binning, 4096 rays per lenslet, in /tmp. Events: the ray-traced
 // forward model (16384 rays per lenslet) at six off-grid positions over the
 // field, 100 photons each, clicks on 110 um pixels; two-vertex events pair
 // neighbouring positions at 125 + 125 photons.
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <cstring>
@@ -74,7 +82,7 @@ std::vector<double> errors(const std::vector<std::vector<ReconstructedVertex>>& 
 struct Config {
   std::string group, name;
   ReconstructionBackend backend = ReconstructionBackend::vulkan;
-  int scan_level = 2;  // clicks on level 0
+  int scan_level = 2;  // -1: the default for the click level
   int step = 1;
   bool half = false;
   int vertices = 1;
@@ -85,6 +93,7 @@ struct Config {
   ScanLayout layout = ScanLayout::automatic;  // the sparse kernel's layout (engine/support_scan.h)
   double carry_margin_nll = ReconstructionSettings{}.carry_margin_nll;  // coarse to fine (reconstruct.h)
   bool fit_all_weights = false;  // the scan fits every PSF's weight (the path before the NLL bound)
+  int click_level = 0;           // the dictionary level the events' clicks are on
 };
 
 Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, const std::vector<Event>& events,
@@ -92,12 +101,12 @@ Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, c
   const bool device = c.backend != ReconstructionBackend::cpu;
   ReconstructionSettings s;
   s.vertices = c.vertices;
-  s.search_level = c.scan_level;
+  s.search_level = c.scan_level >= 0 ? c.scan_level : default_search_level(reader.manifest(), c.click_level, s.tau_mm);
   s.scan_step_px = c.step;
   s.scan_layout = c.layout;
   s.carry_margin_nll = c.carry_margin_nll;
   s.fit_all_weights = c.fit_all_weights;
-  DictionaryService service(reader, device ? &ctx : nullptr, c.scan_level, {}, c.half);
+  DictionaryService service(reader, device ? &ctx : nullptr, s.search_level, {}, c.half);
   Row r;
   r.group = c.group;
   r.name = c.name;
@@ -106,14 +115,14 @@ Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, c
   std::unique_ptr<SourceModel> model;
   if (c.refine) model = make_scene_model(reader.manifest().scene, refine_trace_settings(unsigned(reader.manifest().base_binning)), &ctx);
   for (int k = 0; k < c.repeats; ++k) {
-    Reconstructor rec(service, 0, s, c.backend, &ctx);
+    Reconstructor rec(service, c.click_level, s, c.backend, &ctx);
     auto start = std::chrono::steady_clock::now();
     r.out = rec.run(events);
     if (model) {
       RefineSettings rs;
       if (c.refine == 1) rs.aliases = false, rs.search_starts = 0, rs.ladder_starts = 0, rs.lattice_scan = false,
                         rs.reseed = false;
-      Refiner refiner(*model, reader.manifest().scene, reader.manifest().level_grid(0), rs);
+      Refiner refiner(*model, reader.manifest().scene, reader.manifest().level_grid(c.click_level), rs);
       for (size_t i = 0; i < events.size(); ++i) r.out[i] = refiner.refine(events[i], std::move(r.out[i]));
     }
     double t = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
@@ -150,7 +159,7 @@ bool same_vertices(const Row& a, const Row& b) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  std::string device, dict_dir, out_dir = "bench-reconstruct";
+  std::string device, dict_dir, native_dir, out_dir = "bench-reconstruct";
   int per_position = 8;
   std::string only;  // --groups: comma-separated, empty for all
   for (int i = 1; i < argc; ++i) {
@@ -164,12 +173,14 @@ int main(int argc, char** argv) {
     };
     if (a == "--device") device = value();
     else if (a == "--dictionary") dict_dir = value();
+    else if (a == "--native-dictionary") native_dir = value();
     else if (a == "--out") out_dir = value();
     else if (a == "--events-per-position") per_position = std::max(2, std::stoi(value()));
     else if (a == "--groups") only = "," + value() + ",";
     else {
-      std::fprintf(stderr, "usage: bench_reconstruct [--device D] [--dictionary DIR] [--out DIR] "
-                           "[--events-per-position N] [--groups backend,tier,coarse,bound,layout,step,precision,K,refine]\n");
+      std::fprintf(stderr, "usage: bench_reconstruct [--device D] [--dictionary DIR] [--native-dictionary DIR] [--out DIR] "
+                           "[--events-per-position N] [--groups backend,tier,coarse,bound,layout,step,precision,K,refine,"
+                           "native]\n");
       return a == "--help" || a == "-h" ? 0 : 2;
     }
   }
@@ -317,6 +328,73 @@ int main(int argc, char** argv) {
     reference_s = bench::median(c);
   }
 
+  // 4. Clicks at the sensor's own pixels (6.9 um) against a full-resolution
+  // dictionary, and the same events binned to 110 um against its level 4.
+  Row native_fine, native_binned;
+  if (only.empty() || only.find(",native,") != std::string::npos) {
+    if (native_dir.empty()) {
+      native_dir = (fs::temp_directory_path() / "prism-bench-reconstruct-native").string();
+      DictionaryBuildOptions o;
+      o.grid = {{-5.0, 0.0, 5.0}, {-5.0, 0.0, 5.0}, {15.0, 20.0, 25.0}};
+      o.base_binning = 1;
+      o.rays_per_lenslet = 1024;
+      o.splat = Splat::footprint;  // a full-resolution tier worth reading (README "PSF dictionary")
+      std::fprintf(stderr, "bench_reconstruct: building (or reusing) the full-resolution dictionary in %s\n",
+                   native_dir.c_str());
+      build_dictionary(ctx, scene, native_dir, o);
+    }
+    DictionaryReader native(native_dir);
+    const auto& nm = native.manifest();
+    if (nm.base_binning != 1) {
+      std::fprintf(stderr, "bench_reconstruct: %s: --native-dictionary needs a full-resolution dictionary (binning 1)\n",
+                   native_dir.c_str());
+      return 2;
+    }
+    // Truth: 4x the model's cells, another stratification.
+    TraceSettings nt;
+    nt.binning = 1;
+    nt.rays_per_lenslet = 4096;
+    nt.splat = Splat::footprint;
+    nt.stratification = 1;
+    ForwardTruth native_truth(ctx, nm.scene, nt, 4);
+    const std::vector<glm::dvec3> inner{{1, 1, 21}, {-2, 1.5, 18}, {2.5, -1.5, 23}};
+    const int bin = 16, binned_level = 4;  // 110 um: level 4 of a full-resolution dictionary
+    const uint32_t w0 = uint32_t(nm.width), wb = uint32_t(nm.level_width(binned_level));
+    std::vector<Event> fine, binned;
+    std::vector<Truth> native_truths;
+    for (const auto& p : inner) {
+      auto psf = native_truth.psf(p);
+      for (int k = 0; k < per_position; ++k) {
+        Event e;
+        e.id = id++;
+        auto rng = event_rng(7, e.id);
+        ClickSource one{psf.get(), 100.0};
+        sample_clicks(std::span<const ClickSource>(&one, 1), rng, e.clicks);
+        // The same photons on 16 x 16 blocks: a block clicks when any of its pixels does.
+        Event b = e;
+        b.clicks.clear();
+        for (uint32_t c : e.clicks) b.clicks.push_back((c / w0 / bin) * wb + (c % w0) / bin);
+        std::sort(b.clicks.begin(), b.clicks.end());
+        b.clicks.erase(std::unique(b.clicks.begin(), b.clicks.end()), b.clicks.end());
+        fine.push_back(std::move(e));
+        binned.push_back(std::move(b));
+        native_truths.push_back({{p}});
+      }
+    }
+    auto run_native = [&](const Config& c, const std::vector<Event>& ev) {
+      Row r = measure(ctx, native, c, ev, native_truths);
+      print(r);
+      rows.push_back(r);
+      return r;
+    };
+    Config fine_c{"native", "6.9 um clicks, default scan", B::vulkan, -1};
+    fine_c.click_level = 0;
+    Config binned_c{"native", "110 um (binned), default scan", B::vulkan, -1};
+    binned_c.click_level = binned_level;
+    native_fine = run_native(fine_c, fine);
+    native_binned = run_native(binned_c, binned);
+  }
+
   auto ran = [](const Row& r) { return r.events > 0; };
   if (ran(cpu) && ran(dense) && ran(sparse)) {
     std::printf("\nratios (same %zu events, same vertices chosen: cpu %s, dense %s):\n", few.size(),
@@ -351,6 +429,12 @@ int main(int argc, char** argv) {
   if (ran(refined) && ran(refined_one))
     std::printf("  refinement (all starts) vs one start: %.1fx the time, mean error %.2f -> %.2f mm\n",
                 refined.seconds_per_event / refined_one.seconds_per_event, refined_one.err_mean_mm, refined.err_mean_mm);
+  if (ran(native_fine) && ran(native_binned))
+    std::printf("  6.9 um clicks vs the same events binned to 110 um (full-resolution dictionary, %zu events): %.2fx "
+                "the time per event (%.1f vs %.1f events/s), error mean %.3f vs %.3f mm, median %.3f vs %.3f mm\n",
+                native_fine.events, native_fine.seconds_per_event / native_binned.seconds_per_event,
+                1 / native_fine.seconds_per_event, 1 / native_binned.seconds_per_event, native_fine.err_mean_mm,
+                native_binned.err_mean_mm, native_fine.err_median_mm, native_binned.err_median_mm);
   if (refine_rows)
     std::printf("  refinement model per source (footprint, %u cells per lenslet, median of %zu positions): device %.3f s, "
               "double reference %.3f s (%.1fx)\n",
