@@ -51,7 +51,7 @@ inline std::optional<nlohmann::json> json_of(const uint8_t* data, size_t size) {
   std::istringstream in(std::string(reinterpret_cast<const char*>(data), size));
   try {
     return prism::parse_json_file(in);
-  } catch (const nlohmann::json::exception&) {
+  } catch (const prism::JsonSyntaxError&) {
   } catch (const prism::JsonDuplicateKey&) {
   }
   return std::nullopt;

@@ -24,7 +24,11 @@ struct JsonSyntaxError : std::runtime_error {
   size_t byte;  // where the parser stopped, from the start of the text
 };
 
-// As nlohmann::json::parse(in), but malformed text throws JsonSyntaxError
+// Deepest nesting of objects and arrays parse_json_file accepts.
+inline constexpr int max_json_depth = 256;
+
+// As nlohmann::json::parse(in), but malformed text (or nesting deeper than
+// max_json_depth) throws JsonSyntaxError
 // and a repeated key JsonDuplicateKey.
 nlohmann::json parse_json_file(std::istream& in);
 
