@@ -79,6 +79,16 @@ std::vector<double> errors(const std::vector<std::vector<ReconstructedVertex>>& 
   return e;
 }
 
+// Event `id` of one source of 100 expected photons, its clicks drawn from the event's own stream.
+Event one_source_event(uint64_t id, const PsfSampler* psf) {
+  Event e;
+  e.id = id;
+  auto rng = event_rng(7, e.id);
+  ClickSource one{psf, 100.0};
+  sample_clicks(std::span<const ClickSource>(&one, 1), rng, e.clicks);
+  return e;
+}
+
 struct Config {
   std::string group, name;
   ReconstructionBackend backend = ReconstructionBackend::vulkan;
@@ -212,11 +222,7 @@ int main(int argc, char** argv) {
   for (size_t p = 0; p < positions.size(); ++p) {
     auto a = truth_model.psf(positions[p]), b = truth_model.psf(positions[(p + 1) % positions.size()]);
     for (int k = 0; k < per_position; ++k) {
-      Event e;
-      e.id = id++;
-      auto rng = event_rng(7, e.id);
-      ClickSource one{a.get(), 100.0};
-      sample_clicks(std::span<const ClickSource>(&one, 1), rng, e.clicks);
+      Event e = one_source_event(id++, a.get());
       single.push_back(e);
       single_truth.push_back({{positions[p]}});
       if (k < per_position / 2) {
@@ -365,11 +371,7 @@ int main(int argc, char** argv) {
     for (const auto& p : inner) {
       auto psf = native_truth.psf(p);
       for (int k = 0; k < per_position; ++k) {
-        Event e;
-        e.id = id++;
-        auto rng = event_rng(7, e.id);
-        ClickSource one{psf.get(), 100.0};
-        sample_clicks(std::span<const ClickSource>(&one, 1), rng, e.clicks);
+        Event e = one_source_event(id++, psf.get());
         // The same photons on 16 x 16 blocks: a block clicks when any of its pixels does.
         Event b = e;
         b.clicks.clear();
