@@ -56,13 +56,23 @@ nlohmann::json parse_json_file(std::istream& in) {
     }
     return true;
   };
+  // what(): "[json.exception.parse_error.101] parse error at line ...": the
+  // tag is for programmers.
+  auto without_tag = [](const std::string& what) {
+    const size_t tag_end = what.find("] ");
+    return what.rfind("[json.exception.", 0) == 0 && tag_end != std::string::npos ? what.substr(tag_end + 2) : what;
+  };
   try {
     return json::parse(in, track);
   } catch (const json::parse_error& e) {
-    // what(): "[json.exception.parse_error.101] parse error at line ...": the tag is for programmers.
-    const std::string what = e.what();
-    const size_t tag_end = what.rfind("] ", what.find(" parse error"));
-    throw JsonSyntaxError(tag_end == std::string::npos ? what : what.substr(tag_end + 2), e.byte);
+    throw JsonSyntaxError(without_tag(e.what()), e.byte);
+  } catch (const json::exception& e) {
+    // Anything else the parser refuses, such as a number beyond a double
+    // ("1e999": out_of_range.406), carries no position; the stream stopped
+    // just past it.
+    in.clear();
+    const std::streamoff at = in.tellg();
+    throw JsonSyntaxError(without_tag(e.what()), at > 0 ? size_t(at) : 0);
   }
 }
 

@@ -27,9 +27,9 @@ struct JsonSyntaxError : std::runtime_error {
 // Deepest nesting of objects and arrays parse_json_file accepts.
 inline constexpr int max_json_depth = 256;
 
-// As nlohmann::json::parse(in), but malformed text (or nesting deeper than
-// max_json_depth) throws JsonSyntaxError
-// and a repeated key JsonDuplicateKey.
+// As nlohmann::json::parse(in), but malformed text (a number beyond a
+// double, nesting deeper than max_json_depth) throws JsonSyntaxError, never
+// one of nlohmann's exceptions, and a repeated key JsonDuplicateKey.
 nlohmann::json parse_json_file(std::istream& in);
 
 }  // namespace prism

@@ -42,4 +42,16 @@ TEST_CASE("json files: a key given twice in one object is refused, named with it
     CHECK(std::string(e.what()).find("json.exception") == std::string::npos);
     CHECK(e.byte == 8);
   }
+  // A number beyond a double is nlohmann's out_of_range, not a parse error;
+  // it too is a JsonSyntaxError (it once ended the fuzz harnesses, and the
+  // commands printed the library's tag), with the byte past the number.
+  try {
+    parse("{\"a\":\n 8888e44844}");
+    FAIL("a number beyond a double was read as JSON");
+  } catch (const prism::JsonSyntaxError& e) {
+    CHECK_MESSAGE(std::string(e.what()).find("number overflow") != std::string::npos, e.what());
+    CHECK(std::string(e.what()).find("json.exception") == std::string::npos);
+    CHECK(e.byte >= 7);  // on the second line
+    CHECK(e.byte <= 18);
+  }
 }

@@ -83,6 +83,12 @@ TEST_CASE("a scene file that is not JSON gives its line") {
     out << "{\n  \"base\": \"prototype\",\n  \"lens_model\": thin\n}\n";
   }
   CHECK_THROWS_WITH_AS(prism::load_scene(path), doctest::Contains("bad-scene-test.json:3"), prism::SceneError);
+  {
+    std::ofstream out(path);  // a number beyond a double: nlohmann's out_of_range, not a parse error
+    out << "{\n  \"base\": \"prototype\",\n  \"volume\": {\"depth_mm\": [0, 5e400]}\n}\n";
+  }
+  CHECK_THROWS_WITH_AS(prism::load_scene(path), doctest::Contains("bad-scene-test.json:3: not valid JSON (number overflow"),
+                       prism::SceneError);
   std::remove(path.c_str());
   CHECK_THROWS_WITH_AS(prism::load_scene("protoype"), doctest::Contains("not a built-in"), prism::SceneError);
 }
