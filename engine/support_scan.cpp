@@ -340,8 +340,7 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
                              fitted ? o.alpha : 0.0f,
                              fitted ? o.newton : 0u,
                              o.shifts,
-                             o.bound,
-                             fitted};
+                             o.bound};
     }
     if (dense) last_fits_ += ne * n_psf;
   }

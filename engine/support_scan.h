@@ -64,8 +64,8 @@ struct ScanResult {
   float alpha = 0;     // fitted weight, expected photons (0 where not fitted)
   uint32_t newton_iterations = 0;
   uint32_t shifts = 0;  // shifts scored
-  float nll_bound = 0;  // a lower bound on nll (likelihood.glsl's nll_lower_bound)
-  bool fitted = true;   // false: the bound showed this candidate cannot be among the winners
+  float nll_bound = 0;  // a lower bound on nll (likelihood.glsl's nll_lower_bound); nll is +inf where
+                        // that bound showed the candidate cannot be among the winners
 };
 
 // One PSF's result of a support scan in double (the reference's own, or a

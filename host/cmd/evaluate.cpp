@@ -189,7 +189,16 @@ void add_evaluate(CLI::App& app) {
                 "comma-separated: single-lines (x, y, depth lines through (1,1,31) mm at 100 photons), photons "
                 "(50, 100, 200, 400 at (1,1,31)), double ((1,1,depth) and (1,1,7.5), 250 photons split 50/50), volume "
                 "(--volume-events single vertices of --volume-photons uniform over the field, by depth band)")
-      ->capture_default_str();
+      ->capture_default_str()
+      ->check([](const std::string& text) -> std::string {
+        // Checked as the arguments are read, before the run prints anything.
+        try {
+          check_experiments(split(text));
+        } catch (const std::invalid_argument& e) {
+          return e.what();
+        }
+        return "";
+      });
   c->add_option("--model", a->model,
                 "continuous refinement after the search: scene (the scene's forward model; the default when the "
                 "dictionary was synthesised from a scene or --scene is given), dictionary (its PSFs interpolated; "

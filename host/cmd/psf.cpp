@@ -1,5 +1,6 @@
 // prism psf: the expected-photon image of one point source (OpenEXR + PNG).
 #include <cstdio>
+#include <filesystem>
 
 #include "engine/forward.h"
 #include "engine/ref/forward_ref.h"
@@ -21,7 +22,8 @@ struct PsfArgs {
   ForwardOptions fw;
 };
 
-std::string preview_path(const std::string& exr) { return exr.substr(0, exr.find_last_of('.')) + ".png"; }
+// x.exr -> x.png (a dot in a folder's name is not an extension).
+std::string preview_path(const std::string& exr) { return std::filesystem::path(exr).replace_extension(".png").string(); }
 
 void run(const PsfArgs& a) {
   check_writable(a.out);
@@ -89,7 +91,13 @@ void add_psf(CLI::App& app) {
   c->add_option("--source-mm", a->source, "source position X,Y,DEPTH (depth from the scintillator face)")
       ->capture_default_str();
   c->add_option("--out", a->out, "output .exr (channel Y = expected photons per pixel); a .png preview goes beside it")
-      ->required();
+      ->required()
+      ->check([](const std::string& out) -> std::string {
+        // The image is OpenEXR whatever the name says; a .txt or .png name would mislead.
+        return std::filesystem::path(out).extension() == ".exr"
+                   ? ""
+                   : out + ": the PSF is written as OpenEXR; give a name ending in .exr";
+      });
   c->add_flag("--derivatives", a->derivatives, "also write db_dx, db_dy, db_ddepth channels");
   a->fw.add_to(c, 1);
   c->callback([a] { run(*a); });

@@ -103,8 +103,6 @@ std::vector<Point> plan(const DictionaryGrid& g, const EvaluationOptions& o) {
         points.push_back({e,
                           {{{c.x, c.y, z}, half, "moving", z},
                            {{c.x, c.y, double_fixed_depth_mm}, half, "fixed", z}}});
-    } else if (e != "volume") {
-      throw std::runtime_error("unknown experiment '" + e + "': choose from single-lines, photons, double, volume");
     }
   }
   return points;
@@ -290,11 +288,22 @@ const std::vector<std::string>& evaluation_experiments() {
   return names;
 }
 
+void check_experiments(const std::vector<std::string>& names) {
+  const auto& known = evaluation_experiments();
+  for (const auto& e : names)
+    if (std::find(known.begin(), known.end(), e) == known.end()) {
+      std::string list;
+      for (const auto& k : known) list += (list.empty() ? "" : ", ") + k;
+      throw std::invalid_argument("unknown experiment '" + e + "': choose from " + list);
+    }
+}
+
 Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader& dictionary,
                     const EvaluationOptions& o, const std::function<void(size_t, size_t)>& progress) {
   if (o.trials < 3) throw std::invalid_argument("--trials: at least 3 (the best and the worst are dropped)");
   if (o.journal_only && o.journal_dir.empty())
     throw std::invalid_argument("journal_only: name the directory whose journals to report (journal_dir)");
+  check_experiments(o.experiments);
   const auto& m = dictionary.manifest();
   if (o.level < 0 || o.level >= m.levels)
     throw std::invalid_argument("click level " + std::to_string(o.level) + " is not stored in the dictionary");

@@ -186,6 +186,8 @@ struct Evaluation {
 
 // Valid experiment names, in the order they run.
 const std::vector<std::string>& evaluation_experiments();
+// Throws std::invalid_argument naming the first name that is not one of them.
+void check_experiments(const std::vector<std::string>& names);
 
 // Runs the chosen experiments; progress(done, total) after each event.
 Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader& dictionary,

@@ -217,6 +217,8 @@ TEST_CASE("bad numbers, sources behind the lenses and unwritable outputs are ref
   refused("crlb --depth-mm 10 --plot " + dir + "/none/x.png", "the folder " + dir + "/none does not exist");
   refused("crlb --depth-mm 10 --plot " + dir + "/c.txt", "plot " + dir + "/c.txt: use a .png or .svg file name");
   refused("psf --source-mm 0,0,10 --out " + dir + "/none/p.exr", "the folder " + dir + "/none does not exist");
+  refused("psf --source-mm 0,0,10 --out " + dir + "/p.txt", dir + "/p.txt: the PSF is written as OpenEXR");
+  CHECK_FALSE(std::filesystem::exists(dir + "/p.txt"));
   // Work and memory bounded before they are used.
   refused("crlb --depth-mm=-1e308:1e308:1e300", "--depth-mm: '-1e308:1e308:1e300' gives too many values; at most");
   refused("dictionary build --out " + dir + "/d --grid-x-mm 0:1000:1 --grid-y-mm 0:1000:1",
@@ -251,6 +253,16 @@ TEST_CASE("a second set of bad inputs: outputs over inputs, sources outside the 
   refused("reconstruct --dictionary " + d + " --events " + events + " --model none --out " + d + "/manifest.json",
           "lies inside " + d + ", the folder given by --dictionary");
   refused("evaluate --dictionary " + d + " --experiments volume --out " + d, "is the input given by --dictionary");
+  {
+    // A misspelt experiment: refused as the arguments are read, before the run's header lines.
+    auto r = prism::test::run_prism("evaluate --dictionary " + d + " --experiments volume,dubble --out " + dir + "/ev");
+    INFO(r.output);
+    CHECK(r.status != 0);
+    CHECK(r.output.find("unknown experiment 'dubble': choose from single-lines, photons, double, volume") !=
+          std::string::npos);
+    CHECK(r.output.find(d) == std::string::npos);  // the header names the dictionary
+    CHECK_FALSE(std::filesystem::exists(dir + "/ev"));
+  }
   std::ofstream(dir + "/s.json") << R"({"base": "prototype"})";
   refused("crlb --scene " + dir + "/s.json --depth-mm 10 --csv " + dir + "/s.json", "is the input given by --scene");
   // Geometry: a vertex outside the scintillator, a grid or a volume behind the lenses.
