@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Build the libFuzzer harnesses (clang, ASan + UBSan) in build-fuzz/ and run
-# each for SECONDS (default 30) from the seed corpus in fuzz/corpus/<harness>/.
+# each for SECONDS (default 30) from the seed corpus in fuzz/corpus/<harness>/,
+# as many at once as there are cores.
 #   fuzz/run.sh [SECONDS] [HARNESS ...]
 # New inputs that reach new code go to build-fuzz/corpus/<harness>/ (not the
 # repository's corpus); a crash leaves its input in build-fuzz/artifacts/ and
@@ -26,21 +27,36 @@ mkdir -p build-fuzz/seeds build-fuzz/artifacts
 ASAN_OPTIONS=detect_leaks=0 build-fuzz/fuzz/fuzz_seeds build-fuzz/seeds >/dev/null
 mkdir -p build-fuzz/seeds/space && cp host/sweep/spaces/*.json build-fuzz/seeds/space/
 
-status=0
-for h in "${harnesses[@]}"; do
-  corpus=build-fuzz/corpus/$h
+# One harness per core at a time (CI has two): each runs its fixed time.
+fuzz_one() {
+  local h=$1 corpus=build-fuzz/corpus/$1
   mkdir -p "$corpus"
-  dirs=("$corpus")
+  local dirs=("$corpus")
   [[ -d fuzz/corpus/$h ]] && dirs+=("fuzz/corpus/$h")
   [[ -d build-fuzz/seeds/$h ]] && dirs+=("build-fuzz/seeds/$h")
-  log=build-fuzz/$h.log
   # Corpus dirs after the first are read only; -rss_limit_mb: a parser that
   # allocates beyond it on a small input is a finding.
   # A fixed seed (PRISM_FUZZ_SEED, default 1): the same binary and corpus
   # mutate alike on every run, so that CI does not fail by chance.
-  if ASAN_OPTIONS=detect_leaks=1 build-fuzz/fuzz/fuzz_$h -seed="${PRISM_FUZZ_SEED:-1}" -max_total_time="$seconds" \
+  local rc=0
+  ASAN_OPTIONS=detect_leaks=1 build-fuzz/fuzz/fuzz_$h -seed="${PRISM_FUZZ_SEED:-1}" -max_total_time="$seconds" \
       -rss_limit_mb=2048 -timeout=20 \
-      -max_len=65536 -artifact_prefix=build-fuzz/artifacts/$h- -print_final_stats=1 "${dirs[@]}" >"$log" 2>&1; then
+      -max_len=65536 -artifact_prefix=build-fuzz/artifacts/$h- -print_final_stats=1 "${dirs[@]}" \
+      >"build-fuzz/$h.log" 2>&1 || rc=$?
+  echo $rc >"build-fuzz/$h.status"
+}
+slots=$(nproc)
+rm -f build-fuzz/*.status
+for h in "${harnesses[@]}"; do
+  while (( $(jobs -rp | wc -l) >= slots )); do wait -n || true; done
+  fuzz_one "$h" &
+done
+wait
+
+status=0
+for h in "${harnesses[@]}"; do
+  log=build-fuzz/$h.log
+  if [[ "$(cat "build-fuzz/$h.status")" == 0 ]]; then
     runs=$(grep -o 'stat::number_of_executed_units: *[0-9]*' "$log" | grep -o '[0-9]*$' || echo "?")
     cov=$(grep -o 'cov: [0-9]*' "$log" | tail -1 | grep -o '[0-9]*' || echo "?")
     echo "fuzz $h: ${runs} executions in ${seconds} s, coverage ${cov} edges, no crash"

@@ -172,8 +172,20 @@ void require_finite_numbers(CLI::App& app) {
         return "";  // anything else: CLI11's own conversion judges it
       },
       "");
-  for (CLI::Option* o : app.get_options())
-    if (o->get_type_name().find("FLOAT") != std::string::npos) o->check(finite);
+  // CLI11 reads "-3" into an unsigned option as 2^64 - 3 (simulate --events
+  // -3 set out to write that many events).
+  static const CLI::Validator not_negative(
+      [](std::string& text) -> std::string {
+        const size_t first = text.find_first_not_of(" \t");
+        if (first != std::string::npos && text[first] == '-') return "'" + text + "' is negative; give a whole number >= 0";
+        return "";
+      },
+      "");
+  for (CLI::Option* o : app.get_options()) {
+    const std::string type = o->get_type_name();
+    if (type.find("FLOAT") != std::string::npos) o->check(finite);
+    if (type.find("UINT") != std::string::npos) o->check(not_negative);
+  }
   for (CLI::App* sub : app.get_subcommands({})) require_finite_numbers(*sub);
 }
 

@@ -65,8 +65,8 @@ extern const CLI::Validator positive_number;
 extern const CLI::Validator non_negative_number;
 
 // Every number option of `app` and its subcommands (CLI11 type FLOAT) refuses
-// NaN and infinities, naming the option: call once, after every subcommand
-// has added its options.
+// NaN and infinities, and every unsigned one (UINT) a negative value, naming
+// the option: call once, after every subcommand has added its options.
 void require_finite_numbers(CLI::App& app);
 
 // --max-memory SIZE (or PRISM_MAX_MEMORY) on `command`: the limit memory

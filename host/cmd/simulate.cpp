@@ -9,6 +9,7 @@
 #include "host/cmd/options.h"
 #include "host/events/event_file.h"
 #include "host/events/simulate.h"
+#include "host/util/memory.h"
 #include "host/util/output_file.h"
 #include "host/util/progress.h"
 
@@ -52,6 +53,20 @@ void run(const SimulateArgs& a) {
   Scene scene = load_scene(a.scene);
   const auto base = parse_vertices(a);
   if (a.jitter_mm < 0) throw std::runtime_error("--jitter-mm must be >= 0");
+  {
+    // Refused before any work when even the records without their clicks
+    // would not fit on the disk (a typo such as --events 18446744073709551615
+    // would otherwise stream until the disk is full).
+    std::error_code ec;
+    const auto parent = std::filesystem::absolute(a.out, ec).parent_path();
+    const auto space = std::filesystem::space(parent, ec);
+    const double floor_bytes = double(a.events) * double(event_record_bytes(base.size(), 0));
+    if (!ec && floor_bytes > double(space.available))
+      throw std::runtime_error("--events " + std::to_string(a.events) + ": the file needs at least " +
+                               format_bytes(floor_bytes) + " (" + std::to_string(event_record_bytes(base.size(), 0)) +
+                               " bytes an event before its clicks), but " + parent.string() + " has " +
+                               format_bytes(double(space.available)) + " free; choose fewer events or another --out");
+  }
   for (const auto& v : base) {
     require_in_volume(scene, v.x_mm, v.y_mm, v.depth_mm, "--vertex");
     require_in_front(scene, v.depth_mm - a.jitter_mm, a.jitter_mm > 0 ? "--vertex less --jitter-mm" : "--vertex");

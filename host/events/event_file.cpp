@@ -1,5 +1,6 @@
 #include "host/events/event_file.h"
 
+#include <cassert>
 #include <unistd.h>
 
 #include <array>
@@ -112,6 +113,7 @@ void EventWriter::write(const Event& e) {
   }
   put_u32(buf_, uint32_t(e.clicks.size()));
   for (uint32_t c : e.clicks) put_u32(buf_, c);
+  assert(buf_.size() == event_record_bytes(e.vertices.size(), e.clicks.size()));
   if (std::fwrite(buf_.data(), 1, buf_.size(), f_) != buf_.size())
     throw EventFileError(temp_ + ": write failed at byte " + std::to_string(bytes_) + " (disk full?)");
   bytes_ += buf_.size();

@@ -12,6 +12,12 @@ namespace prism {
 
 inline constexpr uint32_t event_format_version = 1;
 
+// Bytes of one event record (EVENTS.md): tag, id, vertex count, 5 f64 per
+// vertex, click count, a u32 per click.
+inline constexpr uint64_t event_record_bytes(uint64_t vertices, uint64_t clicks) {
+  return 4 + 8 + 4 + 40 * vertices + 4 + 4 * clicks;
+}
+
 // A file that cannot be read or written; the message names the file, the
 // byte offset where reading stopped, and what to do.
 struct EventFileError : std::runtime_error {

@@ -326,8 +326,10 @@ TEST_CASE("event file round trip: header and every field of every event") {
   CHECK(r.header().event_count == 50);
   prism::Event e;
   size_t i = 0;
-  while (r.next(e)) {
+  for (uint64_t before = r.offset(); r.next(e); before = r.offset()) {
     REQUIRE(i < written.size());
+    // The record's size as EVENTS.md gives it (simulate's disk check uses it).
+    CHECK(r.offset() - before == prism::event_record_bytes(written[i].vertices.size(), written[i].clicks.size()));
     CHECK(e.id == written[i].id);
     CHECK(e.clicks == written[i].clicks);
     REQUIRE(e.vertices.size() == written[i].vertices.size());
@@ -555,5 +557,13 @@ TEST_CASE("prism simulate writes a reproducible event file, dictionary truth and
   auto bad_vertex = run_prism("simulate --vertex 0,0 --out " + dir + "/n.events");
   CHECK(bad_vertex.status != 0);
   CHECK(bad_vertex.output.find("X,Y,DEPTH[,ALPHA]") != std::string::npos);
+  // A negative count (CLI11 reads it into an unsigned as 2^64 - 3) and a
+  // count whose records alone would not fit on any disk: refused at once.
+  auto negative = run_prism("simulate --vertex 0,0,25 --events -3 --out " + dir + "/n.events");
+  CHECK(negative.status != 0);
+  CHECK_MESSAGE(negative.output.find("--events: '-3' is negative") != std::string::npos, negative.output);
+  auto huge = run_prism("simulate --vertex 0,0,25 --events 18446744073709551615 --out " + dir + "/n.events");
+  CHECK(huge.status != 0);
+  CHECK_MESSAGE(huge.output.find("(60 bytes an event before its clicks), but") != std::string::npos, huge.output);
   CHECK_FALSE(fs::exists(dir + "/n.events"));
 }
