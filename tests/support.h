@@ -16,6 +16,17 @@
 
 namespace prism::test {
 
+// True in the sanitizer build (tests/sanitize.sh). That build looks for
+// memory errors and undefined behaviour, which a smaller problem reaches
+// through the same code; host-side numerics run 5-15 times slower under the
+// sanitizers, so the heaviest runs take fewer events there. The normal build
+// checks the numbers at full size.
+#ifdef PRISM_SANITIZE
+inline constexpr bool under_sanitizer = true;
+#else
+inline constexpr bool under_sanitizer = false;
+#endif
+
 vk::Context& gpu();
 // Fails the current test if the validation layer printed anything.
 void check_validation_clean();
@@ -37,11 +48,11 @@ struct CommandResult {
 };
 CommandResult run_prism(const std::string& args, const std::string& env = "");
 
-// Channel c (0: b; 1..3: its derivatives) of an image, pixel by pixel, as
-// doubles (the reference's derivative: the mean of its two halves).
 // The comma-separated fields of one CSV line (no quoting: the project's CSVs have none).
 std::vector<std::string> csv_fields(const std::string& line);
 
+// Channel c (0: b; 1..3: its derivatives) of an image, pixel by pixel, as
+// doubles (the reference's derivative: the mean of its two halves).
 std::vector<double> channel(const PixelImage& v, int c);
 
 // One event from `truth`: sources (position, expected photons) sampled with

@@ -493,8 +493,12 @@ TEST_CASE("prism reconstruct: CSV rows per vertex, summary, and errors that say 
   {
     const std::string thin = d.dir + "/thin.json", few = d.dir + "/few.events", refined = d.dir + "/r.csv";
     std::ofstream(thin) << R"({"name": "thin prototype", "base": "prototype", "lens_model": "thin"})";
-    auto s2 = prism::test::run_prism("simulate --scene " + thin + " --vertex 1.3,0.6,27.2,300 --events 3 --binning 16 "
-                                     "--rays 4096 --stratification 1 --out " + few);
+    // One event under the sanitizers: the dictionary model's host refinement
+    // took 160 s there for three.
+    const int refined_events = prism::test::under_sanitizer ? 1 : 3;
+    auto s2 = prism::test::run_prism("simulate --scene " + thin + " --vertex 1.3,0.6,27.2,300 --events " +
+                                     std::to_string(refined_events) + " --binning 16 --rays 4096 --stratification 1 --out " +
+                                     few);
     REQUIRE_MESSAGE(s2.status == 0, s2.output);
     // Every row refined: a CRLB, a p-value, and within `bound_mm(crlb_3d)` of the truth.
     auto check_refined = [&](const std::string& model, const std::string& says,
@@ -519,7 +523,7 @@ TEST_CASE("prism reconstruct: CSV rows per vertex, summary, and errors that say 
         CHECK(std::stod(f[13]) > 0);
         ++rows;
       }
-      CHECK(rows == 3);
+      CHECK(rows == refined_events);
     };
     check_refined("scene --scene " + thin, "refinement (scene model thin prototype",
                   [](double crlb) { return 5 * crlb; });
