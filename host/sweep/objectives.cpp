@@ -92,7 +92,11 @@ Bound parse_bound(const std::string& text) {
   if (!at_least) at = text.find("<=");
   if (at == std::string::npos) throw SweepError("--bound '" + text + "': write NAME>=VALUE or NAME<=VALUE, e.g. photons>=100");
   Bound b{text.substr(0, at), at_least, 0};
-  objective_value(Objectives{}, b.objective);  // throws, listing the names
+  try {
+    objective_value(Objectives{}, b.objective);  // throws, listing the names
+  } catch (const SweepError& e) {
+    throw SweepError("--bound '" + text + "': " + e.what());
+  }
   try {
     size_t used = 0;
     b.value = std::stod(text.substr(at + 2), &used);

@@ -279,7 +279,7 @@ TEST_CASE("sweep: space files name the bad field") {
   CHECK(space_error({{"samples", {{"depth", 0}}}}).find("samples.depth") != std::string::npos);
   CHECK(space_error({{"ambiguity_samples", {{"x_mm", {"a"}}}}}).find("ambiguity_samples.x_mm") != std::string::npos);
   CHECK_THROWS_WITH_AS(prism::parse_bound("photons>100"), doctest::Contains("NAME>=VALUE"), prism::SweepError);
-  CHECK_THROWS_WITH_AS(prism::parse_bound("flux>=1"), doctest::Contains("unknown objective 'flux'"), prism::SweepError);
+  CHECK_THROWS_WITH_AS(prism::parse_bound("flux>=1"), doctest::Contains("--bound 'flux>=1': unknown objective 'flux'"), prism::SweepError);
   CHECK_THROWS_WITH_AS(prism::parse_bound("p_confusion<=nan"), doctest::Contains("'nan' is not a finite number"),
                        prism::SweepError);
   auto b = prism::parse_bound("photons>=100");
