@@ -4,8 +4,11 @@
 // turn and the diagonal each cell is split along come from the shared
 // sampling code, like the point rays' sample points.
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <functional>
+#include <stdexcept>
+#include <string>
 #include <vector>
 
 #include "engine/ref/dual_ref.h"
@@ -36,10 +39,36 @@ struct Point2 {
   D u, v;
 };
 
+// A short list in fixed storage. The reference clips a polygon and builds a
+// blurred profile for every pixel a triangle covers; on the heap those made
+// it allocation bound (40% of its time under AddressSanitizer).
+template <class T, size_t Capacity> struct FixedList {
+  std::array<T, Capacity> item{};
+  size_t n = 0;
+  FixedList() = default;
+  FixedList(std::initializer_list<T> items) {
+    for (const T& t : items) push_back(t);
+  }
+  void push_back(const T& t) {
+    if (n == Capacity)
+      throw std::logic_error("footprint reference: more than " + std::to_string(Capacity) + " items in a fixed list");
+    item[n++] = t;
+  }
+  size_t size() const { return n; }
+  const T& operator[](size_t i) const { return item[i]; }
+  const T* begin() const { return item.data(); }
+  const T* end() const { return item.data() + n; }
+  T* begin() { return item.data(); }
+  T* end() { return item.data() + n; }
+};
+// A triangle clipped by a pixel's four sides has at most 7 corners in exact
+// arithmetic; the spare room is for a rounding-made extra crossing.
+using Polygon = FixedList<Point2, 12>;
+
 // The part of a convex polygon on the side `keep(p) >= 0` of a line, where
 // keep is affine: the crossings interpolated in duals.
-template <class Keep> std::vector<Point2> clip_half_plane(const std::vector<Point2>& poly, Keep keep) {
-  std::vector<Point2> out;
+template <class Keep> Polygon clip_half_plane(const Polygon& poly, Keep keep) {
+  Polygon out;
   for (size_t i = 0; i < poly.size(); ++i) {
     const Point2& a = poly[i];
     const Point2& b = poly[(i + 1) % poly.size()];
@@ -53,7 +82,7 @@ template <class Keep> std::vector<Point2> clip_half_plane(const std::vector<Poin
   return out;
 }
 
-D polygon_area(const std::vector<Point2>& poly) {
+D polygon_area(const Polygon& poly) {
   D twice(0.0);
   for (size_t i = 0; i < poly.size(); ++i) {
     const Point2& a = poly[i];
@@ -68,7 +97,7 @@ D polygon_area(const std::vector<Point2>& poly) {
 struct Moments {
   D area, u, v, uv;
 };
-Moments moments(const std::vector<Point2>& poly) {
+Moments moments(const Polygon& poly) {
   Moments m{D(0.0), D(0.0), D(0.0), D(0.0)};
   for (size_t i = 0; i < poly.size(); ++i) {
     const Point2& a = poly[i];
@@ -90,11 +119,12 @@ Moments moments(const std::vector<Point2>& poly) {
 struct Piece1 {
   double x0, x1, a, b;
 };
-std::vector<Piece1> blurred_profile(double lo, double hi, double h) {
+using Profile = FixedList<Piece1, 3>;
+Profile blurred_profile(double lo, double hi, double h) {
   auto share = [&](double x) { return std::max(0.0, std::min(x + h, hi) - std::max(x - h, lo)) / (2 * h); };
   double k[4] = {lo - h, lo + h, hi - h, hi + h};
   std::sort(k, k + 4);
-  std::vector<Piece1> out;
+  Profile out;
   for (int i = 0; i < 3; ++i) {
     if (!(k[i + 1] > k[i])) continue;
     const double f0 = share(k[i]), f1 = share(k[i + 1]), b = (f1 - f0) / (k[i + 1] - k[i]);
@@ -103,7 +133,7 @@ std::vector<Piece1> blurred_profile(double lo, double hi, double h) {
   return out;
 }
 // The share at x (its piece chosen by x's value, or by `at` where given).
-D share_at(const std::vector<Piece1>& profile, D x, double at) {
+D share_at(const Profile& profile, D x, double at) {
   for (const auto& p : profile)
     if (at >= p.x0 && at <= p.x1) return D(p.a) + D(p.b) * x;
   return D(0.0);
@@ -142,7 +172,7 @@ struct FootprintTarget {
   // polygon's moments.
   void blurred(const GridCorner& a, const GridCorner& b, const GridCorner& c, D weight, int half) {
     const double h = blur_half_px;
-    const std::vector<Point2> tri{{a.u, a.v}, {b.u, b.v}, {c.u, c.v}};
+    const Polygon tri{{a.u, a.v}, {b.u, b.v}, {c.u, c.v}};
     const D area = moments(tri).area;
     const double lo_u = std::min({a.u.v, b.u.v, c.u.v}), hi_u = std::max({a.u.v, b.u.v, c.u.v});
     const double lo_v = std::min({a.v.v, b.v.v, c.v.v}), hi_v = std::max({a.v.v, b.v.v, c.v.v});
@@ -152,7 +182,7 @@ struct FootprintTarget {
       const auto along = blurred_profile(0.0, std::min(1.0, v_max - row), h);
       for (int col = std::max(0, int(std::floor(lo_u - h))); col <= std::min(img.width - 1, int(std::floor(hi_u + h))); ++col) {
         const auto across = blurred_profile(0.0, std::min(1.0, u_max - col), h);
-        std::vector<Point2> local;
+        Polygon local;
         for (const Point2& p : tri) local.push_back({p.u - D(double(col)), p.v - D(double(row))});
         D light(0.0);
         for (const auto& pu : across)
@@ -181,14 +211,16 @@ struct FootprintTarget {
            col <= std::min(img.width - 1, int(std::floor(std::max(p.u.v, q.u.v) + h))); ++col) {
         const auto across = blurred_profile(col, std::min(col + 1.0, u_max), h);
         const auto along = blurred_profile(row, std::min(row + 1.0, v_max), h);
-        std::vector<double> ts{0.0, 1.0};
+        FixedList<double, 2 + 2 * 2 * 3> ts{0.0, 1.0};  // the ends, and each piece's two kinks in both profiles
         for (const auto* prof : {&across, &along})
           for (const auto& piece : *prof)
             for (double k : {piece.x0, piece.x1}) {
               const double from = prof == &across ? p.u.v : p.v.v, delta = prof == &across ? du.v : dv.v;
               if (delta != 0 && (k - from) / delta > 0 && (k - from) / delta < 1) ts.push_back((k - from) / delta);
             }
-        std::sort(ts.begin(), ts.end());
+        // Insertion sort: at most 14 (std::sort over the fixed list trips GCC 12's -Warray-bounds).
+        for (size_t i = 1; i < ts.size(); ++i)
+          for (size_t j = i; j > 0 && ts.item[j - 1] > ts.item[j]; --j) std::swap(ts.item[j - 1], ts.item[j]);
         D light(0.0);
         for (size_t i = 0; i + 1 < ts.size(); ++i) {
           const double t0 = ts[i], t1 = ts[i + 1], tm = 0.5 * (t0 + t1);
@@ -243,7 +275,7 @@ struct FootprintTarget {
       add(int(std::floor(lo_u)), int(std::floor(lo_v)), weight, half);
       return;
     }
-    std::vector<Point2> tri{{a.u, a.v}, {b.u, b.v}, {c.u, c.v}};
+    const Polygon tri{{a.u, a.v}, {b.u, b.v}, {c.u, c.v}};
     const D area = polygon_area(tri);
     // Thin (shaders/common/footprint.glsl, THIN_TRIANGLE): along the longest edge.
     double longest = 0;
