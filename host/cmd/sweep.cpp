@@ -277,9 +277,7 @@ void add_sweep(CLI::App& app) {
   auto a = std::make_shared<SweepArgs>();
   CLI::App* c = app.add_subcommand("sweep", "search a design space of lenslet arrays for the lowest CRLB (host/sweep/SWEEP.md)");
   c->add_option("--space", a->space, "design space JSON file (host/sweep/spaces/*.json)")->required();
-  std::string names;
-  for (const auto& n : objective_names()) names += (names.empty() ? "" : ", ") + n;
-  c->add_option("--objective", a->objective, "what to minimise (photons and alias_kl are maximised): " + names)
+  c->add_option("--objective", a->objective, "what to minimise (photons and alias_kl are maximised): " + join(objective_names()))
       ->capture_default_str()->check(CLI::IsMember(objective_names()));
   c->add_option("--budget", a->budget, "designs to score (rejected ones count); the whole space when it is smaller")
       ->capture_default_str()->check(CLI::Range(size_t(1), size_t(1) << 30));

@@ -292,9 +292,7 @@ void check_experiments(const std::vector<std::string>& names) {
   const auto& known = evaluation_experiments();
   for (const auto& e : names)
     if (std::find(known.begin(), known.end(), e) == known.end()) {
-      std::string list;
-      for (const auto& k : known) list += (list.empty() ? "" : ", ") + k;
-      throw std::invalid_argument("unknown experiment '" + e + "': choose from " + list);
+      throw std::invalid_argument("unknown experiment '" + e + "': choose from " + join(known));
     }
 }
 

@@ -65,8 +65,7 @@ struct Reader {
 };
 
 void check_keys(const Reader& rd, const json& j, const std::string& path, std::initializer_list<const char*> allowed) {
-  std::string list;
-  for (const char* a : allowed) list += std::string(list.empty() ? "" : ", ") + a;
+  const std::string list = join(allowed);
   if (!j.is_object()) {
     const std::string field = path.empty() ? "(top level)" : path.substr(0, path.size() - 1);  // "sensor." -> "sensor"
     rd.fail(field, "must be an object with the fields " + list + ", got " + j.dump());
@@ -136,9 +135,7 @@ Scene builtin_scene(const std::string& name) {
       s.optics.lenslets = hex_array(f);
     }
   } else {
-    std::string list;
-    for (const auto& n : builtin_scene_names()) list += " " + n;
-    throw SceneError("unknown scene '" + name + "': not a built-in (" + list.substr(1) + ") nor a readable file");
+    throw SceneError("unknown scene '" + name + "': not a built-in (" + join(builtin_scene_names(), " ") + ") nor a readable file");
   }
   return s;
 }

@@ -74,9 +74,7 @@ double objective_value(const Objectives& o, const std::string& name) {
   if (name == "p_confusion") return o.mean_p_confusion;
   if (name == "worst_p_confusion") return o.worst_p_confusion;
   if (name == "alias_kl") return o.min_alias_kl;
-  std::string list;
-  for (const auto& n : objective_names()) list += (list.empty() ? "" : ", ") + n;
-  throw SweepError("unknown objective '" + name + "' (known: " + list + ")");
+  throw SweepError("unknown objective '" + name + "' (known: " + join(objective_names()) + ")");
 }
 
 bool Bound::holds(const Objectives& o) const {

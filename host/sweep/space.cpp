@@ -103,9 +103,7 @@ struct SpaceReader {
   void keys(const json& j, const std::string& path, std::initializer_list<const char*> allowed) const {
     for (auto it = j.begin(); it != j.end(); ++it) {
       if (std::none_of(allowed.begin(), allowed.end(), [&](const char* a) { return it.key() == a; })) {
-        std::string list;
-        for (const char* a : allowed) list += std::string(list.empty() ? "" : ", ") + a;
-        fail(path + it.key(), "unknown field (expected one of: " + list + ")");
+        fail(path + it.key(), "unknown field (expected one of: " + join(allowed) + ")");
       }
     }
   }

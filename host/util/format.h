@@ -12,4 +12,17 @@ std::string format_number(double v);
 // A CSV field, quoted when it holds a comma or a quote (quotes doubled).
 std::string csv_field(const std::string& s);
 
+// The items of a list of names, separated by ", " (for messages and --help).
+template <class Names>
+std::string join(const Names& names, const std::string& separator = ", ") {
+  std::string out;
+  bool first = true;
+  for (const auto& name : names) {
+    if (!first) out += separator;
+    out += name;
+    first = false;
+  }
+  return out;
+}
+
 }  // namespace prism
