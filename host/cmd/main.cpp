@@ -33,6 +33,10 @@ int main(int argc, char** argv) {
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
+    if (auto missing = prism::cmd::missing_command(app, e)) {
+      std::fprintf(stderr, "prism: %s\n", missing->c_str());
+      return e.get_exit_code();
+    }
     return app.exit(e);
   } catch (const prism::cmd::Interrupted& e) {
     std::fprintf(stderr, "prism: %s\n", e.what());

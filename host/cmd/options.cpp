@@ -189,6 +189,23 @@ void require_finite_numbers(CLI::App& app) {
   for (CLI::App* sub : app.get_subcommands({})) require_finite_numbers(*sub);
 }
 
+std::optional<std::string> missing_command(const CLI::App& app, const CLI::ParseError& error) {
+  const CLI::App* at = &app;
+  std::string path = "prism";
+  while (!at->get_subcommands().empty()) {  // the commands the parse got to
+    at = at->get_subcommands().front();
+    path += " " + at->get_name();
+  }
+  // A command's own options and words: CLI11's errors say it well.
+  if (at->get_subcommands({}).empty() || !dynamic_cast<const CLI::RequiredError*>(&error)) return std::nullopt;
+  std::vector<std::string> names;
+  for (const CLI::App* s : at->get_subcommands({})) names.push_back(s->get_name());
+  const std::string choose = join(names) + " (" + path + " --help says what each does)";
+  const auto rest = at->remaining();
+  if (rest.empty()) return path + " needs a command: " + choose;
+  return "'" + rest.front() + "' is not a command of " + path + "; choose from " + choose;
+}
+
 void add_memory_limit(CLI::App& command) {
   // Checked as it is read, so that a bad size is a usage error naming the option.
   command

@@ -1,5 +1,6 @@
 // Options and parsing shared by several subcommands.
 #pragma once
+#include <optional>
 #include <span>
 #include <string>
 #include <vector>
@@ -41,6 +42,11 @@ struct ForwardOptions {
   void apply(Scene& scene) const;  // lens model override
   Backend backend_kind() const { return backend == "cpu" ? Backend::cpu : Backend::vulkan; }
 };
+
+// After a parse that failed: where a command must stand (prism, prism
+// dictionary, prism camera) and a word names none or none is given, what to
+// say instead of CLI11's "A subcommand is required"; nothing otherwise.
+std::optional<std::string> missing_command(const CLI::App& app, const CLI::ParseError& error);
 
 // Comma-separated numbers and FIRST:LAST:STEP ranges: "5,10,25", "0:50:2.5",
 // "0:10:1,12.5,15:50:5"; at most max_list_values, counted before expanding.

@@ -43,7 +43,7 @@ void refused(const std::string& args, const std::string& says) {
 
 }  // namespace
 
-TEST_CASE("prism --help names every subcommand") {
+TEST_CASE("prism --help names every subcommand, and a word where one must stand that names none is told the choices") {
   auto r = prism::test::run_prism("--help");
   CHECK(r.status == 0);
   for (const char* sub : {"crlb", "psf", "camera", "devices"}) CHECK(r.output.find(sub) != std::string::npos);
@@ -51,6 +51,12 @@ TEST_CASE("prism --help names every subcommand") {
   for (const char* opt : {"--scene", "--depth-mm", "--x-mm", "--y-mm", "--rays", "--binning", "--lens-model",
                           "--photons", "--backend", "--csv", "--plot", "--device", "--fisher-estimator"})
     CHECK(c.output.find(opt) != std::string::npos);
+  // A word where a command must stand names the commands there (CLI11 alone
+  // says "A subcommand is required" to a typo).
+  refused("dictionry", "'dictionry' is not a command of prism; choose from crlb, psf, dictionary");
+  refused("dictionary merge", "'merge' is not a command of prism dictionary; choose from build, info, merge-hdr");
+  refused("dictionary", "prism dictionary needs a command: build, info, merge-hdr");
+  refused("crlb extra", "not expected: extra");  // a command's own words: CLI11's message
 }
 
 TEST_CASE("prism crlb writes the documented CSV columns and a plot") {
