@@ -74,23 +74,34 @@ void ForwardOptions::apply(Scene& scene) const {
   }
 }
 
+namespace {
+
+std::vector<std::string> split(const std::string& s, char sep) {
+  std::vector<std::string> parts;
+  std::stringstream ss(s);
+  std::string part;
+  while (std::getline(ss, part, sep)) parts.push_back(part);
+  if (!s.empty() && s.back() == sep) parts.emplace_back();  // "1,2," ends in an empty item
+  return parts;
+}
+
+// One finite number, all of `s`; else an error naming the option and `form`.
+double number_in(const std::string& s, const std::string& option, const std::string& form) {
+  try {
+    size_t used = 0;
+    double v = std::stod(s, &used);
+    if (used != s.size() || !std::isfinite(v)) throw std::invalid_argument(s);
+    return v;
+  } catch (const std::exception&) {
+    throw std::runtime_error(option + ": '" + s + "' is not a number (" + form + ")");
+  }
+}
+
+}  // namespace
+
 std::vector<double> parse_list(const std::string& text, const std::string& option) {
   auto num = [&](const std::string& s) {
-    try {
-      size_t used = 0;
-      double v = std::stod(s, &used);
-      if (used != s.size() || !std::isfinite(v)) throw std::invalid_argument(s);
-      return v;
-    } catch (const std::exception&) {
-      throw std::runtime_error(option + ": '" + s + "' is not a number (use A,B,C, FIRST:LAST:STEP or both, e.g. 0:10:1,12.5,15:50:5)");
-    }
-  };
-  auto split = [](const std::string& s, char sep) {
-    std::vector<std::string> parts;
-    std::stringstream ss(s);
-    std::string part;
-    while (std::getline(ss, part, sep)) parts.push_back(part);
-    return parts;
+    return number_in(s, option, "use A,B,C, FIRST:LAST:STEP or both, e.g. 0:10:1,12.5,15:50:5");
   };
   std::vector<double> out;
   for (const std::string& item : split(text, ',')) {
@@ -228,9 +239,18 @@ void add_memory_limit(CLI::App& command) {
           ""));
 }
 
+std::vector<double> parse_numbers(const std::string& text, const std::string& option, const std::string& form,
+                                  size_t min_count, size_t max_count) {
+  const auto items = split(text, ',');
+  if (items.size() < min_count || items.size() > max_count)
+    throw std::runtime_error(option + ": expected " + form + ", got '" + text + "'");
+  std::vector<double> out;
+  for (const auto& item : items) out.push_back(number_in(item, option, "expected " + form + ", got '" + text + "'"));
+  return out;
+}
+
 glm::dvec3 parse_point(const std::string& text, const std::string& option) {
-  auto v = parse_list(text, option);
-  if (v.size() != 3) throw std::runtime_error(option + ": expected X,Y,DEPTH in mm, got '" + text + "'");
+  auto v = parse_numbers(text, option, "X,Y,DEPTH in mm", 3, 3);
   return {v[0], v[1], v[2]};
 }
 

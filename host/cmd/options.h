@@ -54,6 +54,10 @@ inline constexpr size_t max_list_values = 100000;
 std::vector<double> parse_list(const std::string& text, const std::string& option);
 // Values as parse_list reads them back (A,B,C with %g).
 std::string format_list(std::span<const double> values);
+// Comma-separated numbers, no ranges: min_count to max_count of them, as
+// `form` says ("X,Y,DEPTH[,ALPHA] (mm, mm, mm, photons)"), which errors quote.
+std::vector<double> parse_numbers(const std::string& text, const std::string& option, const std::string& form,
+                                  size_t min_count, size_t max_count);
 // "X,Y,DEPTH".
 glm::dvec3 parse_point(const std::string& text, const std::string& option);
 

@@ -37,9 +37,7 @@ struct SimulateArgs {
 std::vector<EventVertex> parse_vertices(const SimulateArgs& a) {
   std::vector<EventVertex> out;
   for (const auto& text : a.vertices) {
-    auto v = parse_list(text, "--vertex");
-    if (v.size() != 3 && v.size() != 4)
-      throw std::runtime_error("--vertex: expected X,Y,DEPTH[,ALPHA] (mm, mm, mm, photons), got '" + text + "'");
+    auto v = parse_numbers(text, "--vertex", "X,Y,DEPTH[,ALPHA] (mm, mm, mm, photons)", 3, 4);
     double alpha = v.size() == 4 ? v[3] : a.alpha;
     if (!(alpha >= 0)) throw std::runtime_error("--vertex '" + text + "': ALPHA must be >= 0 expected photons");
     out.push_back({v[0], v[1], v[2], alpha, 0});
@@ -76,6 +74,10 @@ void run(const SimulateArgs& a) {
   std::optional<DictionaryReader> reader;
   std::unique_ptr<EventTruth> truth;
   EventFileHeader h;
+  if (a.truth != "dictionary" && !a.dictionary.empty())
+    throw std::runtime_error("--dictionary is read only with --truth dictionary (the paper's protocol); the truth "
+                             "now is the forward model, which renders the scene: add --truth dictionary or leave "
+                             "--dictionary out");
   if (a.truth == "dictionary") {
     if (a.dictionary.empty()) throw std::runtime_error("--truth dictionary needs --dictionary DIR");
     reader.emplace(a.dictionary, &scene.optics);
@@ -144,8 +146,8 @@ void run(const SimulateArgs& a) {
               (unsigned long long)writer.events(), base.size(), a.events ? double(clicks) / double(a.events) : 0.0,
               (unsigned long long)std::filesystem::file_size(a.out));
   double sampling_s = seconds - truth->render_seconds();
-  std::printf("truth: %s\n%zu PSFs rendered or read in %.2f s; sampling and writing %.2f s (%.0f events/s); "
-              "%.0f events/s overall\n",
+  std::printf("truth: %s\n%zu PSFs rendered or read in %.2f s; sampling and writing %.2f s (%.3g events/s); "
+              "%.3g events/s overall\n",
               h.provenance.c_str(), truth->renders(), truth->render_seconds(), sampling_s,
               sampling_s > 0 ? double(a.events) / sampling_s : 0.0, seconds > 0 ? double(a.events) / seconds : 0.0);
 }

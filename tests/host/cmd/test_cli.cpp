@@ -274,6 +274,17 @@ TEST_CASE("a second set of bad inputs: outputs over inputs, sources outside the 
   // Geometry: a vertex outside the scintillator, a grid or a volume behind the lenses.
   refused("simulate --vertex 1e300,0,20 --out " + dir + "/x.events",
           "--vertex: x 1e+300 mm lies outside prototype's volume (x -25..25 mm)");
+  // A point is its numbers, no ranges or empty items; a dictionary the truth would not read.
+  refused("simulate --vertex 0,0,15, --out " + dir + "/x.events",
+          "--vertex: '' is not a number (expected X,Y,DEPTH[,ALPHA] (mm, mm, mm, photons), got '0,0,15,')");
+  refused("simulate --vertex 0,0,15,,1 --out " + dir + "/x.events",
+          "--vertex: expected X,Y,DEPTH[,ALPHA] (mm, mm, mm, photons), got '0,0,15,,1'");
+  refused("simulate --vertex 0:1:1,0,15 --out " + dir + "/x.events", "--vertex: '0:1:1' is not a number");
+  refused("psf --source-mm 0,0 --out " + dir + "/p.exr", "--source-mm: expected X,Y,DEPTH in mm, got '0,0'");
+  refused("simulate --vertex 0,0,15 --dictionary " + d + " --out " + dir + "/x.events",
+          "--dictionary is read only with --truth dictionary");
+  refused("crlb --depth-mm 10,20, --csv " + dir + "/c.csv", "--depth-mm: '' is not a number");
+  CHECK_FALSE(std::filesystem::exists(dir + "/x.events"));
   refused("dictionary build --out " + dir + "/d2 --grid-x-mm 0 --grid-y-mm 0 --grid-depth-mm=-30,10",
           "depth -30 mm is not in front of the lenses, which lie 5 mm before the scintillator face");
   CHECK_FALSE(std::filesystem::exists(dir + "/d2"));
