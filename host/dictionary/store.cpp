@@ -309,6 +309,10 @@ void write_psf_file(const std::string& path, const DictionaryManifest& m, size_t
 }
 
 DictionaryReader::DictionaryReader(std::string dir, const OpticalSystem* expect) : dir_(std::move(dir)) {
+  std::error_code ec;
+  if (!std::filesystem::is_directory(dir_, ec))
+    throw DictionaryError(dir_ + (std::filesystem::exists(dir_, ec) ? ": a file, not a dictionary" : ": no such folder") +
+                          "; a dictionary is the folder that `prism dictionary build --out` wrote (it holds manifest.json)");
   std::string path = dir_ + "/manifest.json";
   std::ifstream in(path);
   if (!in) throw DictionaryError(path + ": no dictionary manifest here; build one with `prism dictionary build`");

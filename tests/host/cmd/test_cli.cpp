@@ -284,6 +284,8 @@ TEST_CASE("a second set of bad inputs: outputs over inputs, sources outside the 
   refused("simulate --vertex 0,0,15 --dictionary " + d + " --out " + dir + "/x.events",
           "--dictionary is read only with --truth dictionary");
   refused("crlb --depth-mm 10,20, --csv " + dir + "/c.csv", "--depth-mm: '' is not a number");
+  refused("dictionary info " + events, events + ": a file, not a dictionary; a dictionary is the folder that");
+  refused("dictionary info " + dir + "/none", dir + "/none: no such folder");
   CHECK_FALSE(std::filesystem::exists(dir + "/x.events"));
   refused("dictionary build --out " + dir + "/d2 --grid-x-mm 0 --grid-y-mm 0 --grid-depth-mm=-30,10",
           "depth -30 mm is not in front of the lenses, which lie 5 mm before the scintillator face");
