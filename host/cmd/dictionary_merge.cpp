@@ -87,6 +87,9 @@ void run(const MergeArgs& a) {
       throw std::invalid_argument("merge-hdr: stacks " + names[name] + " and " + d + " would both write " + name +
                                   ".exr: rename one directory");
   }
+  // Every stack's stack.json and file sizes before any output: a bad one
+  // named now, not after the others were merged.
+  for (const auto& [name, dir] : names) (void)read_hdr_stack_header(dir);
   fs::create_directories(a.out);
 
   std::unique_ptr<vk::Context> ctx;

@@ -32,8 +32,9 @@ double number(const nlohmann::json& j, const char* key, const std::string& file,
   return v.get<double>();
 }
 
-std::vector<uint16_t> read_raw(const fs::path& path, const HdrFrames& f) {
-  std::string name = path.string();
+// A raw frame's size against stack.json's.
+void check_raw_size(const fs::path& path, const HdrFrames& f) {
+  const std::string name = path.string();
   std::error_code ec;
   auto bytes = fs::file_size(path, ec);
   if (ec) fail(name, "missing raw frame (listed in stack.json): recapture the stack or fix its file name");
@@ -44,6 +45,12 @@ std::vector<uint16_t> read_raw(const fs::path& path, const HdrFrames& f) {
   if (bytes > want)
     fail(name, std::to_string(bytes) + " bytes, expected " + std::to_string(want) + ": the frame is not " +
                    std::to_string(f.width) + " x " + std::to_string(f.height) + " 16-bit samples as stack.json says");
+}
+
+std::vector<uint16_t> read_raw(const fs::path& path, const HdrFrames& f) {
+  const std::string name = path.string();
+  check_raw_size(path, f);
+  const uint64_t want = uint64_t(f.pixels()) * 2;
   std::vector<uint16_t> v(f.pixels());
   std::ifstream in(path, std::ios::binary);
   in.read(reinterpret_cast<char*>(v.data()), std::streamsize(want));
@@ -77,9 +84,12 @@ void read_list(const nlohmann::json& j, const char* key, const std::string& file
 
 }  // namespace
 
-HdrStack read_hdr_stack(const std::string& dir) {
+HdrStack read_hdr_stack_header(const std::string& dir) {
   HdrStack s;
   s.dir = dir;
+  std::error_code ec;
+  if (!fs::is_directory(dir, ec))
+    fail(dir, fs::exists(dir, ec) ? "a file, not a capture-hdr stack directory" : "no such stack directory");
   std::string file = (fs::path(dir) / "stack.json").string();
   std::ifstream in(file);
   if (!in) fail(file, "missing: not a capture-hdr stack directory");
@@ -123,6 +133,14 @@ HdrStack read_hdr_stack(const std::string& dir) {
   memory.add(format_number(frames) + " frames of 16-bit pixels", 2 * frames * px)
       .add("the merged PSF, its status and validity mask", 16 * px);
   memory.require_within_limit("Merge it on a machine with more memory");
+  for (const auto& names : {s.exposure_files, s.dark_files})
+    for (const auto& name : names) check_raw_size(fs::path(dir) / name, f);
+  return s;
+}
+
+HdrStack read_hdr_stack(const std::string& dir) {
+  HdrStack s = read_hdr_stack_header(dir);
+  HdrFrames& f = s.frames;
   for (const auto& name : s.exposure_files) f.exposures.push_back(read_raw(fs::path(dir) / name, f));
   for (const auto& name : s.dark_files) f.darks.push_back(read_raw(fs::path(dir) / name, f));
   return s;

@@ -28,6 +28,9 @@ struct HdrStack {
 // Reads dir/stack.json and its raw frames. Throws std::runtime_error naming
 // the file and field (missing, wrong type, wrong size, out-of-range sample).
 HdrStack read_hdr_stack(const std::string& dir);
+// All of that but the samples: stack.json, the memory the merge needs and
+// each raw file's size; frames left empty (to check every stack before work).
+HdrStack read_hdr_stack_header(const std::string& dir);
 // `path` itself when it holds stack.json, else its subdirectories that do
 // (sorted); throws when there are none.
 std::vector<std::string> find_hdr_stacks(const std::string& path);

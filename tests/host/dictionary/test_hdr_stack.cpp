@@ -190,13 +190,18 @@ TEST_CASE("prism dictionary merge-hdr writes normalised PSFs with sidecars (CLI)
   auto both = prism::test::compare_values(gc, gv, {.abs = 1e-6, .rel = 1e-5});
   CHECK_MESSAGE(both.ok(), both.report("merged PSF, Vulkan vs CPU backend"));
 
-  // A bad stack fails with its file named and a non-zero status.
+  // A bad stack fails with its file named and a non-zero status, before any
+  // stack is merged or the output folder made (pos_a sorts first and is whole).
   fs::resize_file(root / "stacks" / "pos_b" / "exposure_3.raw", 100);
-  int rc = prism_cli("dictionary merge-hdr --stack " + (root / "stacks" / "pos_b").string() + " --out " +
+  int rc = prism_cli("dictionary merge-hdr --stacks " + (root / "stacks").string() + " --out " +
                          (root / "bad").string(),
                      out);
   CHECK(rc != 0);
   CHECK(out.find("exposure_3.raw: truncated") != std::string::npos);
+  CHECK_FALSE(fs::exists(root / "bad"));
+  rc = prism_cli("dictionary merge-hdr --stack " + (root / "none").string() + " --out " + (root / "bad").string(), out);
+  CHECK(rc != 0);
+  CHECK(out.find("none: no such stack directory") != std::string::npos);
   rc = prism_cli("dictionary merge-hdr --out " + (root / "bad").string(), out);
   CHECK(rc != 0);
   CHECK(out.find("--stack DIR") != std::string::npos);
