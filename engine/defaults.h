@@ -30,6 +30,10 @@ inline constexpr double lenslet_pitch_mm = 4.0;
 
 // Source: the paper's isotropic emitter (Sec. II.C).
 inline constexpr double photons_emitted = 6280.0;
+// The most a scene or --photons may give: far above any event (a GeV
+// deposited in a bright scintillator emits ~1e7), and low enough that the
+// device's float expected counts and Fisher sums stay finite (1e300 gave inf).
+inline constexpr double max_photons_emitted = 1e12;
 
 // Effects, when a scene names them without parameters.
 inline constexpr double scintillator_index = 1.58;   // plastic scintillator (PVT)

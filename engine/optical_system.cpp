@@ -1,6 +1,7 @@
 #include "engine/optical_system.h"
 
 #include <cmath>
+#include <sstream>
 #include <stdexcept>
 
 namespace prism {
@@ -72,7 +73,10 @@ void validate(const OpticalSystem& sys) {
   }
   const Effects& e = sys.effects;
   if (e.scintillator_refraction && !(e.scintillator_index >= 1.0)) fail("effects.scintillator_refraction.index", "must be >= 1");
-  if (e.holder_vignetting && !(e.holder_bore_mm >= 0)) fail("effects.holder_vignetting.bore_mm", "must be >= 0");
+  if (e.holder_vignetting && !(e.holder_bore_mm >= 0 && e.holder_bore_mm <= sys.lens_to_sensor_mm))
+    fail("effects.holder_vignetting.bore_mm",
+         "must be in [0, lens_to_sensor_mm = " + (std::ostringstream() << sys.lens_to_sensor_mm).str() +
+             " mm]: the holder ends at the sensor");
   if (!(e.detection_efficiency > 0 && e.detection_efficiency <= 1)) fail("effects.detection_efficiency.value", "must be in (0, 1]");
   if (!(e.dark_counts_per_pixel >= 0)) fail("effects.dark_counts.per_pixel", "must be >= 0");
   if (e.source_extent && !(e.source_sigma_mm > 0)) fail("effects.source_extent.sigma_mm", "must be > 0");

@@ -25,7 +25,8 @@ void ForwardOptions::add_to(CLI::App* app, unsigned default_binning) {
       ->capture_default_str()->check(CLI::Range(1u, 1024u));
   app->add_option("--lens-model", lens_model, "override the scene's lens model")->check(CLI::IsMember({"thin", "real"}));
   app->add_option("--photons", photons, "photons emitted by the source (default: the scene's, 6280 for built-ins)")
-      ->check(positive_number);
+      ->check(positive_number)
+      ->check(at_most(defaults::max_photons_emitted, "photons"));
   app->add_option("--backend", backend, "vulkan (kernels on the device) or cpu (double-precision reference)")
       ->capture_default_str()->check(CLI::IsMember({"vulkan", "cpu"}));
   app->add_option("--fisher-estimator", estimator,
@@ -172,6 +173,15 @@ std::string sign_check(const std::string& text, bool zero_allowed) {
 // No names: the help's type column stays as CLI11 writes it.
 const CLI::Validator positive_number([](std::string& text) { return sign_check(text, false); }, "");
 const CLI::Validator non_negative_number([](std::string& text) { return sign_check(text, true); }, "");
+
+CLI::Validator at_most(double limit, const std::string& unit) {
+  return CLI::Validator(
+      [limit, unit](std::string& text) -> std::string {
+        const double v = std::strtod(text.c_str(), nullptr);
+        return v <= limit ? "" : "'" + text + "' is more than " + format_number(limit) + " " + unit;
+      },
+      "");
+}
 
 void require_finite_numbers(CLI::App& app) {
   // No name: the help's type column stays as CLI11 writes it.

@@ -73,6 +73,8 @@ void require_in_volume(const Scene& scene, double x_mm, double y_mm, double dept
 // range up to the largest double; both refuse NaN and infinities.
 extern const CLI::Validator positive_number;
 extern const CLI::Validator non_negative_number;
+// A number no larger than `limit` ("'1e300' is more than 1e+12 photons").
+CLI::Validator at_most(double limit, const std::string& unit);
 
 // Every number option of `app` and its subcommands (CLI11 type FLOAT) refuses
 // NaN and infinities, and every unsigned one (UINT) a negative value, naming

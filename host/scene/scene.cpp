@@ -199,7 +199,8 @@ Scene parse_scene(const json& j, const std::string& origin) {
   o.lens_to_sensor_mm = rd.number(j, "lens_to_sensor_mm", "", o.lens_to_sensor_mm);
   o.working_distance_mm = rd.number(j, "working_distance_mm", "", o.working_distance_mm);
   s.photons_emitted = rd.number(j, "photons_emitted", "", s.photons_emitted);
-  if (!(s.photons_emitted > 0)) rd.fail("photons_emitted", "must be > 0");
+  if (!(s.photons_emitted > 0 && s.photons_emitted <= defaults::max_photons_emitted))
+    rd.fail("photons_emitted", "must be in (0, " + format_number(defaults::max_photons_emitted) + "]");
   if (j.contains("volume")) {
     const json& v = j["volume"];
     check_keys(rd, v, "volume.", {"x_mm", "y_mm", "depth_mm"});

@@ -234,6 +234,14 @@ TEST_CASE("bad numbers, sources behind the lenses and unwritable outputs are ref
   refused("crlb --scene " + dir + "/big.json --depth-mm 10", "sensor.width_px: must be a whole number of pixels from 1 to 65536");
   std::ofstream(dir + "/s.json") << R"({"name": "s", "sensor": 5, "lenslets": [{"x_mm": 0, "y_mm": 0, "focal_mm": 9}]})";
   refused("crlb --scene " + dir + "/s.json --depth-mm 10", "sensor: must be an object with the fields width_px");
+  // Beyond physics: photons past any event (the device's float sums gave
+  // inf), a holder bore longer than the way to the sensor.
+  refused("crlb --depth-mm 10 --photons 1e300", "--photons: '1e300' is more than 1e+12 photons");
+  std::ofstream(dir + "/s.json") << R"({"base": "prototype", "photons_emitted": 1e300})";
+  refused("crlb --scene " + dir + "/s.json --depth-mm 10", "photons_emitted: must be in (0, 1e+12]");
+  std::ofstream(dir + "/s.json") << R"({"base": "prototype", "effects": [{"name": "holder_vignetting", "bore_mm": 1e9}]})";
+  refused("crlb --scene " + dir + "/s.json --depth-mm 10",
+          "effects.holder_vignetting.bore_mm: must be in [0, lens_to_sensor_mm = 18.5 mm]");
   for (const auto& f : std::filesystem::directory_iterator(dir))  // the scene files only
     CHECK((f.path().filename() == "s.json" || f.path().filename() == "big.json"));
   std::filesystem::remove_all(dir);
