@@ -39,7 +39,11 @@ struct ReconstructArgs {
 void run(const ReconstructArgs& a) {
   check_writable(a.out);
   check_not_input(a.out, "--out", {{"--events", a.events}, {"--dictionary", a.dictionary}, {"--scene", a.scene}});
-  DictionaryReader reader(a.dictionary);
+  // --scene: the refinement's model instead of the manifest's scene; its
+  // sensor must be the one the dictionary (and so the clicks) are for.
+  std::optional<Scene> given;
+  if (!a.scene.empty()) given = load_scene(a.scene);
+  DictionaryReader reader(a.dictionary, given ? &given->optics : nullptr);
   const auto& m = reader.manifest();
   EventReader events(a.events);
   const int level = click_level(m, events.header(), a.events, a.dictionary);
@@ -65,7 +69,7 @@ void run(const ReconstructArgs& a) {
   // The continuous refinement's model: the scene's forward model, or the
   // dictionary interpolated (the default for measured dictionaries).
   const RefineModel model = choose_refine_model(a.model, m, !a.scene.empty(), a.dictionary);
-  Scene scene = a.scene.empty() ? m.scene : load_scene(a.scene);
+  const Scene scene = given ? *given : m.scene;
   std::unique_ptr<SourceModel> source_model = make_refine_model(model, scene, reader, level, ctx.get());
   std::unique_ptr<Refiner> refiner;
   if (source_model) {

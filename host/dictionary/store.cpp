@@ -330,10 +330,10 @@ DictionaryReader::DictionaryReader(std::string dir, const OpticalSystem* expect)
     if (s.sensor_width_px != expect->sensor_width_px || s.sensor_height_px != expect->sensor_height_px ||
         s.pixel_um != expect->pixel_um)
       throw DictionaryError(path + ": the dictionary is for a " + std::to_string(s.sensor_width_px) + " x " +
-                            std::to_string(s.sensor_height_px) + " px sensor of " + std::to_string(s.pixel_um) +
+                            std::to_string(s.sensor_height_px) + " px sensor of " + format_number(s.pixel_um) +
                             " um pixels, not the " + std::to_string(expect->sensor_width_px) + " x " +
                             std::to_string(expect->sensor_height_px) + " px sensor of " +
-                            std::to_string(expect->pixel_um) + " um pixels asked for");
+                            format_number(expect->pixel_um) + " um pixels of the scene given");
   }
 }
 

@@ -293,6 +293,12 @@ TEST_CASE("a second set of bad inputs: outputs over inputs, sources outside the 
           "--dictionary is read only with --truth dictionary");
   refused("crlb --depth-mm 10,20, --csv " + dir + "/c.csv", "--depth-mm: '' is not a number");
   refused("dictionary info " + events, events + ": a file, not a dictionary; a dictionary is the folder that");
+  // A refinement scene with another sensor than the dictionary's (it ran, fitting clicks to the wrong pixels).
+  std::ofstream(dir + "/px.json") << R"({"base": "prototype", "sensor": {"width_px": 3348, "height_px": 2382, "pixel_um": 13.8}})";
+  refused("reconstruct --dictionary " + d + " --events " + events + " --scene " + dir + "/px.json --out " + dir + "/r.csv",
+          "the dictionary is for a 6696 x 4764 px sensor of 6.9 um pixels, not the 3348 x 2382 px sensor of 13.8 um "
+          "pixels of the scene given");
+  CHECK_FALSE(std::filesystem::exists(dir + "/r.csv"));
   refused("dictionary info " + dir + "/none", dir + "/none: no such folder");
   CHECK_FALSE(std::filesystem::exists(dir + "/x.events"));
   refused("dictionary build --out " + dir + "/d2 --grid-x-mm 0 --grid-y-mm 0 --grid-depth-mm=-30,10",
