@@ -135,7 +135,7 @@ void add_dictionary_build(CLI::App& dictionary) {
                 "depths from the scintillator face (the default is dense near the face, README \"Dictionary\"; the paper's planes: 5:50:5)")->capture_default_str();
   c->add_option("--binning", a->binning, "level 0 = sensor pixels binned B x B (1: full resolution, 128 MB/PSF in memory)")
       ->capture_default_str()->check(CLI::Range(1, 256));
-  c->add_option("--rays", a->rays, "rays per 3 mm lenslet for each PSF")->capture_default_str()->check(CLI::Range(4u, 1u << 24));
+  c->add_option("--rays", a->rays, std::string("rays per 3 mm lenslet for each PSF, ") + rays_rounding)->capture_default_str()->check(CLI::Range(4u, 1u << 24));
   a->splat.add_to(c);
   c->add_option("--device", a->device, "Vulkan device (see prism devices)");
   c->callback([a] { run_build(*a); });

@@ -232,8 +232,8 @@ void add_evaluate(CLI::App& app) {
       ->capture_default_str();
   c->add_option("--binning", a->binning, "click binning: the dictionary's base binning x 2^k (default: base)")
       ->check(CLI::Range(1u, 1024u));
-  c->add_option("--rays", a->options.rays, "rays per 3 mm lenslet for the event truth and the CRLB (default: the "
-                                           "dictionary's, and at least 4x the refinement model's)")
+  c->add_option("--rays", a->options.rays, std::string("rays per 3 mm lenslet for the event truth and the CRLB, ") + rays_rounding +
+                                           "; default: the dictionary's, and at least 4x the refinement model's")
       ->check(CLI::Range(1u, 1u << 24));
   a->splat.add_to(c, "here for the event truth and the CRLB, by default strata other than the dictionary's (0), so "
                      "that the estimator never sees its own model");

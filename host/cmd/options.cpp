@@ -16,8 +16,8 @@ void ForwardOptions::add_to(CLI::App* app, unsigned default_binning) {
                   "Vulkan device: auto (GPU if present), gpu, cpu (lavapipe), an index or part of a name; "
                   "default $PRISM_DEVICE or auto");
   app->add_option("--rays", rays,
-                  "rays (footprint: aperture cells) per 3 mm lenslet, rounded up to an even square of strata; other "
-                  "lens sizes get the same per mm^2; 0: the converged default, " +
+                  std::string("rays (footprint: aperture cells) per 3 mm lenslet, ") + rays_rounding +
+                      "; other lens sizes get the same per mm^2; 0: the converged default, " +
                       std::to_string(defaults::rays_per_lenslet) + " footprint cells or " +
                       std::to_string(defaults::rays_per_lenslet_point) + " point rays (README, \"Convergence\")")
       ->capture_default_str()->check(CLI::Range(0u, 1u << 24));

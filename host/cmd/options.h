@@ -27,6 +27,10 @@ struct SplatOptions {
   void apply(TraceSettings& t) const;  // splat and stratification
 };
 
+// What --rays becomes, said in each command's help: the aperture is cut
+// into n x n strata, n even, so 128 runs as 144.
+inline constexpr const char* rays_rounding = "rounded up to an even square of strata (128 runs as 144)";
+
 struct ForwardOptions {
   std::string device;
   unsigned rays = 0;  // 0: the splat's converged default (TraceSettings::default_rays)

@@ -177,8 +177,8 @@ void add_simulate(CLI::App& app) {
   c->add_option("--binning", a->binning, "clicks on B x B binned pixels (forward; dictionary: base binning x 2^k, "
                                          "default its base binning)")
       ->capture_default_str()->check(CLI::Range(1u, 1024u))->each([a](const std::string&) { a->binning_given = true; });
-  c->add_option("--rays", a->rays, "forward model: rays (footprint: cells) per 3 mm lenslet aperture; 0: the splat's "
-                                   "converged default")
+  c->add_option("--rays", a->rays, std::string("forward model: rays (footprint: cells) per 3 mm lenslet aperture, ") +
+                                   rays_rounding + "; 0: the splat's converged default")
       ->capture_default_str()->check(CLI::Range(0u, 1u << 24));
   a->splat.add_to(c);
   c->add_option("--device", a->device, "Vulkan device: auto, gpu, cpu, an index or part of a name; default "

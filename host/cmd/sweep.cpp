@@ -286,7 +286,8 @@ void add_sweep(CLI::App& app) {
   c->add_option("--batch", a->batch, "candidates generated and scored together, in one dispatch")
       ->capture_default_str()->check(CLI::Range(size_t(1), size_t(4096)));
   c->add_option("--rays", a->rays,
-                "rays (cells) per 3 mm lenslet per source (other sizes: same per mm^2); default " +
+                std::string("rays (cells) per 3 mm lenslet per source, ") + rays_rounding +
+                    "; other sizes: the same per mm^2; default " +
                     std::to_string(defaults::sweep_rays_per_lenslet) + " footprint cells, " +
                     std::to_string(defaults::sweep_rays_per_lenslet_point) + " point rays")
       ->check(CLI::Range(1u, 1u << 24));
