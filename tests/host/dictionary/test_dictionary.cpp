@@ -232,7 +232,10 @@ TEST_CASE("corrupt files, wrong versions and another sensor give errors naming t
   j["version"] = 99;
   std::ofstream(manifest) << j.dump();
   CHECK_THROWS_WITH_AS(prism::DictionaryReader{copy}, doctest::Contains("version"), prism::DictionaryError);
-  CHECK_THROWS_WITH_AS(prism::DictionaryReader{copy + "/nowhere"}, doctest::Contains("no dictionary manifest"),
+  CHECK_THROWS_WITH_AS(prism::DictionaryReader{copy + "/nowhere"}, doctest::Contains("nowhere: no such folder"),
+                       prism::DictionaryError);
+  fs::create_directories(copy + "/empty");
+  CHECK_THROWS_WITH_AS(prism::DictionaryReader{copy + "/empty"}, doctest::Contains("no dictionary manifest here"),
                        prism::DictionaryError);
   fs::remove_all(copy);
 }
