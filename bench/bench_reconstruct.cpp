@@ -104,6 +104,10 @@ struct Config {
   double carry_margin_nll = ReconstructionSettings{}.carry_margin_nll;  // coarse to fine (reconstruct.h)
   bool fit_all_weights = false;  // the scan fits every PSF's weight (the path before the NLL bound)
   int click_level = 0;           // the dictionary level the events' clicks are on
+  // Device: events per scan, and the host's work on one chunk of them beside
+  // the scan of the next (reconstruct.h) or after it.
+  int scan_chunk_events = defaults::scan_chunk_events;
+  bool overlap_scans = true;
 };
 
 Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, const std::vector<Event>& events,
@@ -116,6 +120,8 @@ Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, c
   s.scan_layout = c.layout;
   s.carry_margin_nll = c.carry_margin_nll;
   s.fit_all_weights = c.fit_all_weights;
+  s.scan_chunk_events = c.scan_chunk_events;
+  s.overlap_scans = c.overlap_scans;
   DictionaryService service(reader, device ? &ctx : nullptr, s.search_level, {}, c.half);
   Row r;
   r.group = c.group;
@@ -189,7 +195,7 @@ int main(int argc, char** argv) {
     else if (a == "--groups") only = "," + value() + ",";
     else {
       std::fprintf(stderr, "usage: bench_reconstruct [--device D] [--dictionary DIR] [--native-dictionary DIR] [--out DIR] "
-                           "[--events-per-position N] [--groups backend,tier,coarse,bound,layout,step,precision,K,refine,"
+                           "[--events-per-position N] [--groups backend,tier,coarse,bound,layout,overlap,step,precision,K,refine,"
                            "native]\n");
       return a == "--help" || a == "-h" ? 0 : 2;
     }
@@ -299,6 +305,18 @@ int main(int argc, char** argv) {
     Config c{"layout", "level " + std::to_string(level) + ", workgroup layout", B::vulkan, level, 1, false, 1, 3};
     c.layout = ScanLayout::group;
     workgroups[level] = &run(c, single, single_truth);
+  }
+  // The host's work on each chunk of events beside the scan of the next, or
+  // after it: chunks of 16 of the 48 events (the CLI's are 64 of 256).
+  std::map<int, std::pair<const Row*, const Row*>> overlap;
+  for (int level : {2, 3, 4}) {
+    Config c{"overlap", "level " + std::to_string(level) + ", 16 per scan, serial", B::vulkan, level, 1, false, 1, 3};
+    c.scan_chunk_events = 16;
+    c.overlap_scans = false;
+    const Row* serial = &run(c, single, single_truth);
+    c.name = "level " + std::to_string(level) + ", 16 per scan, overlapped";
+    c.overlap_scans = true;
+    overlap[level] = {serial, &run(c, single, single_truth)};
   }
   for (int step : {2, 3}) run({"step", "level 2, shift step " + std::to_string(step), B::vulkan, 2, step, false, 1, 3}, single, single_truth);
   run({"step", "level 1, shift step 2", B::vulkan, 1, 2, false, 1, 3}, single, single_truth);
@@ -424,6 +442,12 @@ int main(int argc, char** argv) {
     if (ran(*w) && ran(*tier[level]))
       std::printf("  level %d, this device's layout vs workgroups throughout: %.2fx faster, same vertices %s\n", level,
                   w->seconds_per_event / tier[level]->seconds_per_event, same_vertices(*w, *tier[level]) ? "yes" : "NO");
+  for (auto [level, rows2] : overlap)
+    if (ran(*rows2.first) && ran(*rows2.second))
+      std::printf("  level %d, the host's work on a chunk beside the scan of the next vs after it: %.2fx faster, same "
+                  "vertices %s\n",
+                  level, rows2.first->seconds_per_event / rows2.second->seconds_per_event,
+                  same_vertices(*rows2.first, *rows2.second) ? "yes" : "NO");
   if (ran(sparse) && ran(refined_one))
     std::printf("  refinement (one start) vs search alone: %.1fx the time, mean error %.2f -> %.2f mm, median %.2f -> %.2f mm\n",
                 refined_one.seconds_per_event / sparse.seconds_per_event, sparse.err_mean_mm, refined_one.err_mean_mm,

@@ -97,6 +97,12 @@ inline constexpr double dictionary_depth_planes_mm[] = {0,  1,  2,  3,  4,    5,
 // gains little and more PSFs must be carried down. The 1210-PSF one gets
 // level 3 (5.8e4; level 4 was 1.3x faster there, level 2 2.8x slower).
 inline constexpr double search_shifts_per_click = 1.5e5;
+// Device backends scan a pass's events this many at a time (one dispatch
+// per dictionary chunk), the host descending each chunk while the device
+// scans the next (host/reconstruct/reconstruct.h); `prism reconstruct`
+// hands the search scan_chunks_per_batch such chunks at once.
+inline constexpr int scan_chunk_events = 64;
+inline constexpr int scan_chunks_per_batch = 4;
 
 // Continuous refinement of reconstructed vertices (host/reconstruct/refine.h):
 // the scene's forward model, footprint splat, at this many cells per lenslet

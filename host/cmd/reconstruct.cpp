@@ -29,10 +29,11 @@ struct ReconstructArgs {
   std::string precision = "float";
   std::string model;  // scene | none; "": scene when the dictionary was synthesised from one
   std::string scene;  // overrides the manifest's scene for --model scene
-  size_t batch = 64;
+  size_t batch = defaults::scan_chunk_events;  // events per device scan
   int level = -1;
   double budget_mib = 1024;
   unsigned threads = 1;
+  bool serial_scans = false;
   ReconstructionSettings settings;
 };
 
@@ -52,6 +53,8 @@ void run(const ReconstructArgs& a) {
                              " (the clicks' own) to " + std::to_string(m.levels - 1) + " (the coarsest in " +
                              a.dictionary + ")");
   ReconstructionSettings s = a.settings;
+  s.scan_chunk_events = int(a.batch);
+  s.overlap_scans = !a.serial_scans;
   s.search_level = a.level;  // -1: default_search_level
 
   PoolOptions po;
@@ -82,7 +85,9 @@ void run(const ReconstructArgs& a) {
   // Written aside and renamed when whole: a failure (a corrupt PSF, a
   // truncated event file) leaves an earlier CSV as it was.
   Progress progress("reconstruct", events.header().event_count);
-  const size_t batch = on_device ? std::max<size_t>(1, a.batch) : 32 * pool.workers();
+  // Device: several scans' events at once, so that the host's work on one
+  // batch runs beside the scan of the next (Reconstructor::run).
+  const size_t batch = on_device ? a.batch * size_t(defaults::scan_chunks_per_batch) : 32 * pool.workers();
   std::vector<Event> in(batch);
   uint64_t done = 0, flagged = 0, clicks = 0, scored = 0;
   double error_sum_mm = 0;
@@ -96,8 +101,11 @@ void run(const ReconstructArgs& a) {
       size_t n = 0;
       while (n < batch && (more = events.next(in[n]))) ++n;
       auto out = pool.run(std::span<const Event>(in.data(), n));
-      if (refiner)
-        for (size_t i = 0; i < n; ++i) out[i] = refiner->refine(in[i], std::move(out[i]));
+      if (refiner)  // seconds per event: progress as each is done
+        for (size_t i = 0; i < n; ++i) {
+          out[i] = refiner->refine(in[i], std::move(out[i]));
+          progress.update(done + i + 1);
+        }
       for (size_t i = 0; i < n; ++i) {
         const Event& e = in[i];
         clicks += e.clicks.size();
@@ -130,8 +138,9 @@ void run(const ReconstructArgs& a) {
   double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   const unsigned threads = pool.workers();
   if (on_device)
-    std::printf("# device: %s; %s scan, %s dictionary on the device, batches of %zu events\n",
-                ctx->describe().c_str(), to_string(po.backend), a.precision.c_str(), batch);
+    std::printf("# device: %s; %s scan, %s dictionary on the device, batches of %zu events, %s\n",
+                ctx->describe().c_str(), to_string(po.backend), a.precision.c_str(), a.batch,
+                a.serial_scans ? "each scanned, then the host's work on it" : "the host's work on one beside the scan of the next");
   else
     std::printf("# device: CPU reference (double precision, %u thread%s)\n", threads, threads == 1 ? "" : "s");
   std::printf("%s: %llu events, K = %d, %.1f clicks per event; clicks on level %d, search on level %d, tau %.2f mm\n",
@@ -140,8 +149,12 @@ void run(const ReconstructArgs& a) {
   std::printf("%.2f s, %.1f events/s; %llu vertices flagged\n", seconds, seconds > 0 ? double(done) / seconds : 0.0,
               (unsigned long long)flagged);
   const auto t = pool.timings();
-  std::printf("time: support scans %.2f s, the rest on the host %.2f s%s\n", t.scan_s, t.host_s,
-              threads > 1 ? " (summed over threads)" : "");
+  if (on_device)  // the scans ran beside the host's work (ReconstructionSettings::overlap_scans)
+    std::printf("time: support scans %.2f s, the search's host work %.2f s; the host waited %.2f s for scans\n",
+                t.scan_s, t.host_s, t.scan_wait_s);
+  else
+    std::printf("time: support scans %.2f s, the rest on the host %.2f s%s\n", t.scan_s, t.host_s,
+                threads > 1 ? " (summed over threads)" : "");
   if (t.scan_candidates > 0)
     std::printf("weights fitted in the scans: %llu of %llu (event, PSF) candidates (%.1f%%; the rest bounded out)\n",
                 (unsigned long long)t.scan_fits, (unsigned long long)t.scan_candidates,
@@ -186,7 +199,12 @@ void add_reconstruct(CLI::App& app) {
   c->add_option("--device", a->device, "Vulkan device (see `prism devices`)");
   c->add_option("--precision", a->precision, "the scan level's values on the device: float or half")
       ->capture_default_str()->check(CLI::IsMember({"float", "half"}));
-  c->add_option("--batch", a->batch, "events per device scan")->capture_default_str()->check(CLI::Range(1, 65535));
+  c->add_option("--batch", a->batch, "events per device scan; the host's work on one batch runs while the device "
+                 "scans the next")
+      ->capture_default_str()->check(CLI::Range(1, 65535));
+  c->add_flag("--serial-scans", a->serial_scans,
+              "scan a batch, then do the host's work on it, then scan the next, instead of the two side by side "
+              "(the same results; for comparison)");
   c->add_option("--scan-step", a->settings.scan_step_px, "the scan tries shifts on multiples of this (pixels of the "
                  "scan level); the best candidates are re-searched around theirs")
       ->capture_default_str()->check(CLI::Range(1, 64));

@@ -76,6 +76,7 @@ ReconstructionTimings ReconstructionPool::timings() const {
   for (const auto& w : workers_) {
     const auto& t = w->timings();
     sum.scan_s += t.scan_s;
+    sum.scan_wait_s += t.scan_wait_s;
     sum.scan_kernel_ms += t.scan_kernel_ms;
     sum.host_s += t.host_s;
     sum.scans += t.scans;

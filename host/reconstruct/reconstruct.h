@@ -29,6 +29,7 @@
 
 #include <glm/glm.hpp>
 
+#include "engine/defaults.h"
 #include "engine/support_scan.h"
 #include "host/dictionary/service.h"
 #include "host/events/event_file.h"
@@ -58,6 +59,12 @@ struct ReconstructionSettings {
                                  // candidates are then re-searched +-(step - 1) around their best
   ScanLayout scan_layout = ScanLayout::automatic;  // device layout of the scan's weight fits (engine/support_scan.h);
                                               // the same results either way
+  // Device backends: each pass's events go to the device this many at a
+  // time; with overlap_scans the host descends one chunk (tiles, weights,
+  // depth) while the device scans the next, else each chunk is scanned,
+  // then descended. The same results either way (each event is scored alone).
+  int scan_chunk_events = defaults::scan_chunk_events;
+  bool overlap_scans = true;
   // The device scan fits the weights only of PSFs whose NLL bound shows they
   // can still be carried or selected (engine/support_scan.h, ScanSettings);
   // true: of every PSF, as before the bound (the same vertices; benchmarks
@@ -127,6 +134,7 @@ int select_level(const ReconstructionSettings& s, int click_level);
 // Where the time of a batch went.
 struct ReconstructionTimings {
   double scan_s = 0;         // the support scans over every PSF (device: dispatch to results on the host)
+  double scan_wait_s = 0;    // of which the host spent waiting (device backends: the rest ran beside host work)
   double scan_kernel_ms = 0; // of which the kernels themselves (GPU timestamps), device backends
   double host_s = 0;         // everything else: gradients, refinement, weights, descent, depth
   uint64_t scans = 0;        // events x passes scanned

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <future>
 
 #include "engine/defaults.h"
 #include "host/reconstruct/event_fit.h"
@@ -204,24 +205,54 @@ std::vector<std::vector<ReconstructedVertex>> Reconstructor::run(std::span<const
         auto b = clock::now();
         fits[i].add_vertex(std::move(scored));
         timings_.scan_s += seconds(a, b);
+        timings_.scan_wait_s += seconds(a, b);
         host_s += seconds(b, clock::now());
       }
       continue;
     }
-    auto a = clock::now();
-    std::vector<ScanEvent> inputs;
-    for (size_t i : active) inputs.push_back(fits[i].scan_input(backend_ == ReconstructionBackend::dense));
-    auto b = clock::now();
-    auto results = device_->run(scan_level_, inputs, scan);
-    auto c = clock::now();
-    timings_.scan_kernel_ms += device_->last_kernel_ms();
-    timings_.scan_fallbacks += device_->last_fallbacks();
-    timings_.scan_fits += device_->last_fits();
-    timings_.scan_candidates += device_->last_candidates();
-    timings_.scan_device_bytes = std::max(timings_.scan_device_bytes, device_->last_device_bytes());
-    for (size_t j = 0; j < active.size(); ++j) fits[active[j]].add_vertex(to_scores(results, j, n_psf));
-    timings_.scan_s += seconds(b, c);
-    host_s += seconds(a, b) + seconds(c, clock::now());
+    // The device scans chunk c + 1 on a thread of its own while this one
+    // descends chunk c: on a CPU device the scan's threads and the host's
+    // descent then share the cores instead of taking turns, on a GPU the
+    // host's work hides behind the device's. Only the scan thread touches
+    // the device, only this one the dictionary service's tiles.
+    const size_t per_chunk = size_t(std::max(1, s_.scan_chunk_events));
+    struct Scanned {
+      std::vector<ScanResult> results;
+      double seconds = 0;
+    };
+    auto launch = [&](size_t first) {
+      auto a = clock::now();
+      std::vector<ScanEvent> inputs;
+      for (size_t j = first; j < std::min(active.size(), first + per_chunk); ++j)
+        inputs.push_back(fits[active[j]].scan_input(backend_ == ReconstructionBackend::dense));
+      host_s += seconds(a, clock::now());
+      return std::async(std::launch::async, [this, &scan, inputs = std::move(inputs)] {
+        auto b = clock::now();
+        Scanned out{device_->run(scan_level_, inputs, scan), 0.0};
+        out.seconds = std::chrono::duration<double>(clock::now() - b).count();
+        return out;
+      });
+    };
+    auto next = launch(0);
+    for (size_t first = 0; first < active.size(); first += per_chunk) {
+      auto w = clock::now();
+      Scanned done = next.get();
+      const bool more = first + per_chunk < active.size();
+      auto c = clock::now();
+      timings_.scan_wait_s += seconds(w, c);
+      timings_.scan_s += done.seconds;
+      timings_.scan_kernel_ms += device_->last_kernel_ms();
+      timings_.scan_fallbacks += device_->last_fallbacks();
+      timings_.scan_fits += device_->last_fits();
+      timings_.scan_candidates += device_->last_candidates();
+      timings_.scan_device_bytes = std::max(timings_.scan_device_bytes, device_->last_device_bytes());
+      if (more && s_.overlap_scans) next = launch(first + per_chunk);
+      auto h = clock::now();
+      for (size_t j = first; j < std::min(active.size(), first + per_chunk); ++j)
+        fits[active[j]].add_vertex(to_scores(done.results, j - first, n_psf));
+      host_s += seconds(h, clock::now());
+      if (more && !s_.overlap_scans) next = launch(first + per_chunk);
+    }
   }
   auto d = clock::now();
   std::vector<std::vector<ReconstructedVertex>> out;

@@ -842,6 +842,34 @@ TEST_CASE("reconstruction on the device: the hazard events give the reference's 
           CHECK(g.alpha == doctest::Approx(r.alpha).epsilon(1e-3));
           CHECK(g.nll == doctest::Approx(r.nll).epsilon(1e-5));
         }
+      // One event per scan, the host's work on each beside the scan of the
+      // next or after it: bit for bit the whole batch's vertices (each event
+      // is scored alone).
+      if (backend != B::vulkan || half) continue;
+      for (bool overlap : {true, false}) {
+        auto s = settings(k);
+        s.scan_chunk_events = 1;
+        s.overlap_scans = overlap;
+        DeviceRun c(backend, s);
+        auto again = c.reconstructor.run(mine);
+        REQUIRE(again.size() == got.size());
+        for (size_t i = 0; i < mine.size(); ++i)
+          for (size_t v = 0; v < size_t(k); ++v) {
+            CAPTURE(overlap);
+            CAPTURE(k);
+            CAPTURE(i);
+            CAPTURE(v);
+            const auto &a = again[i].at(v), &g = got[i].at(v);
+            CHECK(a.psf == g.psf);
+            CHECK(a.shift_px == g.shift_px);
+            CHECK(a.flags == g.flags);
+            CHECK(a.x_mm == g.x_mm);
+            CHECK(a.y_mm == g.y_mm);
+            CHECK(a.depth_mm == g.depth_mm);
+            CHECK(a.alpha == g.alpha);
+            CHECK(a.nll == g.nll);
+          }
+      }
     }
   }
   prism::test::check_validation_clean();
