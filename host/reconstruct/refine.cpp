@@ -392,40 +392,53 @@ Refiner::Refiner(SourceModel& model, const Scene& scene, const AnalysisGrid& cli
         "sites' blur >= 0");
 }
 
-// Goodness of fit: T = sum over pixels of the binary NLL, observed against
-// draws from the fitted model (seeded by the event id). T = const + sum over
-// clicked pixels of (-log p - lambda), so only the clicks' terms vary.
+double binary_fit_pvalue(const std::unordered_map<uint32_t, double>& rates, std::span<const uint32_t> clicks,
+                         double dark, double pixels, int draws, uint64_t seed) {
+  // T = const + sum over clicked pixels of (-log p - lambda), p = 1 - exp(-lambda):
+  // only the clicks' terms vary.
+  auto click_term = [](double l) { return -ref::log_click(l) - l; };
+  const double dark_term = click_term(dark);
+  double t_obs = 0;
+  for (uint32_t c : clicks) {
+    auto it = rates.find(c);
+    t_obs += it != rates.end() ? click_term(it->second) : dark_term;
+  }
+  std::mt19937_64 rng(seed);
+  std::uniform_real_distribution<double> U(0.0, 1.0);
+  const double dark_pixels = std::max(0.0, pixels - double(rates.size()));
+  std::poisson_distribution<int> dark_draw(dark_pixels * -std::expm1(-dark));
+  std::vector<double> t(size_t(std::max(0, draws)));
+  for (double& x : t) x = double(dark_draw(rng)) * dark_term;
+  // In index order, so that a seed gives one answer whatever the map's order.
+  std::vector<std::pair<uint32_t, double>> lit(rates.begin(), rates.end());
+  std::sort(lit.begin(), lit.end());
+  for (const auto& [index, lambda] : lit) {
+    const double p = -std::expm1(-lambda), term = click_term(lambda);
+    if (!(p > 0)) continue;
+    if (p >= 1) {
+      for (double& x : t) x += term;
+      continue;
+    }
+    // The draws where this pixel clicks: gaps of failures, floor(log V / log(1 - p)).
+    const double log_q = std::log1p(-p);
+    for (double d = -1;;) {
+      d += 1 + std::floor(std::log(1.0 - U(rng)) / log_q);
+      if (!(d < double(t.size()))) break;
+      t[size_t(d)] += term;
+    }
+  }
+  size_t at_least = 0;
+  for (double x : t) at_least += x >= t_obs;
+  return (1.0 + double(at_least)) / (1.0 + double(t.size()));
+}
+
+// Goodness of fit of the fitted model (binary_fit_pvalue), seeded by the event id.
 double Refiner::fit_pvalue(const Fit& f, uint64_t event_id) const {
   std::unordered_map<uint32_t, double> lam;
   for (size_t k = 0; k < f.K; ++k)
     for (const auto& m : f.img[k].pixels) lam.try_emplace(m.index, s_.dark_rate).first->second += f.alpha[k] * m.p;
-  auto click_term = [](double l) { return -ref::log_click(l) - l; };
-  double t_obs = 0;
-  size_t dark_clicks_obs = 0;
-  for (uint32_t c : f.clicks) {
-    auto it = lam.find(c);
-    if (it != lam.end()) t_obs += click_term(it->second);
-    else ++dark_clicks_obs;
-  }
-  const double dark_term = click_term(s_.dark_rate);
-  t_obs += double(dark_clicks_obs) * dark_term;
-  std::vector<double> p_click, term;
-  for (const auto& [idx, l] : lam) {
-    p_click.push_back(-std::expm1(-l));
-    term.push_back(click_term(l));
-  }
-  const double dark_pixels = std::max(0.0, double(grid_.width) * double(grid_.height) - double(lam.size()));
-  std::mt19937_64 rng(0x9e3779b97f4a7c15ull ^ event_id);
-  std::uniform_real_distribution<double> U(0.0, 1.0);
-  std::poisson_distribution<int> dark_draw(dark_pixels * -std::expm1(-s_.dark_rate));
-  int at_least = 0;
-  for (int d = 0; d < s_.pvalue_draws; ++d) {
-    double t = double(dark_draw(rng)) * dark_term;
-    for (size_t i = 0; i < p_click.size(); ++i)
-      if (U(rng) < p_click[i]) t += term[i];
-    at_least += t >= t_obs;
-  }
-  return (1.0 + at_least) / (1.0 + s_.pvalue_draws);
+  return binary_fit_pvalue(lam, f.clicks, s_.dark_rate, double(grid_.width) * double(grid_.height), s_.pvalue_draws,
+                           0x9e3779b97f4a7c15ull ^ event_id);
 }
 
 std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector<ReconstructedVertex> rows) {

@@ -37,6 +37,7 @@
 #include <cstdint>
 #include <memory>
 #include <span>
+#include <unordered_map>
 #include <vector>
 
 #include <glm/glm.hpp>
@@ -172,6 +173,17 @@ class Refiner {
   std::vector<glm::dvec2> rescue_lattice_mm_;  // those up to 2 pitches, for the rescue of a poor fit
   RefineStats stats_;
 };
+
+// The goodness of fit of an event on the binary sensor: T = the NLL over
+// every pixel, observed (the clicks) against `draws` events drawn from the
+// model itself with an RNG seeded by `seed`; returns (1 + the draws with T at
+// least the event's) / (1 + draws). `rates`: lambda (dark included) at each
+// pixel the model lights, by index; the rest of the grid's `pixels` have
+// lambda = `dark` (their clicks drawn as one Poisson count). Each lit pixel's
+// clicks are placed by geometric gaps between the draws where it clicks,
+// so that a pixel costs 1 + draws x P(click), not draws.
+double binary_fit_pvalue(const std::unordered_map<uint32_t, double>& rates, std::span<const uint32_t> clicks,
+                         double dark, double pixels, int draws, uint64_t seed);
 
 // The lenslet lattice's vectors at most `max_pitches` times the
 // nearest-neighbour distance, each once (a vector and its negative both).

@@ -489,3 +489,58 @@ TEST_CASE("refinement: blurred images keep their light and their gradients' sums
   const auto corner = prism::blurred(image_at(0, 0), 1.0, g);
   CHECK(sums(corner).first == doctest::Approx(0.25 * kept(0) * kept(0) + 0.75 * kept(1) * kept(0)).epsilon(1e-12));
 }
+
+TEST_CASE("goodness of fit: the Monte Carlo p-value equals the exact one of a small sensor, dark pixels included") {
+  // Eight lit pixels (lambda from 0.01 to 4) and four dark ones: every one
+  // of the 2^12 click patterns enumerated gives the exact P(T >= T_obs) of
+  // T = sum over pixels of the binary NLL. The Monte Carlo draws the dark
+  // pixels' clicks as one Poisson count and places each lit pixel's clicks
+  // by geometric gaps; with 2e5 draws it must agree within 4 standard errors.
+  const std::vector<double> lit{0.05, 0.3, 1.2, 2.5, 0.01, 0.7, 4.0, 0.2};
+  const int dark_pixels = 4;
+  const double dark = 1e-3;
+  std::unordered_map<uint32_t, double> rates;
+  for (size_t i = 0; i < lit.size(); ++i) rates[uint32_t(10 + 3 * i)] = lit[i];  // scattered indices
+  std::vector<double> lambda = lit;
+  std::vector<uint32_t> index;
+  for (size_t i = 0; i < lit.size(); ++i) index.push_back(uint32_t(10 + 3 * i));
+  for (int d = 0; d < dark_pixels; ++d) lambda.push_back(dark), index.push_back(uint32_t(100 + d));
+  const size_t n = lambda.size();
+  // T of a pattern up to a constant: sum over its clicks of -log(1 - exp(-l)) - l.
+  auto term = [](double l) { return -std::log(-std::expm1(-l)) - l; };
+  auto exact = [&](uint32_t observed) {
+    double t_obs = 0;
+    for (size_t i = 0; i < n; ++i)
+      if (observed >> i & 1u) t_obs += term(lambda[i]);
+    double p = 0;
+    for (uint32_t pattern = 0; pattern < (1u << n); ++pattern) {
+      double prob = 1, t = 0;
+      for (size_t i = 0; i < n; ++i) {
+        const double click = -std::expm1(-lambda[i]);
+        if (pattern >> i & 1u) prob *= click, t += term(lambda[i]);
+        else prob *= 1 - click;
+      }
+      if (t >= t_obs - 1e-12) p += prob;
+    }
+    return p;
+  };
+  const int draws = 200000;
+  // Patterns from typical to unlikely: the bright pixels alone, a faint one
+  // clicked, a dark pixel clicked, the bright ones dark.
+  for (uint32_t observed : {0b01001100u, 0b01011100u, 0b000101001100u, 0b00000011u, 0b11110001u}) {
+    std::vector<uint32_t> clicks;
+    for (size_t i = 0; i < n; ++i)
+      if (observed >> i & 1u) clicks.push_back(index[i]);
+    const double want = exact(observed);
+    const double got = prism::binary_fit_pvalue(rates, clicks, dark, double(n), draws, 7 + observed);
+    const double se = std::sqrt(want * (1 - want) / draws) + 1.0 / draws;
+    CAPTURE(observed);
+    CAPTURE(want);
+    CAPTURE(got);
+    CHECK(std::abs(got - want) < 4 * se);
+  }
+  // A seed gives one answer.
+  const std::vector<uint32_t> some{10, 16, 19};
+  CHECK(prism::binary_fit_pvalue(rates, some, dark, double(n), 1000, 3) ==
+        prism::binary_fit_pvalue(rates, some, dark, double(n), 1000, 3));
+}
