@@ -211,10 +211,12 @@ std::vector<std::vector<ReconstructedVertex>> Reconstructor::run(std::span<const
       continue;
     }
     // The device scans chunk c + 1 on a thread of its own while this one
-    // descends chunk c: on a CPU device the scan's threads and the host's
-    // descent then share the cores instead of taking turns, on a GPU the
-    // host's work hides behind the device's. Only the scan thread touches
-    // the device, only this one the dictionary service's tiles.
+    // descends chunk c (overlap_scans; else each chunk is scanned, then
+    // descended): on a CPU device the scan's threads and the host's descent
+    // then share the cores instead of taking turns, on a GPU the host's work
+    // hides behind the device's. Only the scan thread touches the device,
+    // only this one the dictionary service's tiles (the scan's inputs are
+    // built here too).
     const size_t per_chunk = size_t(std::max(1, s_.scan_chunk_events));
     struct Scanned {
       std::vector<ScanResult> results;
