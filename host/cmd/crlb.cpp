@@ -113,16 +113,8 @@ void run(const CrlbArgs& a) {
     std::fprintf(stderr, "prism crlb: %s (%s lens), %zu positions, %u rays/lenslet ...", scene.name.c_str(),
                  to_string(scene.optics.lens_model), positions.size(), t.rays());
     std::fflush(stderr);
-    std::vector<CrlbRow> rows;
-    if (a.converge > 0) {
-      rows = crlb_converged(scene, positions, t, a.converge, a.max_rays, a.fw.backend_kind(), sensor, ctx.get());
-    } else {
-      TraceSettings quarter = t;
-      quarter.rays_per_lenslet = std::max(4u, t.rays_per_lenslet / 4);
-      rows = crlb_converged(scene, positions, quarter, tol, t.rays_per_lenslet, a.fw.backend_kind(), sensor, ctx.get());
-    }
-    for (auto& r : rows)
-      if (r.crlb.flag == "ok" && !(r.change <= tol)) r.crlb.flag = "moving";
+    std::vector<CrlbRow> rows =
+        crlb_checked(scene, positions, t, a.converge, a.max_rays, a.fw.backend_kind(), sensor, ctx.get());
     double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
     std::fprintf(stderr, " %.2f s\n", s);
     std::unique_ptr<SourceModel> model;

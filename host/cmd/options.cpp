@@ -55,25 +55,10 @@ void SplatOptions::apply(TraceSettings& t) const {
 }
 
 TraceSettings ForwardOptions::settings(const Scene& scene) const {
-  TraceSettings t;
-  t.binning = binning;
-  t.photons_emitted = photons > 0 ? photons : scene.photons_emitted;
-  splat.apply(t);
-  t.rays_per_lenslet = rays ? rays : TraceSettings::default_rays(t.splat);
-  if (estimator == "auto") t.estimator = TraceSettings::default_estimator(t.splat);
-  else t.estimator = estimator == "naive" ? FisherEstimator::naive : FisherEstimator::split;
-  return t;
+  return trace_settings(scene, binning, rays, photons, splat.kind(), splat.stratification, estimator);
 }
 
-void ForwardOptions::apply(Scene& scene) const {
-  if (lens_model.empty()) return;
-  scene.optics.lens_model = lens_model == "real" ? LensModel::real : LensModel::thin;
-  try {
-    validate(scene.optics);
-  } catch (const std::invalid_argument& e) {
-    throw std::runtime_error("scene " + scene.name + " with --lens-model " + lens_model + ": " + e.what());
-  }
-}
+void ForwardOptions::apply(Scene& scene) const { override_lens_model(scene, lens_model, "--lens-model"); }
 
 namespace {
 
@@ -137,25 +122,6 @@ std::string format_list(std::span<const double> values) {
     out += b;
   }
   return out;
-}
-
-void require_in_front(const Scene& scene, double depth_mm, const std::string& option) {
-  const double wd = scene.optics.working_distance_mm;
-  if (!scene.optics.in_front(depth_mm))
-    throw std::runtime_error(option + ": depth " + format_number(depth_mm) + " mm is not in front of " + scene.name +
-                             "'s lenses, which lie " + format_number(wd) +
-                             " mm before the scintillator face: give a depth > " + format_number(-wd) + " mm");
-}
-
-void require_in_volume(const Scene& scene, double x_mm, double y_mm, double depth_mm, const std::string& option) {
-  const Volume& v = scene.volume;
-  for (const auto& [name, value, lo, hi] : {std::tuple{"x", x_mm, v.x_min_mm, v.x_max_mm},
-                                            {"y", y_mm, v.y_min_mm, v.y_max_mm},
-                                            {"depth", depth_mm, v.depth_min_mm, v.depth_max_mm}})
-    if (!(value >= lo && value <= hi))
-      throw std::runtime_error(option + ": " + name + " " + format_number(value) + " mm lies outside " + scene.name +
-                               "'s volume (" + name + " " + format_number(lo) + ".." + format_number(hi) +
-                               " mm), where events happen; move the vertex or widen the scene file's \"volume\"");
 }
 
 namespace {

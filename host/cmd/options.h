@@ -65,13 +65,6 @@ std::vector<double> parse_numbers(const std::string& text, const std::string& op
 // "X,Y,DEPTH".
 glm::dvec3 parse_point(const std::string& text, const std::string& option);
 
-// A source must be in front of the lenses: depth (from the scintillator face)
-// > -working distance. Throws naming the option and the scene's limit.
-void require_in_front(const Scene& scene, double depth_mm, const std::string& option);
-// Throws naming `option` unless (x, y, depth) lies in the scene's volume
-// (the scintillator, where events happen).
-void require_in_volume(const Scene& scene, double x_mm, double y_mm, double depth_mm, const std::string& option);
-
 // Checks for number options that say what is wrong in words ("--photons: 0
 // must be > 0"), where CLI11's PositiveNumber and NonNegativeNumber print a
 // range up to the largest double; both refuse NaN and infinities.

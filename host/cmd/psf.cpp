@@ -2,13 +2,12 @@
 #include <cstdio>
 #include <filesystem>
 
-#include "engine/forward.h"
-#include "engine/ref/forward_ref.h"
 #include "host/cmd/commands.h"
 #include "host/cmd/options.h"
 #include "host/util/output_file.h"
 #include "host/util/image_io.h"
 #include "host/util/memory.h"
+#include "host/scene/psf_render.h"
 
 namespace prism::cmd {
 
@@ -35,39 +34,16 @@ void run(const PsfArgs& a) {
   require_in_front(scene, theta.z, "--source-mm");
   TraceSettings t = a.fw.settings(scene);
   const AnalysisGrid grid = AnalysisGrid::of(scene.optics, t.binning);
-  const double px = double(grid.width) * grid.height;
   MemoryEstimate memory("psf at binning " + std::to_string(t.binning) + " (" + std::to_string(grid.width) +
                         " x " + std::to_string(grid.height) + " px)");
-  memory.add("the image and its derivatives, 4 floats per pixel", 16 * px).add("the PNG preview", px);
-  const bool vulkan = a.fw.backend_kind() == Backend::vulkan;
-  if (!vulkan) memory.add("the CPU reference's sparse image, up to every pixel", ref::SparseImage::bytes_per_pixel * px);
-  if (vulkan && !a.derivatives) memory.add("the values from the device", 4 * px);
-  PixelImage img;
+  memory.add("the PNG preview", double(grid.width) * grid.height);
+  std::unique_ptr<vk::Context> ctx;
   std::string device = "CPU reference (double precision)";
-  if (vulkan) {
-    vk::Context ctx(vk::ContextOptions{a.fw.device});
-    device = ctx.describe();
-    memory.add_device_buffers(double(ForwardVulkan::device_bytes_at_most(grid, t.splat)), ctx.is_cpu());
-    memory.require_within_limit("Use a coarser --binning");
-    ForwardVulkan fw(ctx, scene.optics, t);
-    if (a.derivatives) {
-      img = fw.psf(theta);
-    } else {
-      // b alone: 4 bytes per pixel on the device instead of 32.
-      auto b = fw.psf_values(theta);
-      img = {fw.grid().width, fw.grid().height, fw.grid().pixel_mm, std::vector<float>(4 * b.size(), 0.0f)};
-      for (size_t i = 0; i < b.size(); ++i) img.data[4 * i] = b[i];
-    }
-  } else {
-    memory.require_within_limit("Use a coarser --binning");
-    auto sparse = ref::psf(scene.optics, t, theta);
-    img = {sparse.width, sparse.height, AnalysisGrid::of(scene.optics, t.binning).pixel_mm,
-           std::vector<float>(size_t(sparse.width) * sparse.height * 4, 0.0f)};
-    for (const auto& [k, v] : sparse.pixels) {
-      auto px = sparse.value(k);
-      for (int c = 0; c < 4; ++c) img.data[size_t(k) * 4 + c] = float(px[c]);
-    }
+  if (a.fw.backend_kind() == Backend::vulkan) {
+    ctx = std::make_unique<vk::Context>(vk::ContextOptions{a.fw.device});
+    device = ctx->describe();
   }
+  const PixelImage img = render_psf(scene, t, theta, a.derivatives, a.fw.backend_kind(), ctx.get(), memory);
   std::vector<ExrChannel> channels{{"Y", img.data.data(), 4}};
   if (a.derivatives) {
     channels.push_back({"db_dx", img.data.data() + 1, 4});

@@ -13,8 +13,7 @@
 #include "host/cmd/commands.h"
 #include "host/cmd/options.h"
 #include "host/reconstruct/match.h"
-#include "host/reconstruct/pool.h"
-#include "host/reconstruct/refine.h"
+#include "host/reconstruct/session.h"
 #include "host/util/output_file.h"
 #include "host/util/progress.h"
 
@@ -24,70 +23,28 @@ namespace {
 
 struct ReconstructArgs {
   std::string dictionary, events, out;
-  std::string backend = "vulkan";
   std::string device;
-  std::string precision = "float";
-  std::string model;  // scene | none; "": scene when the dictionary was synthesised from one
-  std::string scene;  // overrides the manifest's scene for --model scene
-  size_t batch = defaults::scan_chunk_events;  // events per device scan
-  int level = -1;
-  double budget_mib = 1024;
-  unsigned threads = 1;
-  bool serial_scans = false;
-  ReconstructionSettings settings;
+  SessionOptions session;
 };
 
 void run(const ReconstructArgs& a) {
   check_writable(a.out);
-  check_not_input(a.out, "--out", {{"--events", a.events}, {"--dictionary", a.dictionary}, {"--scene", a.scene}});
-  // --scene: the refinement's model instead of the manifest's scene; its
-  // sensor must be the one the dictionary (and so the clicks) are for.
-  std::optional<Scene> given;
-  if (!a.scene.empty()) given = load_scene(a.scene);
-  DictionaryReader reader(a.dictionary, given ? &given->optics : nullptr);
-  const auto& m = reader.manifest();
+  check_not_input(a.out, "--out",
+                  {{"--events", a.events}, {"--dictionary", a.dictionary}, {"--scene", a.session.scene}});
   EventReader events(a.events);
-  const int level = click_level(m, events.header(), a.events, a.dictionary);
-  if (a.level >= 0 && (a.level < level || a.level >= m.levels))
-    throw std::runtime_error("--level " + std::to_string(a.level) + ": choose a level from " + std::to_string(level) +
-                             " (the clicks' own) to " + std::to_string(m.levels - 1) + " (the coarsest in " +
-                             a.dictionary + ")");
-  ReconstructionSettings s = a.settings;
-  s.scan_chunk_events = int(a.batch);
-  s.overlap_scans = !a.serial_scans;
-  s.search_level = a.level;  // -1: default_search_level
-
-  PoolOptions po;
-  po.backend = backend_from_string(a.backend);
-  const bool on_device = po.backend != ReconstructionBackend::cpu;
   std::unique_ptr<vk::Context> ctx;
-  if (on_device) ctx = std::make_unique<vk::Context>(vk::ContextOptions{a.device});
-  po.ctx = ctx.get();
-  po.threads = a.threads;
-  // Saturated: a budget past 8 EiB is refused by the memory check below, naming --budget-mib.
-  po.host_budget_bytes = uint64_t(std::min(a.budget_mib * double(1 << 20), 0x1p63));
-  po.device_half = a.precision == "half";
-  ReconstructionPool pool(reader, level, s, po);
-
-  // The continuous refinement's model: the scene's forward model, or the
-  // dictionary interpolated (the default for measured dictionaries).
-  const RefineModel model = choose_refine_model(a.model, m, !a.scene.empty(), a.dictionary);
-  const Scene scene = given ? *given : m.scene;
-  std::unique_ptr<SourceModel> source_model = make_refine_model(model, scene, reader, level, ctx.get());
-  std::unique_ptr<Refiner> refiner;
-  if (source_model) {
-    RefineSettings rs;
-    rs.dark_rate = s.dark_rate;
-    rs.alpha_max = s.alpha_max;
-    refiner = std::make_unique<Refiner>(*source_model, scene, m.level_grid(level), rs);
-  }
+  if (backend_from_string(a.session.backend) != ReconstructionBackend::cpu)
+    ctx = std::make_unique<vk::Context>(vk::ContextOptions{a.device});
+  ReconstructionSession session(a.dictionary, events.header(), a.events, a.session, ctx.get());
+  const ReconstructionPool& pool = session.pool();
+  const ReconstructionSettings& s = session.settings();
+  const bool on_device = session.on_device();
+  const Refiner* refiner = session.refiner();
 
   // Written aside and renamed when whole: a failure (a corrupt PSF, a
   // truncated event file) leaves an earlier CSV as it was.
   Progress progress("reconstruct", events.header().event_count);
-  // Device: several scans' events at once, so that the host's work on one
-  // batch runs beside the scan of the next (Reconstructor::run).
-  const size_t batch = on_device ? a.batch * size_t(defaults::scan_chunks_per_batch) : 32 * pool.workers();
+  const size_t batch = session.batch_events();
   std::vector<Event> in(batch);
   uint64_t done = 0, flagged = 0, clicks = 0, scored = 0;
   double error_sum_mm = 0;
@@ -100,12 +57,8 @@ void run(const ReconstructArgs& a) {
     for (bool more = true; more;) {
       size_t n = 0;
       while (n < batch && (more = events.next(in[n]))) ++n;
-      auto out = pool.run(std::span<const Event>(in.data(), n));
-      if (refiner)  // seconds per event: progress as each is done
-        for (size_t i = 0; i < n; ++i) {
-          out[i] = refiner->refine(in[i], std::move(out[i]));
-          progress.update(done + i + 1);
-        }
+      // Refinement takes seconds per event: progress as each is done.
+      auto out = session.run(std::span<const Event>(in.data(), n), [&](size_t i) { progress.update(done + i + 1); });
       for (size_t i = 0; i < n; ++i) {
         const Event& e = in[i];
         clicks += e.clicks.size();
@@ -139,12 +92,12 @@ void run(const ReconstructArgs& a) {
   const unsigned threads = pool.workers();
   if (on_device)
     std::printf("# device: %s; %s scan, %s dictionary on the device, batches of %zu events, %s\n",
-                ctx->describe().c_str(), to_string(po.backend), a.precision.c_str(), a.batch,
-                a.serial_scans ? "each scanned, then the host's work on it" : "the host's work on one beside the scan of the next");
+                ctx->describe().c_str(), a.session.backend.c_str(), a.session.precision.c_str(), a.session.batch,
+                a.session.serial_scans ? "each scanned, then the host's work on it" : "the host's work on one beside the scan of the next");
   else
     std::printf("# device: CPU reference (double precision, %u thread%s)\n", threads, threads == 1 ? "" : "s");
   std::printf("%s: %llu events, K = %d, %.1f clicks per event; clicks on level %d, search on level %d, tau %.2f mm\n",
-              a.out.c_str(), (unsigned long long)done, s.vertices, done ? double(clicks) / double(done) : 0.0, level,
+              a.out.c_str(), (unsigned long long)done, s.vertices, done ? double(clicks) / double(done) : 0.0, session.click_level(),
               pool.search_level(), s.tau_mm);
   std::printf("%.2f s, %.1f events/s; %llu vertices flagged\n", seconds, seconds > 0 ? double(done) / seconds : 0.0,
               (unsigned long long)flagged);
@@ -163,10 +116,10 @@ void run(const ReconstructArgs& a) {
     std::printf("refinement (%s): %.2f s, %.1f starts and %.1f LM steps per event, %llu renders; %llu poor fits "
                 "sent to the far aliases, %llu poor, marginal or shallow ones had the clicks' votes counted (%llu voted depths scanned); "
                 "%llu events of K > 1 re-seeded from their unclaimed clicks; %llu of %llu blurred refits lowered the NLL\n",
-                describe(model, scene).c_str(), refiner->stats().seconds,
+                describe(session.model(), session.scene()).c_str(), refiner->stats().seconds,
                 double(refiner->stats().starts) / double(std::max<uint64_t>(1, done)),
                 double(refiner->stats().iterations) / double(std::max<uint64_t>(1, done)),
-                (unsigned long long)source_model->renders(), (unsigned long long)refiner->stats().rescues,
+                (unsigned long long)session.source_model()->renders(), (unsigned long long)refiner->stats().rescues,
                 (unsigned long long)refiner->stats().lattice_scans, (unsigned long long)refiner->stats().lattice_depths,
                 (unsigned long long)refiner->stats().reseeds, (unsigned long long)refiner->stats().continuations_kept, (unsigned long long)refiner->stats().continuations);
   else
@@ -183,44 +136,44 @@ void add_reconstruct(CLI::App& app) {
   CLI::App* c = app.add_subcommand("reconstruct", "find the vertices of each event (ADCG on the sparse likelihood)");
   c->add_option("--dictionary", a->dictionary, "PSF dictionary directory")->required();
   c->add_option("--events", a->events, "event file (host/events/EVENTS.md)")->required();
-  c->add_option("--vertices", a->settings.vertices, "K: vertices per event")
+  c->add_option("--vertices", a->session.settings.vertices, "K: vertices per event")
       ->capture_default_str()->check(CLI::Range(1, 8));
   c->add_option("--out", a->out, "CSV: event,vertex,x_mm,y_mm,depth_mm,alpha,nll,clicks,flags,crlb_x_mm,crlb_y_mm,"
                  "crlb_z_mm,crlb_3d_mm,fit_pvalue (the last five empty without refinement)")->required();
-  c->add_option("--model", a->model, "continuous refinement after the search: scene (the scene's forward model, "
+  c->add_option("--model", a->session.model, "continuous refinement after the search: scene (the scene's forward model, "
                  "default for synthesised dictionaries), dictionary (the dictionary's PSFs interpolated, default for "
                  "calibrated ones) or none (the search's grid positions alone)")
       ->check(CLI::IsMember({"scene", "dictionary", "none"}));
-  c->add_option("--scene", a->scene, "scene for --model scene (default: the one the dictionary was built from)");
-  c->add_option("--backend", a->backend,
+  c->add_option("--scene", a->session.scene, "scene for --model scene (default: the one the dictionary was built from)");
+  c->add_option("--backend", a->session.backend,
                  "vulkan: sparse scan on the device; dense: the paper's dense correlation on the device (baseline); "
                  "cpu: the double-precision reference")
       ->capture_default_str()->check(CLI::IsMember({"vulkan", "dense", "cpu"}));
   c->add_option("--device", a->device, "Vulkan device (see `prism devices`)");
-  c->add_option("--precision", a->precision, "the scan level's values on the device: float or half")
+  c->add_option("--precision", a->session.precision, "the scan level's values on the device: float or half")
       ->capture_default_str()->check(CLI::IsMember({"float", "half"}));
-  c->add_option("--batch", a->batch, "events per device scan; the host's work on one batch runs while the device "
+  c->add_option("--batch", a->session.batch, "events per device scan; the host's work on one batch runs while the device "
                  "scans the next")
       ->capture_default_str()->check(CLI::Range(1, 65535));
-  c->add_flag("--serial-scans", a->serial_scans,
+  c->add_flag("--serial-scans", a->session.serial_scans,
               "scan a batch, then do the host's work on it, then scan the next, instead of the two side by side "
               "(the same results; for comparison)");
-  c->add_option("--scan-step", a->settings.scan_step_px, "the scan tries shifts on multiples of this (pixels of the "
+  c->add_option("--scan-step", a->session.settings.scan_step_px, "the scan tries shifts on multiples of this (pixels of the "
                  "scan level); the best candidates are re-searched around theirs")
       ->capture_default_str()->check(CLI::Range(1, 64));
-  c->add_option("--level", a->level, "dictionary level of the scan over all PSFs (default: the finest from the clicks' level + 2 up "
+  c->add_option("--level", a->session.level, "dictionary level of the scan over all PSFs (default: the finest from the clicks' level + 2 up "
                  "whose shifts over all PSFs stay within a budget per click; level 4 for the default dictionary at "
                  "110 um clicks); one coarser than the clicks' level + 2 is searched coarse to fine: every PSF "
                  "within --carry-margin of its best NLL goes down to the clicks' level + 2 and is ranked again there")
       ->check(non_negative_number);
-  c->add_option("--carry-margin", a->settings.carry_margin_nll,
+  c->add_option("--carry-margin", a->session.settings.carry_margin_nll,
                 "coarse to fine: NLL margin of the PSFs carried from a coarse scan (0: its 8 best alone)")
       ->capture_default_str()->check(non_negative_number);
-  c->add_option("--tau-mm", a->settings.tau_mm, "lateral search half-width around each grid node, source mm")
+  c->add_option("--tau-mm", a->session.settings.tau_mm, "lateral search half-width around each grid node, source mm")
       ->capture_default_str()->check(non_negative_number);
-  c->add_option("--budget-mib", a->budget_mib, "host memory for summed-area tables, tiles and open PSF files, all threads together")
+  c->add_option("--budget-mib", a->session.budget_mib, "host memory for summed-area tables, tiles and open PSF files, all threads together")
       ->capture_default_str()->check(positive_number);
-  c->add_option("--threads", a->threads, "worker threads of the cpu backend")->capture_default_str()->check(CLI::Range(1u, 256u));
+  c->add_option("--threads", a->session.threads, "worker threads of the cpu backend")->capture_default_str()->check(CLI::Range(1u, 256u));
   c->callback([a] { run(*a); });
 }
 

@@ -49,8 +49,8 @@ void run(const SimulateArgs& a) {
   check_writable(a.out);
   check_not_input(a.out, "--out", {{"--dictionary", a.dictionary}, {"--scene", a.scene}});
   Scene scene = load_scene(a.scene);
-  const auto base = parse_vertices(a);
-  if (a.jitter_mm < 0) throw std::runtime_error("--jitter-mm must be >= 0");
+  SimulationRun run{parse_vertices(a), a.jitter_mm, a.seed};
+  const auto& base = run.vertices;
   {
     // Refused before any work when even the records without their clicks
     // would not fit on the disk (a typo such as --events 18446744073709551615
@@ -65,15 +65,11 @@ void run(const SimulateArgs& a) {
                                " bytes an event before its clicks), but " + parent.string() + " has " +
                                format_bytes(double(space.available)) + " free; choose fewer events or another --out");
   }
-  for (const auto& v : base) {
-    require_in_volume(scene, v.x_mm, v.y_mm, v.depth_mm, "--vertex");
-    require_in_front(scene, v.depth_mm - a.jitter_mm, a.jitter_mm > 0 ? "--vertex less --jitter-mm" : "--vertex");
-  }
+  check_simulation(scene, run, "--vertex", "--jitter-mm");
 
   std::optional<vk::Context> ctx;  // only the forward model needs a device
   std::optional<DictionaryReader> reader;
   std::unique_ptr<EventTruth> truth;
-  EventFileHeader h;
   if (a.truth != "dictionary" && !a.dictionary.empty())
     throw std::runtime_error("--dictionary is read only with --truth dictionary (the paper's protocol); the truth "
                              "now is the forward model, which renders the scene: add --truth dictionary or leave "
@@ -82,58 +78,22 @@ void run(const SimulateArgs& a) {
     if (a.dictionary.empty()) throw std::runtime_error("--truth dictionary needs --dictionary DIR");
     reader.emplace(a.dictionary, &scene.optics);
     const auto& m = reader->manifest();
-    // Clicks lie on one stored level: binning = base binning * 2^level.
-    int level = 0;
-    if (a.binning_given) {
-      while (level < m.levels && (m.base_binning << level) < int(a.binning)) ++level;
-      if (level == m.levels || (m.base_binning << level) != int(a.binning))
-        throw std::runtime_error("--binning " + std::to_string(a.binning) + ": the dictionary stores binnings " +
-                                 std::to_string(m.base_binning) + " x 2^k only; choose one of those");
-    }
+    const int level = a.binning_given ? stored_level_of_binning(m, a.binning, "--binning") : 0;
     truth = std::make_unique<DictionaryTruth>(*reader, level);
-    h.truth = TruthModel::dictionary;
   } else {
-    TraceSettings t;
-    t.binning = a.binning;
-    t.photons_emitted = scene.photons_emitted;
-    a.splat.apply(t);
-    t.rays_per_lenslet = a.rays ? a.rays : TraceSettings::default_rays(t.splat);
+    const TraceSettings t = trace_settings(scene, a.binning, a.rays, 0, a.splat.kind(), a.splat.stratification, "auto");
     ctx.emplace(vk::ContextOptions{a.device});
     truth = std::make_unique<ForwardTruth>(*ctx, scene, t);
   }
-  h.sensor_width_px = uint32_t(scene.optics.sensor_width_px);
-  h.sensor_height_px = uint32_t(scene.optics.sensor_height_px);
-  h.pixel_um = scene.optics.pixel_um;
-  h.binning = uint32_t(truth->binning());
-  h.scene = scene.name;
-  h.seed = a.seed;
-  h.provenance = truth->provenance() + (a.jitter_mm > 0 ? ", jitter +-" + std::to_string(a.jitter_mm) + " mm" : "");
+  const EventFileHeader h = simulation_header(scene, *truth, run);
 
   EventWriter writer(a.out, h);
   Progress progress("simulate", a.events);
   Event e;
-  std::vector<ClickSource> sources;
-  std::vector<std::shared_ptr<const PsfSampler>> held;
   uint64_t clicks = 0;
   auto start = std::chrono::steady_clock::now();
   for (uint64_t id = 0; id < a.events; ++id) {
-    auto rng = event_rng(a.seed, id);
-    e.id = id;
-    e.vertices = base;
-    sources.clear();
-    held.clear();
-    std::uniform_real_distribution<double> jitter(-a.jitter_mm, a.jitter_mm);
-    for (auto& v : e.vertices) {
-      if (a.jitter_mm > 0) {
-        v.x_mm += jitter(rng);
-        v.y_mm += jitter(rng);
-        v.depth_mm += jitter(rng);
-      }
-      held.push_back(truth->psf({v.x_mm, v.y_mm, v.depth_mm}));
-      v.sensor_fraction = held.back()->sensor_fraction();
-      sources.push_back({held.back().get(), v.alpha});
-    }
-    sample_clicks(sources, rng, e.clicks);
+    simulate_event(*truth, run, id, e);
     clicks += e.clicks.size();
     writer.write(e);
     progress.update(id + 1);

@@ -219,4 +219,57 @@ std::shared_ptr<const PsfSampler> DictionaryTruth::make(const glm::dvec3& positi
   return std::make_shared<PsfSampler>(level->p, level->width, level->height, place.shift_px.x, place.shift_px.y);
 }
 
+int stored_level_of_binning(const DictionaryManifest& m, unsigned binning, const std::string& option) {
+  int level = 0;
+  while (level < m.levels && (m.base_binning << level) < int(binning)) ++level;
+  if (level == m.levels || (m.base_binning << level) != int(binning))
+    throw std::runtime_error(option + " " + std::to_string(binning) + ": the dictionary stores binnings " +
+                             std::to_string(m.base_binning) + " x 2^k only; choose one of those");
+  return level;
+}
+
+void check_simulation(const Scene& scene, const SimulationRun& run, const std::string& option,
+                      const std::string& jitter_option) {
+  if (!(run.jitter_mm >= 0)) throw std::runtime_error(jitter_option + " must be >= 0");
+  for (const auto& v : run.vertices) {
+    if (!(v.alpha >= 0) || !std::isfinite(v.alpha))
+      throw std::runtime_error(option + ": alpha " + std::to_string(v.alpha) + " must be a finite number >= 0 (expected photons)");
+    require_in_volume(scene, v.x_mm, v.y_mm, v.depth_mm, option);
+    require_in_front(scene, v.depth_mm - run.jitter_mm, run.jitter_mm > 0 ? option + " less " + jitter_option : option);
+  }
+}
+
+EventFileHeader simulation_header(const Scene& scene, const EventTruth& truth, const SimulationRun& run) {
+  EventFileHeader h;
+  h.sensor_width_px = uint32_t(scene.optics.sensor_width_px);
+  h.sensor_height_px = uint32_t(scene.optics.sensor_height_px);
+  h.pixel_um = scene.optics.pixel_um;
+  h.binning = uint32_t(truth.binning());
+  h.scene = scene.name;
+  h.truth = truth.model();
+  h.seed = run.seed;
+  h.provenance = truth.provenance() + (run.jitter_mm > 0 ? ", jitter +-" + std::to_string(run.jitter_mm) + " mm" : "");
+  return h;
+}
+
+void simulate_event(EventTruth& truth, const SimulationRun& run, uint64_t id, Event& e) {
+  auto rng = event_rng(run.seed, id);
+  e.id = id;
+  e.vertices = run.vertices;
+  std::vector<ClickSource> sources;
+  std::vector<std::shared_ptr<const PsfSampler>> held;  // alive until the clicks are drawn
+  std::uniform_real_distribution<double> jitter(-run.jitter_mm, run.jitter_mm);
+  for (auto& v : e.vertices) {
+    if (run.jitter_mm > 0) {
+      v.x_mm += jitter(rng);
+      v.y_mm += jitter(rng);
+      v.depth_mm += jitter(rng);
+    }
+    held.push_back(truth.psf({v.x_mm, v.y_mm, v.depth_mm}));
+    v.sensor_fraction = held.back()->sensor_fraction();
+    sources.push_back({held.back().get(), v.alpha});
+  }
+  sample_clicks(sources, rng, e.clicks);
+}
+
 }  // namespace prism

@@ -21,6 +21,7 @@
 #include "engine/forward.h"
 #include "host/dictionary/placement.h"
 #include "host/dictionary/store.h"
+#include "host/events/event_file.h"
 #include "host/scene/scene.h"
 
 namespace prism {
@@ -105,6 +106,7 @@ class EventTruth {
   std::shared_ptr<const PsfSampler> psf(const glm::dvec3& position_mm);
   virtual int binning() const = 0;      // of the click grid, in sensor pixels
   virtual std::string provenance() const = 0;
+  virtual TruthModel model() const = 0;
   size_t renders() const { return renders_; }  // cache misses
   double render_seconds() const { return render_seconds_; }  // spent rendering or reading PSFs
 
@@ -126,6 +128,7 @@ class ForwardTruth : public EventTruth {
   ForwardTruth(vk::Context& ctx, const Scene& scene, const TraceSettings& settings, size_t cache_entries = 64);
   int binning() const override { return int(settings_.binning); }
   std::string provenance() const override;
+  TruthModel model() const override { return TruthModel::forward; }
 
  private:
   std::shared_ptr<const PsfSampler> make(const glm::dvec3& position_mm) override;
@@ -140,6 +143,7 @@ class DictionaryTruth : public EventTruth {
   DictionaryTruth(const DictionaryReader& reader, int level, size_t cache_entries = 64);
   int binning() const override { return reader_.manifest().base_binning << level_; }
   std::string provenance() const override;
+  TruthModel model() const override { return TruthModel::dictionary; }
 
  private:
   std::shared_ptr<const PsfSampler> make(const glm::dvec3& position_mm) override;
@@ -147,5 +151,28 @@ class DictionaryTruth : public EventTruth {
   int level_;
   std::list<std::pair<size_t, std::shared_ptr<const PsfLevel>>> levels_;  // a few unshifted PSFs, most recent first
 };
+
+// The level of a dictionary whose clicks have this binning (its base
+// binning x 2^level); throws naming `option` for any other.
+int stored_level_of_binning(const DictionaryManifest& m, unsigned binning, const std::string& option);
+
+// One run of `prism simulate` (and the Python module's simulate()): the
+// vertices every event starts from, each moved per event uniformly within
+// +-jitter_mm in x, y and depth.
+struct SimulationRun {
+  std::vector<EventVertex> vertices;  // x, y, depth and alpha; sensor_fraction is filled per event
+  double jitter_mm = 0;
+  uint64_t seed = 1;
+};
+
+// Throws naming `option` unless every vertex lies in the scene's volume and,
+// jittered by the most, in front of its lenses; and unless jitter_mm >= 0.
+// `option` names the vertices and `jitter_option` the jitter in messages.
+void check_simulation(const Scene& scene, const SimulationRun& run, const std::string& option,
+                      const std::string& jitter_option);
+// The event file's header for a run of `truth` on `scene`.
+EventFileHeader simulation_header(const Scene& scene, const EventTruth& truth, const SimulationRun& run);
+// Event `id` of the run: depends only on (seed, id) and the truth.
+void simulate_event(EventTruth& truth, const SimulationRun& run, uint64_t id, Event& e);
 
 }  // namespace prism

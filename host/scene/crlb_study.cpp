@@ -1,5 +1,7 @@
 #include "host/scene/crlb_study.h"
 
+#include <algorithm>
+
 #include "engine/forward.h"
 #include "engine/ref/forward_ref.h"
 
@@ -44,6 +46,19 @@ std::vector<CrlbRow> crlb_converged(const Scene& scene, const std::vector<glm::d
     if (all) return rows;
     previous = rows;
   }
+}
+
+std::vector<CrlbRow> crlb_checked(const Scene& scene, const std::vector<glm::dvec3>& positions,
+                                  const TraceSettings& settings, double converge, unsigned max_rays, Backend backend,
+                                  SensorModel sensor, vk::Context* ctx) {
+  if (converge > 0) return crlb_converged(scene, positions, settings, converge, max_rays, backend, sensor, ctx);
+  const double tol = defaults::crlb_convergence_tol;
+  TraceSettings quarter = settings;
+  quarter.rays_per_lenslet = std::max(4u, settings.rays_per_lenslet / 4);
+  auto rows = crlb_converged(scene, positions, quarter, tol, settings.rays_per_lenslet, backend, sensor, ctx);
+  for (auto& r : rows)
+    if (r.crlb.flag == "ok" && !(r.change <= tol)) r.crlb.flag = "moving";
+  return rows;
 }
 
 }  // namespace prism

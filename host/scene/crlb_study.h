@@ -39,4 +39,13 @@ std::vector<CrlbRow> crlb_converged(const Scene& scene, const std::vector<glm::d
                                     TraceSettings settings, double tolerance, unsigned max_rays, Backend backend,
                                     SensorModel sensor, vk::Context* ctx);
 
+// The rows `prism crlb` prints (and the Python module returns): with
+// converge > 0, crlb_converged from settings' rays up to max_rays; otherwise
+// each row at settings' rays checked against a quarter of them (one extra
+// pass at a quarter of the cost) and flagged "moving" where its 3D CRLB
+// changed by more than defaults::crlb_convergence_tol.
+std::vector<CrlbRow> crlb_checked(const Scene& scene, const std::vector<glm::dvec3>& positions,
+                                  const TraceSettings& settings, double converge, unsigned max_rays, Backend backend,
+                                  SensorModel sensor, vk::Context* ctx);
+
 }  // namespace prism

@@ -5,6 +5,7 @@
 #include <fstream>
 #include <map>
 #include <sstream>
+#include <tuple>
 
 #include "host/util/format.h"
 #include "host/util/json_file.h"
@@ -314,6 +315,52 @@ json to_json(const Scene& s) {
             {"depth_mm", {s.volume.depth_min_mm, s.volume.depth_max_mm}}}},
           {"photons_emitted", s.photons_emitted},
           {"effects", fx}};
+}
+
+void require_in_front(const Scene& scene, double depth_mm, const std::string& option) {
+  const double wd = scene.optics.working_distance_mm;
+  if (!scene.optics.in_front(depth_mm))
+    throw std::runtime_error(option + ": depth " + format_number(depth_mm) + " mm is not in front of " + scene.name +
+                             "'s lenses, which lie " + format_number(wd) +
+                             " mm before the scintillator face: give a depth > " + format_number(-wd) + " mm");
+}
+
+void require_in_volume(const Scene& scene, double x_mm, double y_mm, double depth_mm, const std::string& option) {
+  const Volume& v = scene.volume;
+  for (const auto& [name, value, lo, hi] : {std::tuple{"x", x_mm, v.x_min_mm, v.x_max_mm},
+                                            {"y", y_mm, v.y_min_mm, v.y_max_mm},
+                                            {"depth", depth_mm, v.depth_min_mm, v.depth_max_mm}})
+    if (!(value >= lo && value <= hi))
+      throw std::runtime_error(option + ": " + name + " " + format_number(value) + " mm lies outside " + scene.name +
+                               "'s volume (" + name + " " + format_number(lo) + ".." + format_number(hi) +
+                               " mm), where events happen; move the vertex or widen the scene file's \"volume\"");
+}
+
+TraceSettings trace_settings(const Scene& scene, unsigned binning, unsigned rays, double photons, Splat splat,
+                             unsigned stratification, const std::string& estimator) {
+  TraceSettings t;
+  t.binning = binning;
+  t.photons_emitted = photons > 0 ? photons : scene.photons_emitted;
+  t.splat = splat;
+  t.stratification = stratification;
+  t.rays_per_lenslet = rays ? rays : TraceSettings::default_rays(splat);
+  if (estimator == "auto") t.estimator = TraceSettings::default_estimator(splat);
+  else if (estimator == "naive" || estimator == "split")
+    t.estimator = estimator == "naive" ? FisherEstimator::naive : FisherEstimator::split;
+  else throw std::invalid_argument("estimator '" + estimator + "': use auto, split or naive");
+  return t;
+}
+
+void override_lens_model(Scene& scene, const std::string& lens_model, const std::string& option) {
+  if (lens_model.empty()) return;
+  if (lens_model != "thin" && lens_model != "real")
+    throw std::invalid_argument(option + " '" + lens_model + "': use thin or real");
+  scene.optics.lens_model = lens_model == "real" ? LensModel::real : LensModel::thin;
+  try {
+    validate(scene.optics);
+  } catch (const std::invalid_argument& e) {
+    throw std::runtime_error("scene " + scene.name + " with " + option + " " + lens_model + ": " + e.what());
+  }
 }
 
 }  // namespace prism

@@ -46,4 +46,21 @@ Scene load_scene(const std::string& name_or_path);
 Scene parse_scene(const nlohmann::json& j, const std::string& origin);
 nlohmann::json to_json(const Scene& s);
 
+// The forward model's settings from the knobs that `prism crlb`, `psf`, `simulate`
+// and the Python module take by the same names: 0 rays, the splat's
+// converged default; 0 photons, the scene's own; estimator "auto", the
+// splat's default ("split" or "naive" otherwise).
+TraceSettings trace_settings(const Scene& scene, unsigned binning, unsigned rays, double photons, Splat splat,
+                             unsigned stratification, const std::string& estimator);
+// The scene's lens model replaced by "thin" or "real" (empty: left as it is)
+// and validated; an error names the scene and `option`.
+void override_lens_model(Scene& scene, const std::string& lens_model, const std::string& option);
+
+// A source must be in front of the lenses: depth (from the scintillator face)
+// > -working distance. Throws naming the option and the scene's limit.
+void require_in_front(const Scene& scene, double depth_mm, const std::string& option);
+// Throws naming `option` unless (x, y, depth) lies in the scene's volume
+// (the scintillator, where events happen).
+void require_in_volume(const Scene& scene, double x_mm, double y_mm, double depth_mm, const std::string& option);
+
 }  // namespace prism
