@@ -18,10 +18,14 @@ packages=(cmake g++ make pkg-config
   libvulkan-dev mesa-vulkan-drivers vulkan-validationlayers glslang-tools
   libglm-dev libopenexr-dev openexr libusb-1.0-0-dev doctest-dev nlohmann-json3-dev libcli11-dev
   libpng-dev libplplot-dev plplot-driver-cairo libpugixml-dev libzip-dev
-  umockdev libumockdev-dev)
+  umockdev libumockdev-dev
+  pybind11-dev python3-dev python3-numpy python3-pytest python3-matplotlib)
 tools/ensure-packages.sh "${packages[@]}"
 
-cmake -S . -B build -DCMAKE_BUILD_TYPE=Release >/dev/null
+# The Python module is built for Debian's python3, for which the packages
+# above install NumPy, pytest and Matplotlib (another python3 may come first
+# on PATH).
+cmake -S . -B build -DCMAKE_BUILD_TYPE=Release -DPython3_EXECUTABLE=/usr/bin/python3 >/dev/null
 cmake --build build -j"$(nproc)"
 
 if [[ "$mode" == test ]]; then
