@@ -139,7 +139,9 @@ py::dict crlb(const std::vector<Scene>& scenes_in, const py::array_t<double, py:
     for (const auto& q : positions) require_in_front(s, q.z, "depth_mm");
   }
   const Backend backend = fw.backend_kind();
-  Device* device = (backend == Backend::vulkan || with_ambiguity) ? &device_for(fw.device) : nullptr;
+  // As the command: the ambiguity's model on the device with the Vulkan
+  // backend, on the CPU reference with the cpu one.
+  Device* device = backend == Backend::vulkan ? &device_for(fw.device) : nullptr;
   AmbiguitySettings as;
   as.min_separation_mm = separation_mm;
 
@@ -152,7 +154,7 @@ py::dict crlb(const std::vector<Scene>& scenes_in, const py::array_t<double, py:
     vk::Context* ctx = device ? device->ctx.get() : nullptr;
     for (const Scene& s : scenes) {
       const TraceSettings t = fw.settings(s);
-      auto part = crlb_checked(s, positions, t, converge, max_rays, backend, sensor, backend == Backend::vulkan ? ctx : nullptr);
+      auto part = crlb_checked(s, positions, t, converge, max_rays, backend, sensor, ctx);
       if (with_ambiguity) {
         auto model = make_scene_model(s, refine_trace_settings(t.binning), ctx);
         for (const CrlbRow& r : part) ambiguities.push_back(ambiguity(*model, s, r.theta, r.photons, as));
