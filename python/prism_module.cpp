@@ -385,12 +385,12 @@ Event event_from(const py::handle& item) {
   if (!c || c.ndim() != 1) throw std::invalid_argument("event " + std::to_string(e.id) + ": clicks must be a 1-D array");
   for (py::ssize_t i = 0; i < c.shape(0); ++i) {
     const int64_t x = c.at(i);
-    if (x < 0 || x > int64_t(UINT32_MAX) || (!e.clicks.empty() && uint32_t(x) <= e.clicks.back()))
-      throw std::invalid_argument("event " + std::to_string(e.id) + ": clicks must be pixel indices on the click grid, "
-                                  "strictly increasing (click " + std::to_string(i) + " is " + std::to_string(x) + ")");
+    if (x < 0 || x > int64_t(UINT32_MAX))
+      throw std::invalid_argument("event " + std::to_string(e.id) + ": click " + std::to_string(i) + " is " +
+                                  std::to_string(x) + ", not a pixel index on the click grid");
     e.clicks.push_back(uint32_t(x));
   }
-  return e;
+  return e;  // checked against the grid (first_bad_click) once its binning is known
 }
 
 SessionOptions session_options(const py::dict& o) {
@@ -438,11 +438,13 @@ py::dict reconstruct_events(const std::string& dictionary, const py::object& eve
     header.event_count = given.size();
     const uint64_t pixels = uint64_t(header.grid_width()) * header.grid_height();
     for (const Event& e : given)
-      if (!e.clicks.empty() && e.clicks.back() >= pixels)
-        throw std::invalid_argument("event " + std::to_string(e.id) + ": click " + std::to_string(e.clicks.back()) +
-                                    " lies beyond the " + std::to_string(header.grid_width()) + " x " +
-                                    std::to_string(header.grid_height()) + " click grid of binning " +
-                                    std::to_string(header.binning));
+      if (const size_t i = first_bad_click(e.clicks, pixels); i < e.clicks.size())
+        throw std::invalid_argument(
+            "event " + std::to_string(e.id) + ": click " + std::to_string(i) + " (" + std::to_string(e.clicks[i]) +
+            (e.clicks[i] >= pixels ? ") lies beyond the " + std::to_string(header.grid_width()) + " x " +
+                                         std::to_string(header.grid_height()) + " click grid of binning " +
+                                         std::to_string(header.binning)
+                                   : ") is not above the one before: clicks must be strictly increasing"));
   }
   // As the command: the device backends and the refinement on the device,
   // or the CPU reference throughout.

@@ -92,14 +92,19 @@ EventWriter::~EventWriter() {
   }
 }
 
+size_t first_bad_click(std::span<const uint32_t> clicks, uint64_t grid_pixels) {
+  for (size_t i = 0; i < clicks.size(); ++i)
+    if (clicks[i] >= grid_pixels || (i > 0 && clicks[i] <= clicks[i - 1])) return i;
+  return clicks.size();
+}
+
 void EventWriter::write(const Event& e) {
   if (!f_) throw EventFileError(path_ + ": write after close");
   if (e.vertices.size() > max_vertices) throw EventFileError(path_ + ": more than 65536 vertices in one event");
   const uint64_t pixels = uint64_t(header_.grid_width()) * header_.grid_height();
-  for (size_t i = 0; i < e.clicks.size(); ++i)
-    if (e.clicks[i] >= pixels || (i > 0 && e.clicks[i] <= e.clicks[i - 1]))
-      throw EventFileError(path_ + ": event " + std::to_string(e.id) +
-                           ": clicks must be strictly increasing pixel indices below " + std::to_string(pixels));
+  if (first_bad_click(e.clicks, pixels) < e.clicks.size())
+    throw EventFileError(path_ + ": event " + std::to_string(e.id) +
+                         ": clicks must be strictly increasing pixel indices below " + std::to_string(pixels));
   buf_.clear();
   put_u32(buf_, event_tag);
   put_u64(buf_, e.id);
@@ -282,11 +287,10 @@ bool EventReader::next(Event& e) {
   read(e.clicks.data(), size_t(n) * 4, "clicks");
   if constexpr (std::endian::native != std::endian::little)
     for (auto& c : e.clicks) c = get_u32(reinterpret_cast<const uint8_t*>(&c));
-  for (uint32_t i = 0; i < n; ++i)
-    if (e.clicks[i] >= pixels || (i > 0 && e.clicks[i] <= e.clicks[i - 1])) {
-      offset_ = start + 4ull * i;
-      fail("click " + std::to_string(e.clicks[i]) + " is off the grid or out of order: corrupt record");
-    }
+  if (const size_t i = first_bad_click(e.clicks, pixels); i < n) {
+    offset_ = start + 4ull * i;
+    fail("click " + std::to_string(e.clicks[i]) + " is off the grid or out of order: corrupt record");
+  }
   ++read_events_;
   return true;
 }

@@ -4,6 +4,7 @@
 #pragma once
 #include <cstdint>
 #include <cstdio>
+#include <span>
 #include <stdexcept>
 #include <string>
 #include <vector>
@@ -55,6 +56,12 @@ struct Event {
   std::vector<EventVertex> vertices;
   std::vector<uint32_t> clicks;  // strictly increasing pixel indices on the click grid
 };
+
+// The index of the first click that lies off a grid of `grid_pixels` or is
+// not above the one before (clicks are strictly increasing pixel indices);
+// clicks.size() when there is none. The writer, the reader and the Python
+// module's events in memory check with it.
+size_t first_bad_click(std::span<const uint32_t> clicks, uint64_t grid_pixels);
 
 // Writes DEST.tmp.PID, then renames it to DEST on close(): a file at DEST is
 // always whole. Destroying an unclosed writer removes the temporary file.
