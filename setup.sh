@@ -13,13 +13,15 @@ if [[ "$mode" != demo && "$mode" != test ]]; then
 fi
 
 # Debian 12 packages: toolchain, Vulkan (loader, lavapipe, validation layer,
-# glslang), libraries, and the tools the tests use (umockdev, OpenEXR tools).
+# glslang), libraries, the tools the tests use (umockdev, OpenEXR tools), and
+# Open MPI for `mpirun -n N prism ...` (README "MPI").
 packages=(cmake g++ make pkg-config
   libvulkan-dev mesa-vulkan-drivers vulkan-validationlayers glslang-tools
   libglm-dev libopenexr-dev openexr libusb-1.0-0-dev doctest-dev nlohmann-json3-dev libcli11-dev
   libpng-dev libplplot-dev plplot-driver-cairo libpugixml-dev libzip-dev
   umockdev libumockdev-dev
-  pybind11-dev python3-dev python3-numpy python3-pytest python3-matplotlib)
+  pybind11-dev python3-dev python3-numpy python3-pytest python3-matplotlib
+  libopenmpi-dev openmpi-bin)
 tools/ensure-packages.sh "${packages[@]}"
 
 # The Python module is built for Debian's python3, for which the packages

@@ -27,6 +27,8 @@ const char* type_name(VkPhysicalDeviceType t) {
   }
 }
 
+unsigned device_slot = 0;  // set_device_slot
+
 // Higher is preferred by "auto": a real GPU first, lavapipe last.
 int preference(VkPhysicalDeviceType t) {
   switch (t) {
@@ -78,12 +80,16 @@ std::vector<VkPhysicalDevice> physical_devices(VkInstance instance) {
 VkPhysicalDevice choose(const std::vector<VkPhysicalDevice>& devices, const std::string& request) {
   std::vector<VkPhysicalDeviceProperties> props(devices.size());
   for (size_t i = 0; i < devices.size(); ++i) vkGetPhysicalDeviceProperties(devices[i], &props[i]);
+  // The most preferred of the accepted devices; of several equal ones, the
+  // slot's (set_device_slot).
   auto best_of = [&](auto accept) -> VkPhysicalDevice {
-    int best = -1;
-    for (size_t i = 0; i < devices.size(); ++i)
-      if (accept(props[i]) && (best < 0 || preference(props[i].deviceType) > preference(props[best].deviceType)))
-        best = int(i);
-    return best < 0 ? VK_NULL_HANDLE : devices[best];
+    std::vector<size_t> best;
+    for (size_t i = 0; i < devices.size(); ++i) {
+      if (!accept(props[i])) continue;
+      if (!best.empty() && preference(props[i].deviceType) > preference(props[best[0]].deviceType)) best.clear();
+      if (best.empty() || preference(props[i].deviceType) == preference(props[best[0]].deviceType)) best.push_back(i);
+    }
+    return best.empty() ? VK_NULL_HANDLE : devices[best[device_slot % best.size()]];
   };
   auto is_cpu = [](const VkPhysicalDeviceProperties& p) { return p.deviceType == VK_PHYSICAL_DEVICE_TYPE_CPU; };
   VkPhysicalDevice chosen = VK_NULL_HANDLE;
@@ -108,6 +114,8 @@ VkPhysicalDevice choose(const std::vector<VkPhysicalDevice>& devices, const std:
 }
 
 }  // namespace
+
+void set_device_slot(unsigned slot) { device_slot = slot; }
 
 VKAPI_ATTR VkBool32 VKAPI_CALL Context::on_message(VkDebugUtilsMessageSeverityFlagBitsEXT severity,
                                                    VkDebugUtilsMessageTypeFlagsEXT,

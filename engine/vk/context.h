@@ -11,6 +11,13 @@ namespace prism::vk {
 
 class PipelineCache;  // compute.h
 
+// Processes that share a node (MPI ranks) each take their own device: with
+// the slot set, a choice by kind or name ("auto", "gpu", part of a name)
+// takes the (slot mod n)-th of the n equally preferred devices that match (a
+// node's GPUs) instead of the first; an index is taken as given. The host sets it
+// once, before any Context; 0, the first, for a single process.
+void set_device_slot(unsigned slot);
+
 struct ContextOptions {
   // "auto" (GPU if present, else CPU), "gpu", "cpu", a device index, or part of
   // a device name. Empty: take PRISM_DEVICE from the environment, else "auto".

@@ -8,6 +8,7 @@
 #include "host/cmd/commands.h"
 #include "engine/defaults.h"
 #include "host/cmd/options.h"
+#include "host/cmd/ranks.h"
 #include "host/dictionary/build.h"
 #include "host/util/format.h"
 #include "host/util/progress.h"
@@ -38,12 +39,25 @@ void run_build(const BuildArgs& a) {
   o.stratification = a.splat.stratification;
   check_build_options(a.out, scene, o);  // before the device is set up
   vk::Context ctx(vk::ContextOptions{a.device});
-  std::printf("# device: %s\n", ctx.describe().c_str());
-  Progress progress("prism dictionary build", o.grid.size());
+  // Under mpirun rank r renders the PSFs i with i mod N = r, each into its own
+  // file; rank 0 alone writes the manifest (or checks the one there) first.
+  o.share_index = size_t(ranks::rank());
+  o.share_count = size_t(ranks::size());
+  check_build_memory(ctx, scene, o);
+  if (ranks::root()) prepare_dictionary(scene, a.out, o);
+  ranks::barrier();
+  Progress progress(ranks::size() > 1 ? "prism dictionary build (rank 0's share)" : "prism dictionary build",
+                    (o.grid.size() + o.share_count - 1) / o.share_count, ranks::root());
   auto r = build_dictionary(ctx, scene, a.out, o, [&](size_t done, size_t) { progress.update(done); });
   progress.finish();
-  std::printf("%s: %zu PSFs rendered, %zu already present, %.1f s (%.3f s per PSF, median)\n", a.out.c_str(),
-              r.rendered, r.reused, r.seconds, r.seconds_per_psf);
+  const size_t rendered = size_t(ranks::sum(uint64_t(r.rendered))), reused = size_t(ranks::sum(uint64_t(r.reused)));
+  const double seconds = ranks::max(r.seconds);
+  if (!ranks::root()) return;
+  if (ranks::size() > 1)
+    std::printf("# %d MPI ranks, each on its own device; rank 0's device and median time per PSF:\n", ranks::size());
+  std::printf("# device: %s\n", ctx.describe().c_str());
+  std::printf("%s: %zu PSFs rendered, %zu already present, %.1f s (%.3f s per PSF, median)\n", a.out.c_str(), rendered,
+              reused, seconds, r.seconds_per_psf);
 }
 
 // Every level of every present PSF read back: decompressed (a flipped bit in

@@ -1,9 +1,11 @@
 // prism: plenoptic imaging of scintillation events on Vulkan compute.
 #include <cstdio>
+#include <string>
 
 #include "engine/vk/context.h"
 #include "host/cmd/commands.h"
 #include "host/cmd/options.h"
+#include "host/cmd/ranks.h"
 #include "host/util/output_file.h"
 
 int main(int argc, char** argv) {
@@ -29,21 +31,45 @@ int main(int argc, char** argv) {
   prism::cmd::add_memory_limit(*app.get_subcommand("dictionary")->get_subcommand("merge-hdr"));
   for (const char* name : {"simulate", "reconstruct", "evaluate"}) prism::cmd::add_memory_limit(*app.get_subcommand(name));
   prism::cmd::require_finite_numbers(app);
+  // Under mpirun simulate, reconstruct and dictionary build split their work
+  // over the ranks (host/cmd/ranks.h); the rest run as one process only.
+  for (const char* name : {"simulate", "reconstruct"})
+    app.get_subcommand(name)->footer("Under an MPI launcher (mpirun -n N prism " + std::string(name) +
+                                     " ...) the events are split over the ranks, each on its own device; rank 0 "
+                                     "writes the output, as one process would (README \"MPI\").");
+  app.get_subcommand("dictionary")->get_subcommand("build")->footer(
+      "Under an MPI launcher (mpirun -n N prism dictionary build ...) rank r renders the PSFs i with i mod N = r, "
+      "each on its own device; rank 0 writes the manifest first (README \"MPI\").");
+  for (const char* name : {"crlb", "psf", "sweep", "evaluate", "devices"})
+    prism::cmd::ranks::single_process_only(*app.get_subcommand(name));
+  for (const char* name : {"merge-hdr", "info"})
+    prism::cmd::ranks::single_process_only(*app.get_subcommand("dictionary")->get_subcommand(name));
+#ifdef PRISM_WITH_CAMERA
+  prism::cmd::ranks::single_process_only(*app.get_subcommand("camera"));
+#endif
   prism::install_interrupt_cleanup();
+  namespace ranks = prism::cmd::ranks;
   try {
+    ranks::start(argc, argv);
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
-    if (auto missing = prism::cmd::missing_command(app, e)) {
-      std::fprintf(stderr, "prism: %s\n", missing->c_str());
-      return e.get_exit_code();
+    // Every rank parses the same line: rank 0 speaks for them.
+    if (ranks::root()) {
+      if (auto missing = prism::cmd::missing_command(app, e))
+        std::fprintf(stderr, "prism: %s\n", missing->c_str());
+      else
+        app.exit(e);
     }
-    return app.exit(e);
+    ranks::stop();
+    return e.get_exit_code();
   } catch (const prism::cmd::Interrupted& e) {
     std::fprintf(stderr, "prism: %s\n", e.what());
     return prism::cmd::interrupted_exit_status;
   } catch (const std::exception& e) {
+    if (ranks::size() > 1) ranks::fail(e.what());  // ends every rank
     std::fprintf(stderr, "prism: %s\n", e.what());
     return 1;
   }
+  ranks::stop();
   return 0;
 }

@@ -9,9 +9,11 @@
 #include <fstream>
 #include <memory>
 #include <span>
+#include <sstream>
 
 #include "host/cmd/commands.h"
 #include "host/cmd/options.h"
+#include "host/cmd/ranks.h"
 #include "host/reconstruct/match.h"
 #include "host/reconstruct/session.h"
 #include "host/util/output_file.h"
@@ -41,22 +43,22 @@ void run(const ReconstructArgs& a) {
   const bool on_device = session.on_device();
   const Refiner* refiner = session.refiner();
 
-  // Written aside and renamed when whole: a failure (a corrupt PSF, a
-  // truncated event file) leaves an earlier CSV as it was.
-  Progress progress("reconstruct", events.header().event_count);
+  // Under mpirun each rank takes its share of the events (host/cmd/ranks.h);
+  // rank 0 writes the CSV, its own rows first, then the others' in rank order.
+  const ranks::Share mine = ranks::share(events.header().event_count);
+  Progress progress(ranks::size() > 1 ? "reconstruct (rank 0's share)" : "reconstruct", mine.count(), ranks::root());
   const size_t batch = session.batch_events();
   std::vector<Event> in(batch);
   uint64_t done = 0, flagged = 0, clicks = 0, scored = 0;
   double error_sum_mm = 0;
   auto start = std::chrono::steady_clock::now();
-  write_atomically(a.out, [&](const std::string& tmp) {
-    std::ofstream csv(tmp);
-    if (!csv) throw std::runtime_error(a.out + ": cannot open for writing; check the directory exists and is writable");
-    csv << "event,vertex,x_mm,y_mm,depth_mm,alpha,nll,clicks,flags,crlb_x_mm,crlb_y_mm,crlb_z_mm,crlb_3d_mm,fit_pvalue\n";
+  auto reconstruct_share = [&](std::ostream& csv) {
     csv.precision(10);
-    for (bool more = true; more;) {
+    for (uint64_t i = 0; i < mine.begin; ++i) events.next(in[0]);
+    while (done < mine.count()) {
       size_t n = 0;
-      while (n < batch && (more = events.next(in[n]))) ++n;
+      while (n < batch && done + n < mine.count() && events.next(in[n])) ++n;
+      if (n == 0) break;
       // Refinement takes seconds per event: progress as each is done.
       auto out = session.run(std::span<const Event>(in.data(), n), [&](size_t i) { progress.update(done + i + 1); });
       for (size_t i = 0; i < n; ++i) {
@@ -84,12 +86,50 @@ void run(const ReconstructArgs& a) {
       done += n;
       progress.update(done);
     }
-    csv.close();
-    if (!csv) throw std::runtime_error(a.out + ": write failed (disk full?)");
-  });
+    // The last share ends at the trailer, which checks the count.
+    if (mine.end == events.header().event_count && events.next(in[0]))
+      throw std::runtime_error(a.events + ": more events than its header's " +
+                               std::to_string(events.header().event_count) + ": corrupt file");
+  };
+  if (ranks::root()) {
+    // Written aside and renamed when whole: a failure (a corrupt PSF, a
+    // truncated event file, another rank's) leaves an earlier CSV as it was.
+    write_atomically(a.out, [&](const std::string& tmp) {
+      std::ofstream csv(tmp);
+      if (!csv) throw std::runtime_error(a.out + ": cannot open for writing; check the directory exists and is writable");
+      csv << "event,vertex,x_mm,y_mm,depth_mm,alpha,nll,clicks,flags,crlb_x_mm,crlb_y_mm,crlb_z_mm,crlb_3d_mm,fit_pvalue\n";
+      reconstruct_share(csv);
+      ranks::gather_in_order({}, [&](int, std::string_view rows) { csv.write(rows.data(), std::streamsize(rows.size())); });
+      csv.close();
+      if (!csv) throw std::runtime_error(a.out + ": write failed (disk full?)");
+    });
+  } else {
+    std::ostringstream rows;
+    reconstruct_share(rows);
+    ranks::gather_in_order(rows.view(), {});
+  }
   progress.finish();
   double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  // The summary is of every rank's events; rank 0 prints it.
+  done = ranks::sum(done);
+  flagged = ranks::sum(flagged);
+  clicks = ranks::sum(clicks);
+  scored = ranks::sum(scored);
+  error_sum_mm = ranks::sum(error_sum_mm);
+  auto t = pool.timings();
+  for (double* x : {&t.scan_s, &t.host_s, &t.scan_wait_s}) *x = ranks::sum(*x);
+  for (uint64_t* x : {&t.scan_fits, &t.scan_candidates}) *x = ranks::sum(*x);
+  RefineStats r = refiner ? refiner->stats() : RefineStats{};
+  r.seconds = ranks::sum(r.seconds);
+  for (uint64_t* x : {&r.starts, &r.iterations, &r.rescues, &r.lattice_scans, &r.lattice_depths, &r.reseeds,
+                      &r.continuations_kept, &r.continuations})
+    *x = ranks::sum(*x);
+  const uint64_t renders = ranks::sum(uint64_t(refiner ? session.source_model()->renders() : 0));
+  if (!ranks::root()) return;
   const unsigned threads = pool.workers();
+  if (ranks::size() > 1)
+    std::printf("# %d MPI ranks, each on its own device; the times below are summed over them, rank 0's device:\n",
+                ranks::size());
   if (on_device)
     std::printf("# device: %s; %s scan, %s dictionary on the device, batches of %zu events, %s\n",
                 ctx->describe().c_str(), a.session.backend.c_str(), a.session.precision.c_str(), a.session.batch,
@@ -101,7 +141,6 @@ void run(const ReconstructArgs& a) {
               pool.search_level(), s.tau_mm);
   std::printf("%.2f s, %.1f events/s; %llu vertices flagged\n", seconds, seconds > 0 ? double(done) / seconds : 0.0,
               (unsigned long long)flagged);
-  const auto t = pool.timings();
   if (on_device)  // the scans ran beside the host's work (ReconstructionSettings::overlap_scans)
     std::printf("time: support scans %.2f s, the search's host work %.2f s; the host waited %.2f s for scans\n",
                 t.scan_s, t.host_s, t.scan_wait_s);
@@ -116,12 +155,12 @@ void run(const ReconstructArgs& a) {
     std::printf("refinement (%s): %.2f s, %.1f starts and %.1f LM steps per event, %llu renders; %llu poor fits "
                 "sent to the far aliases, %llu poor, marginal or shallow ones had the clicks' votes counted (%llu voted depths scanned); "
                 "%llu events of K > 1 re-seeded from their unclaimed clicks; %llu of %llu blurred refits lowered the NLL\n",
-                describe(session.model(), session.scene()).c_str(), refiner->stats().seconds,
-                double(refiner->stats().starts) / double(std::max<uint64_t>(1, done)),
-                double(refiner->stats().iterations) / double(std::max<uint64_t>(1, done)),
-                (unsigned long long)session.source_model()->renders(), (unsigned long long)refiner->stats().rescues,
-                (unsigned long long)refiner->stats().lattice_scans, (unsigned long long)refiner->stats().lattice_depths,
-                (unsigned long long)refiner->stats().reseeds, (unsigned long long)refiner->stats().continuations_kept, (unsigned long long)refiner->stats().continuations);
+                describe(session.model(), session.scene()).c_str(), r.seconds,
+                double(r.starts) / double(std::max<uint64_t>(1, done)),
+                double(r.iterations) / double(std::max<uint64_t>(1, done)),
+                (unsigned long long)renders, (unsigned long long)r.rescues,
+                (unsigned long long)r.lattice_scans, (unsigned long long)r.lattice_depths,
+                (unsigned long long)r.reseeds, (unsigned long long)r.continuations_kept, (unsigned long long)r.continuations);
   else
     std::printf("refinement: none (--model none): positions from the dictionary search alone\n");
   if (scored)

@@ -7,6 +7,7 @@
 
 #include "host/cmd/commands.h"
 #include "host/cmd/options.h"
+#include "host/cmd/ranks.h"
 #include "host/events/event_file.h"
 #include "host/events/simulate.h"
 #include "host/util/memory.h"
@@ -87,28 +88,53 @@ void run(const SimulateArgs& a) {
   }
   const EventFileHeader h = simulation_header(scene, *truth, run);
 
-  EventWriter writer(a.out, h);
-  Progress progress("simulate", a.events);
+  // Under mpirun each rank simulates its share of the ids (event i depends on
+  // (seed, i) alone); rank 0 writes its own, then the others' records in rank
+  // order (host/cmd/ranks.h).
+  const ranks::Share mine = ranks::share(a.events);
+  Progress progress(ranks::size() > 1 ? "simulate (rank 0's share)" : "simulate", mine.count(), ranks::root());
+  std::optional<EventWriter> writer;
+  std::vector<uint8_t> records;  // the ranks but 0: their share, sent when done
+  if (ranks::root()) writer.emplace(a.out, h);
+  const uint64_t grid_pixels = uint64_t(h.grid_width()) * h.grid_height();
   Event e;
   uint64_t clicks = 0;
   auto start = std::chrono::steady_clock::now();
-  for (uint64_t id = 0; id < a.events; ++id) {
+  for (uint64_t id = mine.begin; id < mine.end; ++id) {
     simulate_event(*truth, run, id, e);
     clicks += e.clicks.size();
-    writer.write(e);
-    progress.update(id + 1);
+    if (writer)
+      writer->write(e);
+    else
+      append_event_record(e, grid_pixels, a.out, records);
+    progress.update(id - mine.begin + 1);
   }
-  writer.close();
+  if (writer) {
+    ranks::gather_in_order({}, [&](int r, std::string_view bytes) {
+      const ranks::Share theirs = ranks::share_of(r, a.events);
+      writer->write_records({reinterpret_cast<const uint8_t*>(bytes.data()), bytes.size()}, theirs.count());
+    });
+    writer->close();
+  } else {
+    ranks::gather_in_order({reinterpret_cast<const char*>(records.data()), records.size()}, {});
+  }
   progress.finish();
   double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  clicks = ranks::sum(clicks);
+  const uint64_t renders = ranks::sum(uint64_t(truth->renders()));
+  const double render_seconds = ranks::sum(truth->render_seconds());
+  if (!ranks::root()) return;
+  if (ranks::size() > 1)
+    std::printf("# %d MPI ranks, each on its own device; renders and their times summed over them, rank 0's device:\n",
+                ranks::size());
   std::printf("# device: %s\n", ctx ? ctx->describe().c_str() : "none (dictionary truth runs on the host)");
   std::printf("%s: %llu events of %zu vertices, %.1f clicks per event on average, %llu bytes\n", a.out.c_str(),
-              (unsigned long long)writer.events(), base.size(), a.events ? double(clicks) / double(a.events) : 0.0,
+              (unsigned long long)writer->events(), base.size(), a.events ? double(clicks) / double(a.events) : 0.0,
               (unsigned long long)std::filesystem::file_size(a.out));
   double sampling_s = seconds - truth->render_seconds();
-  std::printf("truth: %s\n%zu PSFs rendered or read in %.2f s; sampling and writing %.2f s (%.3g events/s); "
+  std::printf("truth: %s\n%llu PSFs rendered or read in %.2f s; sampling and writing %.2f s (%.3g events/s); "
               "%.3g events/s overall\n",
-              h.provenance.c_str(), truth->renders(), truth->render_seconds(), sampling_s,
+              h.provenance.c_str(), (unsigned long long)renders, render_seconds, sampling_s,
               sampling_s > 0 ? double(a.events) / sampling_s : 0.0, seconds > 0 ? double(a.events) / seconds : 0.0);
 }
 

@@ -49,6 +49,9 @@ void check_build_options(const std::string& dir, const Scene& scene, const Dicti
   } catch (const DictionaryError& e) {
     throw DictionaryError(dir + ": grid: " + e.what() + "; nothing written");
   }
+  if (o.share_count == 0 || o.share_index >= o.share_count)
+    throw std::logic_error("dictionary build: share " + std::to_string(o.share_index) + " of " +
+                           std::to_string(o.share_count));
   const double psfs = double(o.grid.x_mm.size()) * double(o.grid.y_mm.size()) * double(o.grid.depth_mm.size());
   if (psfs > double(max_dictionary_psfs))
     throw DictionaryError(dir + ": grid: " + format_number(psfs) + " PSFs (" + std::to_string(o.grid.x_mm.size()) +
@@ -77,11 +80,8 @@ void check_disk(const std::string& dir, const std::string& first_file, size_t re
 
 }  // namespace
 
-DictionaryBuildReport build_dictionary(vk::Context& ctx, const Scene& scene, const std::string& dir,
-                                       const DictionaryBuildOptions& o,
-                                       const std::function<void(size_t, size_t)>& progress) {
-  check_build_options(dir, scene, o);
-  DictionaryManifest wanted = manifest_for(scene, o);
+void check_build_memory(const vk::Context& ctx, const Scene& scene, const DictionaryBuildOptions& o) {
+  const DictionaryManifest wanted = manifest_for(scene, o);
   // One PSF at a time: level 0, its copy in half floats as it is written, and
   // a coarser level with its double accumulator (binned from level 0).
   const double px = double(wanted.width) * wanted.height;
@@ -92,6 +92,57 @@ DictionaryBuildReport build_dictionary(vk::Context& ctx, const Scene& scene, con
       double(ForwardVulkan::device_bytes_at_most(AnalysisGrid::of(scene.optics, unsigned(o.base_binning)), o.splat)),
       ctx.is_cpu());
   memory.require_within_limit("Use a coarser --binning");
+}
+
+DictionaryBuildReport build_dictionary(vk::Context& ctx, const Scene& scene, const std::string& dir,
+                                       const DictionaryBuildOptions& o,
+                                       const std::function<void(size_t, size_t)>& progress) {
+  check_build_options(dir, scene, o);
+  check_build_memory(ctx, scene, o);
+  const DictionaryManifest wanted = manifest_for(scene, o);
+  prepare_dictionary(scene, dir, o);
+  DictionaryReader reader(dir);
+
+  TraceSettings t;
+  t.rays_per_lenslet = o.rays_per_lenslet;
+  t.binning = unsigned(o.base_binning);
+  t.photons_emitted = scene.photons_emitted;
+  t.splat = o.splat;
+  t.stratification = o.stratification;
+  ForwardVulkan fw(ctx, scene.optics, t);
+
+  DictionaryBuildReport report;
+  std::vector<double> per_psf;
+  auto start = std::chrono::steady_clock::now();
+  const size_t share = (wanted.grid.size() + o.share_count - 1 - o.share_index) / o.share_count;
+  size_t done = 0;
+  for (size_t i = o.share_index; i < wanted.grid.size(); i += o.share_count) {
+    if (reader.has(i)) {
+      ++report.reused;
+    } else {
+      auto t0 = std::chrono::steady_clock::now();
+      PsfLevel l0{0, wanted.width, wanted.height, fw.psf_values(wanted.grid.position(i))};
+      double total = 0;
+      for (float b : l0.p) total += b;
+      // A position that puts no light on the sensor is stored as zeros.
+      for (float& p : l0.p) p = total > 0 ? float(p / total) : 0.0f;
+      write_psf_file(reader.path_of(i), wanted, i, l0, total);
+      if (report.rendered == 0) check_disk(dir, reader.path_of(i), share - done - 1);  // at most that many left
+      per_psf.push_back(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+      ++report.rendered;
+    }
+    if (progress) progress(++done, share);
+  }
+  report.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  if (!per_psf.empty()) {
+    std::sort(per_psf.begin(), per_psf.end());
+    report.seconds_per_psf = per_psf[per_psf.size() / 2];
+  }
+  return report;
+}
+
+void prepare_dictionary(const Scene& scene, const std::string& dir, const DictionaryBuildOptions& o) {
+  const DictionaryManifest wanted = manifest_for(scene, o);
   {
     // Said in words, where create_directories would throw "Not a directory [DIR/psf]".
     std::error_code ec;
@@ -110,42 +161,6 @@ DictionaryBuildReport build_dictionary(vk::Context& ctx, const Scene& scene, con
   } else {
     write_manifest(dir, wanted);
   }
-  DictionaryReader reader(dir);
-
-  TraceSettings t;
-  t.rays_per_lenslet = o.rays_per_lenslet;
-  t.binning = unsigned(o.base_binning);
-  t.photons_emitted = scene.photons_emitted;
-  t.splat = o.splat;
-  t.stratification = o.stratification;
-  ForwardVulkan fw(ctx, scene.optics, t);
-
-  DictionaryBuildReport report;
-  std::vector<double> per_psf;
-  auto start = std::chrono::steady_clock::now();
-  for (size_t i = 0; i < wanted.grid.size(); ++i) {
-    if (reader.has(i)) {
-      ++report.reused;
-    } else {
-      auto t0 = std::chrono::steady_clock::now();
-      PsfLevel l0{0, wanted.width, wanted.height, fw.psf_values(wanted.grid.position(i))};
-      double total = 0;
-      for (float b : l0.p) total += b;
-      // A position that puts no light on the sensor is stored as zeros.
-      for (float& p : l0.p) p = total > 0 ? float(p / total) : 0.0f;
-      write_psf_file(reader.path_of(i), wanted, i, l0, total);
-      if (report.rendered == 0) check_disk(dir, reader.path_of(i), wanted.grid.size() - i - 1);  // at most that many left
-      per_psf.push_back(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
-      ++report.rendered;
-    }
-    if (progress) progress(i + 1, wanted.grid.size());
-  }
-  report.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  if (!per_psf.empty()) {
-    std::sort(per_psf.begin(), per_psf.end());
-    report.seconds_per_psf = per_psf[per_psf.size() / 2];
-  }
-  return report;
 }
 
 }  // namespace prism

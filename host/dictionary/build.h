@@ -18,6 +18,10 @@ struct DictionaryBuildOptions {
   Splat splat = TraceSettings{}.splat;  // how the forward model's rays become pixel values
   unsigned stratification = 0;
   int tile_px = 64;
+  // This process renders the entries i with i mod share_count = share_index
+  // (an MPI rank's share, interleaved so that each gets near and far depths
+  // alike); the others are left to the processes whose share they are.
+  size_t share_index = 0, share_count = 1;
 };
 
 struct DictionaryBuildReport {
@@ -38,7 +42,17 @@ inline constexpr size_t max_dictionary_psfs = 1000000;
 // rest, at that file's size, would not fit on the disk.
 void check_build_options(const std::string& dir, const Scene& scene, const DictionaryBuildOptions& options);
 
-// progress(done, total) is called after each entry (options checked first).
+// Throws ResourceError (host/util/memory.h) when one PSF's buffers on the
+// host and device exceed the memory limit; the build checks it first.
+void check_build_memory(const vk::Context& ctx, const Scene& scene, const DictionaryBuildOptions& options);
+
+// Creates the folder and writes the manifest of a new dictionary, or checks
+// that an existing one is this very dictionary (to be resumed). The build
+// does this first; MPI rank 0 does it alone before the ranks build.
+void prepare_dictionary(const Scene& scene, const std::string& dir, const DictionaryBuildOptions& options);
+
+// progress(done, total) is called after each entry of this process's share
+// (options checked first); `reused` counts the share's entries already there.
 DictionaryBuildReport build_dictionary(vk::Context& ctx, const Scene& scene, const std::string& dir,
                                        const DictionaryBuildOptions& options,
                                        const std::function<void(size_t, size_t)>& progress = {});

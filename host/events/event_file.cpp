@@ -98,31 +98,39 @@ size_t first_bad_click(std::span<const uint32_t> clicks, uint64_t grid_pixels) {
   return clicks.size();
 }
 
-void EventWriter::write(const Event& e) {
-  if (!f_) throw EventFileError(path_ + ": write after close");
-  if (e.vertices.size() > max_vertices) throw EventFileError(path_ + ": more than 65536 vertices in one event");
-  const uint64_t pixels = uint64_t(header_.grid_width()) * header_.grid_height();
-  if (first_bad_click(e.clicks, pixels) < e.clicks.size())
-    throw EventFileError(path_ + ": event " + std::to_string(e.id) +
-                         ": clicks must be strictly increasing pixel indices below " + std::to_string(pixels));
-  buf_.clear();
-  put_u32(buf_, event_tag);
-  put_u64(buf_, e.id);
-  put_u32(buf_, uint32_t(e.vertices.size()));
+void append_event_record(const Event& e, uint64_t grid_pixels, const std::string& file, std::vector<uint8_t>& out) {
+  if (e.vertices.size() > max_vertices) throw EventFileError(file + ": more than 65536 vertices in one event");
+  if (first_bad_click(e.clicks, grid_pixels) < e.clicks.size())
+    throw EventFileError(file + ": event " + std::to_string(e.id) +
+                         ": clicks must be strictly increasing pixel indices below " + std::to_string(grid_pixels));
+  [[maybe_unused]] const size_t start = out.size();
+  put_u32(out, event_tag);
+  put_u64(out, e.id);
+  put_u32(out, uint32_t(e.vertices.size()));
   for (const auto& v : e.vertices) {
-    put_f64(buf_, v.x_mm);
-    put_f64(buf_, v.y_mm);
-    put_f64(buf_, v.depth_mm);
-    put_f64(buf_, v.alpha);
-    put_f64(buf_, v.sensor_fraction);
+    put_f64(out, v.x_mm);
+    put_f64(out, v.y_mm);
+    put_f64(out, v.depth_mm);
+    put_f64(out, v.alpha);
+    put_f64(out, v.sensor_fraction);
   }
-  put_u32(buf_, uint32_t(e.clicks.size()));
-  for (uint32_t c : e.clicks) put_u32(buf_, c);
-  assert(buf_.size() == event_record_bytes(e.vertices.size(), e.clicks.size()));
-  if (std::fwrite(buf_.data(), 1, buf_.size(), f_) != buf_.size())
+  put_u32(out, uint32_t(e.clicks.size()));
+  for (uint32_t c : e.clicks) put_u32(out, c);
+  assert(out.size() - start == event_record_bytes(e.vertices.size(), e.clicks.size()));
+}
+
+void EventWriter::write(const Event& e) {
+  buf_.clear();
+  append_event_record(e, grid_pixels(), path_, buf_);
+  write_records(buf_, 1);
+}
+
+void EventWriter::write_records(std::span<const uint8_t> records, uint64_t events) {
+  if (!f_) throw EventFileError(path_ + ": write after close");
+  if (std::fwrite(records.data(), 1, records.size(), f_) != records.size())
     throw EventFileError(temp_ + ": write failed at byte " + std::to_string(bytes_) + " (disk full?)");
-  bytes_ += buf_.size();
-  ++count_;
+  bytes_ += records.size();
+  count_ += events;
 }
 
 void EventWriter::close() {

@@ -63,6 +63,11 @@ struct Event {
 // module's events in memory check with it.
 size_t first_bad_click(std::span<const uint32_t> clicks, uint64_t grid_pixels);
 
+// Appends the record of event `e` (EVENTS.md) to `out`, its clicks checked
+// against a grid of `grid_pixels`; `file` names the file in the error. The
+// writer writes these; an MPI rank sends them to the rank that writes.
+void append_event_record(const Event& e, uint64_t grid_pixels, const std::string& file, std::vector<uint8_t>& out);
+
 // Writes DEST.tmp.PID, then renames it to DEST on close(): a file at DEST is
 // always whole. Destroying an unclosed writer removes the temporary file.
 class EventWriter {
@@ -73,6 +78,9 @@ class EventWriter {
   EventWriter& operator=(const EventWriter&) = delete;
 
   void write(const Event& e);  // clicks must be strictly increasing and on the grid
+  // `events` whole records made by append_event_record for this header's grid.
+  void write_records(std::span<const uint8_t> records, uint64_t events);
+  uint64_t grid_pixels() const { return uint64_t(header_.grid_width()) * header_.grid_height(); }
   void close();                // trailer, event count, rename
   uint64_t events() const { return count_; }
   uint64_t bytes() const { return bytes_; }

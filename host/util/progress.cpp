@@ -6,13 +6,15 @@
 
 namespace prism {
 
-Progress::Progress(std::string what, size_t total) : what_(std::move(what)), total_(total), tty_(isatty(2)) {}
+Progress::Progress(std::string what, size_t total, bool shown)
+    : what_(std::move(what)), total_(total), tty_(isatty(2)), shown_(shown) {}
 
 void Progress::update(size_t done) {
   auto now = std::chrono::steady_clock::now();
   double elapsed = std::chrono::duration<double>(now - start_).count();
   double frac = total_ ? double(done) / double(total_) : 1.0;
   int decile = int(frac * 10);
+  if (!shown_) return;
   bool due = tty_ ? now - last_draw_ > std::chrono::milliseconds(200) || done == total_ : decile != last_decile_;
   if (!due) return;
   last_draw_ = now;
@@ -27,7 +29,7 @@ void Progress::update(size_t done) {
 }
 
 void Progress::finish() {
-  if (tty_) std::fprintf(stderr, "\n");
+  if (tty_ && shown_) std::fprintf(stderr, "\n");
 }
 
 }  // namespace prism

@@ -9,7 +9,8 @@ namespace prism {
 
 class Progress {
  public:
-  Progress(std::string what, size_t total);
+  // shown = false: silent (the MPI ranks other than 0, which report for all).
+  Progress(std::string what, size_t total, bool shown = true);
   void update(size_t done);  // call as work completes; prints when due
   void finish();
 
@@ -17,6 +18,7 @@ class Progress {
   std::string what_;
   size_t total_;
   bool tty_;
+  bool shown_;
   int last_decile_ = -1;
   std::chrono::steady_clock::time_point start_ = std::chrono::steady_clock::now();
   std::chrono::steady_clock::time_point last_draw_{};
