@@ -436,7 +436,7 @@ py::dict reconstruct_events(const std::string& dictionary, const py::object& eve
     header.binning = binning ? binning : uint32_t(m.base_binning);
     header.scene = m.scene.name;
     header.event_count = given.size();
-    const uint64_t pixels = uint64_t(header.grid_width()) * header.grid_height();
+    const uint64_t pixels = header.grid_pixels();
     for (const Event& e : given)
       if (const size_t i = first_bad_click(e.clicks, pixels); i < e.clicks.size())
         throw std::invalid_argument(

@@ -47,7 +47,7 @@ void run_build(const BuildArgs& a) {
   if (ranks::root()) prepare_dictionary(scene, a.out, o);
   ranks::barrier();
   Progress progress(ranks::size() > 1 ? "prism dictionary build (rank 0's share)" : "prism dictionary build",
-                    (o.grid.size() + o.share_count - 1) / o.share_count, ranks::root());
+                    o.share_size(o.grid.size()), ranks::root());
   auto r = build_dictionary(ctx, scene, a.out, o, [&](size_t done, size_t) { progress.update(done); });
   progress.finish();
   const size_t rendered = size_t(ranks::sum(uint64_t(r.rendered))), reused = size_t(ranks::sum(uint64_t(r.reused)));

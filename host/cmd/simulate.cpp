@@ -96,7 +96,6 @@ void run(const SimulateArgs& a) {
   std::optional<EventWriter> writer;
   std::vector<uint8_t> records;  // the ranks but 0: their share, sent when done
   if (ranks::root()) writer.emplace(a.out, h);
-  const uint64_t grid_pixels = uint64_t(h.grid_width()) * h.grid_height();
   Event e;
   uint64_t clicks = 0;
   auto start = std::chrono::steady_clock::now();
@@ -106,7 +105,7 @@ void run(const SimulateArgs& a) {
     if (writer)
       writer->write(e);
     else
-      append_event_record(e, grid_pixels, a.out, records);
+      append_event_record(e, h.grid_pixels(), a.out, records);
     progress.update(id - mine.begin + 1);
   }
   if (writer) {

@@ -114,7 +114,7 @@ DictionaryBuildReport build_dictionary(vk::Context& ctx, const Scene& scene, con
   DictionaryBuildReport report;
   std::vector<double> per_psf;
   auto start = std::chrono::steady_clock::now();
-  const size_t share = (wanted.grid.size() + o.share_count - 1 - o.share_index) / o.share_count;
+  const size_t share = o.share_size(wanted.grid.size());
   size_t done = 0;
   for (size_t i = o.share_index; i < wanted.grid.size(); i += o.share_count) {
     if (reader.has(i)) {

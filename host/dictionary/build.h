@@ -22,6 +22,8 @@ struct DictionaryBuildOptions {
   // (an MPI rank's share, interleaved so that each gets near and far depths
   // alike); the others are left to the processes whose share they are.
   size_t share_index = 0, share_count = 1;
+  // How many of `entries` grid entries are this process's share.
+  size_t share_size(size_t entries) const { return (entries + share_count - 1 - share_index) / share_count; }
 };
 
 struct DictionaryBuildReport {

@@ -121,7 +121,7 @@ void append_event_record(const Event& e, uint64_t grid_pixels, const std::string
 
 void EventWriter::write(const Event& e) {
   buf_.clear();
-  append_event_record(e, grid_pixels(), path_, buf_);
+  append_event_record(e, header_.grid_pixels(), path_, buf_);
   write_records(buf_, 1);
 }
 
@@ -287,7 +287,7 @@ bool EventReader::next(Event& e) {
   }
   read(b, 4, "click count");
   uint32_t n = get_u32(b);
-  const uint64_t pixels = uint64_t(header_.grid_width()) * header_.grid_height();
+  const uint64_t pixels = header_.grid_pixels();
   if (n > pixels) fail("click count " + std::to_string(n) + " exceeds the sensor's pixels: corrupt record");
   require_left(4ull * n, "clicks");
   e.clicks.resize(n);

@@ -42,6 +42,7 @@ struct EventFileHeader {
   // The click grid: ceil(sensor / binning); a click is row * grid_width + col.
   uint32_t grid_width() const { return (sensor_width_px + binning - 1) / binning; }
   uint32_t grid_height() const { return (sensor_height_px + binning - 1) / binning; }
+  uint64_t grid_pixels() const { return uint64_t(grid_width()) * grid_height(); }
 };
 
 // The truth of one vertex of an event.
@@ -80,7 +81,6 @@ class EventWriter {
   void write(const Event& e);  // clicks must be strictly increasing and on the grid
   // `events` whole records made by append_event_record for this header's grid.
   void write_records(std::span<const uint8_t> records, uint64_t events);
-  uint64_t grid_pixels() const { return uint64_t(header_.grid_width()) * header_.grid_height(); }
   void close();                // trailer, event count, rename
   uint64_t events() const { return count_; }
   uint64_t bytes() const { return bytes_; }
