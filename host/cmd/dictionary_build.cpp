@@ -41,13 +41,12 @@ void run_build(const BuildArgs& a) {
   vk::Context ctx(vk::ContextOptions{a.device});
   // Under mpirun rank r renders the PSFs i with i mod N = r, each into its own
   // file; rank 0 alone writes the manifest (or checks the one there) first.
-  o.share_index = size_t(ranks::rank());
-  o.share_count = size_t(ranks::size());
+  o.share = ranks::work_share();
   check_build_memory(ctx, scene, o);
   if (ranks::root()) prepare_dictionary(scene, a.out, o);
   ranks::barrier();
   Progress progress(ranks::size() > 1 ? "prism dictionary build (rank 0's share)" : "prism dictionary build",
-                    o.share_size(o.grid.size()), ranks::root());
+                    o.share.taken_of(o.grid.size()), ranks::root());
   auto r = build_dictionary(ctx, scene, a.out, o, [&](size_t done, size_t) { progress.update(done); });
   progress.finish();
   const size_t rendered = size_t(ranks::sum(uint64_t(r.rendered))), reused = size_t(ranks::sum(uint64_t(r.reused)));

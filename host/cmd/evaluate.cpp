@@ -9,6 +9,7 @@
 #include "host/cmd/commands.h"
 #include "engine/defaults.h"
 #include "host/cmd/options.h"
+#include "host/cmd/ranks.h"
 #include "host/util/output_file.h"
 #include "host/reconstruct/evaluate.h"
 #include "host/util/progress.h"
@@ -93,33 +94,51 @@ void run(EvaluateArgs a) {
 
   o.backend = backend_from_string(a.backend);
   o.device_half = a.precision == "half";
+  o.share = ranks::work_share();
+  if (o.journal_only && ranks::size() > 1)
+    throw std::runtime_error("--journal-only reconstructs nothing: run it as one process, without mpirun");
   vk::Context ctx(vk::ContextOptions{a.device});
-  if (o.backend == ReconstructionBackend::cpu)
-    std::printf("# reconstruction: CPU reference (double precision, 1 thread); events and CRLB: %s\n",
-                ctx.describe().c_str());
-  else
-    std::printf("# reconstruction: %s scan (%s dictionary) and events and CRLB on %s\n", to_string(o.backend),
-                a.precision.c_str(), ctx.describe().c_str());
-  std::printf("# scene %s, dictionary %s, clicks on %u x %u binned pixels, %d trials per point, seed %llu\n",
-              scene.name.c_str(), a.dictionary.c_str(), binning, binning, o.trials, (unsigned long long)o.seed);
-  std::printf("# refinement: %s\n", describe(o.model, scene).c_str());
-  std::printf("# best and worst trial (3D error) dropped; alpha error = |alpha - true photons|; CRLB: Poisson, "
-              "Fisher information scaled to the point's detected photons; catastrophic: 3D error > %g mm, left "
-              "out of RMSE and efficiency\n",
-              defaults::catastrophic_error_mm);
   o.journal_dir = a.out;
-  if (o.journal_only)
-    std::printf("# from the journals in %s only: nothing reconstructed, points with fewer than 3 trials left out\n",
-                a.out.c_str());
-  else
-    std::printf("# events are kept in %s/*-journal.jsonl as they are done; %s\n", a.out.c_str(),
-                o.resume ? "resuming from what is there" : "a stopped run resumes from there with --resume");
+  // Under mpirun rank 0 speaks for the job and writes every output.
+  if (ranks::root()) {
+    if (ranks::size() > 1)
+      std::printf("# %d MPI ranks, each on its own device; the events are shared, the times below summed; rank "
+                  "0's device:\n",
+                  ranks::size());
+    if (o.backend == ReconstructionBackend::cpu)
+      std::printf("# reconstruction: CPU reference (double precision, 1 thread); events and CRLB: %s\n",
+                  ctx.describe().c_str());
+    else
+      std::printf("# reconstruction: %s scan (%s dictionary) and events and CRLB on %s\n", to_string(o.backend),
+                  a.precision.c_str(), ctx.describe().c_str());
+    std::printf("# scene %s, dictionary %s, clicks on %u x %u binned pixels, %d trials per point, seed %llu\n",
+                scene.name.c_str(), a.dictionary.c_str(), binning, binning, o.trials, (unsigned long long)o.seed);
+    std::printf("# refinement: %s\n", describe(o.model, scene).c_str());
+    std::printf("# best and worst trial (3D error) dropped; alpha error = |alpha - true photons|; CRLB: Poisson, "
+                "Fisher information scaled to the point's detected photons; catastrophic: 3D error > %g mm, left "
+                "out of RMSE and efficiency\n",
+                defaults::catastrophic_error_mm);
+    if (o.journal_only)
+      std::printf("# from the journals in %s only: nothing reconstructed, points with fewer than 3 trials left out\n",
+                  a.out.c_str());
+    else
+      std::printf("# events are kept in %s/*-journal.jsonl as they are done; %s\n", a.out.c_str(),
+                  o.resume ? "resuming from what is there" : "a stopped run resumes from there with --resume");
+  }
   std::unique_ptr<Progress> progress;
   auto result = evaluate(ctx, scene, *reader, o, [&](size_t done, size_t total) {
-    if (!progress) progress = std::make_unique<Progress>("evaluate", total);
+    if (!progress)
+      progress = std::make_unique<Progress>(ranks::size() > 1 ? "evaluate (rank 0's share)" : "evaluate", total,
+                                            ranks::root());
     progress->update(done);
   });
   if (progress) progress->finish();
+  EvaluationCost& cost = result.cost;
+  cost.events = ranks::sum(cost.events);
+  cost.renders = ranks::sum(cost.renders);
+  cost.ambiguity_renders = ranks::sum(cost.ambiguity_renders);
+  for (double* x : {&cost.reconstruct_s, &cost.scan_s, &cost.refine_s, &cost.ambiguity_s}) *x = ranks::sum(*x);
+  if (!ranks::root()) return;
   for (const auto& e : result.journal_estimators) std::printf("# made by %s\n", e.c_str());
 
   std::printf("%-20s %7s %7s %7s %8s %5s %9s %9s %9s %9s %8s %6s %6s %6s %7s\n", "experiment", "x_mm", "y_mm",
@@ -149,7 +168,6 @@ void run(EvaluateArgs a) {
                   "(%d events)\n",
                   r.series == "all" ? "all" : "band", r.depth_lo_mm, r.depth_hi_mm, 100 * r.p_confusion_mean,
                   100 * r.axes.catastrophic_rate, r.axes.events);
-  const auto& cost = result.cost;
   if (result.resumed)
     std::printf("%zu events read from the journals in %s (reconstructed by an earlier run; not in the cost below)\n",
                 result.resumed, a.out.c_str());

@@ -31,7 +31,7 @@ int main(int argc, char** argv) {
   prism::cmd::add_memory_limit(*app.get_subcommand("dictionary")->get_subcommand("merge-hdr"));
   for (const char* name : {"simulate", "reconstruct", "evaluate"}) prism::cmd::add_memory_limit(*app.get_subcommand(name));
   prism::cmd::require_finite_numbers(app);
-  // Under mpirun simulate, reconstruct and dictionary build split their work
+  // Under mpirun simulate, reconstruct, evaluate, sweep and dictionary build split their work
   // over the ranks (host/cmd/ranks.h); the rest run as one process only.
   for (const char* name : {"simulate", "reconstruct"})
     app.get_subcommand(name)->footer("Under an MPI launcher (mpirun -n N prism " + std::string(name) +
@@ -40,7 +40,15 @@ int main(int argc, char** argv) {
   app.get_subcommand("dictionary")->get_subcommand("build")->footer(
       "Under an MPI launcher (mpirun -n N prism dictionary build ...) rank r renders the PSFs i with i mod N = r, "
       "each on its own device; rank 0 writes the manifest first (README \"MPI\").");
-  for (const char* name : {"crlb", "psf", "sweep", "evaluate", "devices"})
+  app.get_subcommand("evaluate")->footer(
+      "Under an MPI launcher (mpirun -n N prism evaluate ...) rank r reconstructs the events i with i mod N = r of "
+      "those the journals lack, each rank on its own device and appending to its own part of each journal; rank 0 "
+      "gathers them and writes the journals and figures, as one process would (README \"MPI\").");
+  app.get_subcommand("sweep")->footer(
+      "Under an MPI launcher (mpirun -n N prism sweep ...) every rank runs the same search from the seed and scores "
+      "the candidates i with i mod N = r of each batch, on its own device; the scores are shared after each batch and "
+      "rank 0 writes the state and every output, as one process would (README \"MPI\"). Use a --batch of N or more.");
+  for (const char* name : {"crlb", "psf", "devices"})
     prism::cmd::ranks::single_process_only(*app.get_subcommand(name));
   for (const char* name : {"merge-hdr", "info"})
     prism::cmd::ranks::single_process_only(*app.get_subcommand("dictionary")->get_subcommand(name));

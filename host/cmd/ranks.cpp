@@ -115,6 +115,36 @@ void gather_in_order(std::string_view mine, const std::function<void(int, std::s
 #endif
 }
 
+std::vector<std::string> all_gather(std::string_view mine) {
+  std::vector<std::string> all(static_cast<size_t>(size_));
+  all[size_t(rank_)] = mine;
+  if (size_ == 1) return all;
+#ifdef PRISM_WITH_MPI
+  std::vector<uint64_t> lengths(static_cast<size_t>(size_));
+  uint64_t length = mine.size();
+  check(MPI_Allgather(&length, 1, MPI_UINT64_T, lengths.data(), 1, MPI_UINT64_T, MPI_COMM_WORLD), "MPI_Allgather");
+  // Each rank's bytes from that rank to all, in pieces (MPI counts are int).
+  for (int r = 0; r < size_; ++r) {
+    std::string& bytes = all[size_t(r)];
+    bytes.resize(lengths[size_t(r)]);
+    for (uint64_t at = 0; at < bytes.size(); at += max_piece_bytes)
+      check(MPI_Bcast(bytes.data() + at, int(std::min(max_piece_bytes, bytes.size() - at)), MPI_BYTE, r,
+                      MPI_COMM_WORLD),
+            "MPI_Bcast");
+  }
+#endif
+  return all;
+}
+
+WorkShare work_share() {
+  WorkShare s;
+  s.index = size_t(rank_);
+  s.count = size_t(size_);
+  s.all_gather = all_gather;
+  s.barrier = barrier;
+  return s;
+}
+
 void barrier() {
 #ifdef PRISM_WITH_MPI
   if (size_ > 1) check(MPI_Barrier(MPI_COMM_WORLD), "MPI_Barrier");

@@ -9,8 +9,11 @@
 #include <functional>
 #include <string>
 #include <string_view>
+#include <vector>
 
 #include <CLI/CLI.hpp>
+
+#include "host/util/work_share.h"
 
 namespace prism::cmd::ranks {
 
@@ -40,6 +43,13 @@ inline Share share(uint64_t n) { return share_of(rank(), n); }
 // whole, in rank order (rank 1 first), and passes it to `consume`. Rank 0's
 // own part is its own business (it writes it first).
 void gather_in_order(std::string_view mine, const std::function<void(int rank, std::string_view bytes)>& consume);
+
+// Collective: every rank's bytes, in rank order, on every rank.
+std::vector<std::string> all_gather(std::string_view mine);
+
+// This rank's place in the job, with the exchanges above, for the library's
+// commands that split their own work (host/util/work_share.h).
+WorkShare work_share();
 
 // Collective: returns when every rank has called it.
 void barrier();

@@ -10,6 +10,7 @@
 
 #include "host/cmd/commands.h"
 #include "host/cmd/options.h"
+#include "host/cmd/ranks.h"
 #include "host/sweep/baselines.h"
 #include "host/sweep/sweep.h"
 #include "host/util/format.h"
@@ -170,7 +171,10 @@ void run(const SweepArgs& a) {
   for (const auto& b : a.bounds) s.bounds.push_back(parse_bound(b));
   if (a.ambiguity || s.names_ambiguity()) s.ambiguity = a.ambiguity_scoring;
   std::filesystem::create_directories(a.out);
-  Sweep sweep(space, s, a.out + "/evaluated.jsonl");
+  // Under mpirun every rank runs the same search; a batch's candidates are
+  // shared out and every rank gets all the scores (host/sweep/sweep.h). Rank
+  // 0 writes the state and every output.
+  Sweep sweep(space, s, a.out + "/evaluated.jsonl", ranks::work_share());
 
   std::unique_ptr<vk::Context> ctx;
   std::string device = "CPU reference (double precision)";
@@ -180,38 +184,43 @@ void run(const SweepArgs& a) {
   }
   AnalysisGrid g = AnalysisGrid::of(space.base.optics, a.binning);
   std::string stated = std::to_string(s.trace.rays()) + " rays/lenslet, " + format_number(g.pixel_mm * 1e3) + " um pixels";
-  std::printf("# space: %s (%s designs), objective: minimise %s%s\n", a.space.c_str(), format_number(space.size()).c_str(),
-              objective_is_maximised(a.objective) ? ("-" + a.objective).c_str() : a.objective.c_str(),
-              s.bounds.empty() ? "" : ", bounds:");
-  for (const auto& b : s.bounds) std::printf("#   %s\n", b.text().c_str());
-  std::printf("# device: %s\n# rays per 3 mm lenslet: %u, analysis pixel: %u x %u binned = %.1f um, %s splat, %s "
-              "Fisher estimator, poisson sensor, %s photons emitted\n",
-              device.c_str(), s.trace.rays(), a.binning, a.binning, g.pixel_mm * 1e3, to_string(s.trace.splat),
-              to_string(s.trace.estimator), format_number(s.trace.photons_emitted).c_str());
-  std::printf("# volume samples: %s\n", space.samples.describe().c_str());
-  if (s.ambiguity)
-    std::printf("# ambiguity: %s (host/reconstruct/ambiguity.h): %s detected photons, impostors >= %s mm away, "
-                "binary sensor at %u x %u binned pixels, scene model at %u cells per lenslet\n",
-                space.ambiguity_samples.describe().c_str(), format_number(s.ambiguity->photons).c_str(),
-                format_number(s.ambiguity->settings.min_separation_mm).c_str(), s.ambiguity->binning,
-                s.ambiguity->binning, refine_trace_settings(s.ambiguity->binning).rays());
-  std::printf("# state: %s/evaluated.jsonl (%zu designs already scored), seed %llu, budget %zu\n", a.out.c_str(),
-              sweep.evaluated().size(), static_cast<unsigned long long>(a.seed), a.budget);
-  std::fflush(stdout);
-
+  if (ranks::root()) {
+    if (ranks::size() > 1)
+      std::printf("# %d MPI ranks, each on its own device, share each batch; rank 0's device:\n", ranks::size());
+    std::printf("# space: %s (%s designs), objective: minimise %s%s\n", a.space.c_str(), format_number(space.size()).c_str(),
+                objective_is_maximised(a.objective) ? ("-" + a.objective).c_str() : a.objective.c_str(),
+                s.bounds.empty() ? "" : ", bounds:");
+    for (const auto& b : s.bounds) std::printf("#   %s\n", b.text().c_str());
+    std::printf("# device: %s\n# rays per 3 mm lenslet: %u, analysis pixel: %u x %u binned = %.1f um, %s splat, %s "
+                "Fisher estimator, poisson sensor, %s photons emitted\n",
+                device.c_str(), s.trace.rays(), a.binning, a.binning, g.pixel_mm * 1e3, to_string(s.trace.splat),
+                to_string(s.trace.estimator), format_number(s.trace.photons_emitted).c_str());
+    std::printf("# volume samples: %s\n", space.samples.describe().c_str());
+    if (s.ambiguity)
+      std::printf("# ambiguity: %s (host/reconstruct/ambiguity.h): %s detected photons, impostors >= %s mm away, "
+                  "binary sensor at %u x %u binned pixels, scene model at %u cells per lenslet\n",
+                  space.ambiguity_samples.describe().c_str(), format_number(s.ambiguity->photons).c_str(),
+                  format_number(s.ambiguity->settings.min_separation_mm).c_str(), s.ambiguity->binning,
+                  s.ambiguity->binning, refine_trace_settings(s.ambiguity->binning).rays());
+    std::printf("# state: %s/evaluated.jsonl (%zu designs already scored), seed %llu, budget %zu\n", a.out.c_str(),
+                sweep.evaluated().size(), static_cast<unsigned long long>(a.seed), a.budget);
+    std::fflush(stdout);
+  }
   interrupted = false;
   auto previous = std::signal(SIGINT, on_sigint);
   if (previous == SIG_IGN) std::signal(SIGINT, SIG_IGN);  // ignored by who started us: stays so
-  Progress progress("prism sweep: designs", a.budget);
+  Progress progress("prism sweep: designs", a.budget, ranks::root());
   size_t fresh = 0;
+  // Every rank stops at the same candidate: the flag is shared (a sum).
   sweep.run(
-      ctx.get(), [] { return interrupted.load(); },
+      ctx.get(), [] { return ranks::size() > 1 ? ranks::sum(uint64_t(interrupted.load())) > 0 : interrupted.load(); },
       [&](const Evaluated&, size_t done) {
         ++fresh;
         progress.update(done);
       });
   progress.finish();
   std::signal(SIGINT, previous);
+  if (!ranks::root()) return;
 
   auto ranked = sweep.ranked();
   write_csv(a.out + "/ranked.csv", sweep, ranked);

@@ -49,9 +49,9 @@ void check_build_options(const std::string& dir, const Scene& scene, const Dicti
   } catch (const DictionaryError& e) {
     throw DictionaryError(dir + ": grid: " + e.what() + "; nothing written");
   }
-  if (o.share_count == 0 || o.share_index >= o.share_count)
-    throw std::logic_error("dictionary build: share " + std::to_string(o.share_index) + " of " +
-                           std::to_string(o.share_count));
+  if (o.share.count == 0 || o.share.index >= o.share.count)
+    throw std::logic_error("dictionary build: share " + std::to_string(o.share.index) + " of " +
+                           std::to_string(o.share.count));
   const double psfs = double(o.grid.x_mm.size()) * double(o.grid.y_mm.size()) * double(o.grid.depth_mm.size());
   if (psfs > double(max_dictionary_psfs))
     throw DictionaryError(dir + ": grid: " + format_number(psfs) + " PSFs (" + std::to_string(o.grid.x_mm.size()) +
@@ -114,9 +114,9 @@ DictionaryBuildReport build_dictionary(vk::Context& ctx, const Scene& scene, con
   DictionaryBuildReport report;
   std::vector<double> per_psf;
   auto start = std::chrono::steady_clock::now();
-  const size_t share = o.share_size(wanted.grid.size());
+  const size_t share = o.share.taken_of(wanted.grid.size());
   size_t done = 0;
-  for (size_t i = o.share_index; i < wanted.grid.size(); i += o.share_count) {
+  for (size_t i = o.share.index; i < wanted.grid.size(); i += o.share.count) {
     if (reader.has(i)) {
       ++report.reused;
     } else {

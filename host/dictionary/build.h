@@ -8,6 +8,7 @@
 
 #include "engine/vk/context.h"
 #include "host/dictionary/store.h"
+#include "host/util/work_share.h"
 
 namespace prism {
 
@@ -18,12 +19,10 @@ struct DictionaryBuildOptions {
   Splat splat = TraceSettings{}.splat;  // how the forward model's rays become pixel values
   unsigned stratification = 0;
   int tile_px = 64;
-  // This process renders the entries i with i mod share_count = share_index
-  // (an MPI rank's share, interleaved so that each gets near and far depths
-  // alike); the others are left to the processes whose share they are.
-  size_t share_index = 0, share_count = 1;
-  // How many of `entries` grid entries are this process's share.
-  size_t share_size(size_t entries) const { return (entries + share_count - 1 - share_index) / share_count; }
+  // This process renders the entries its share takes (an MPI rank's,
+  // interleaved so that each gets near and far depths alike); the others are
+  // left to the processes whose share they are.
+  WorkShare share;
 };
 
 struct DictionaryBuildReport {

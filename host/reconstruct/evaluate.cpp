@@ -246,6 +246,102 @@ auto read_record(const json& j, const std::string& path, F&& read) {
   }
 }
 
+// An evaluation's journal, <dir>/<stem>.jsonl. When several processes share
+// the events (EvaluationOptions::share), the leader appends to it and every
+// other process r to its own <stem>.part<r>.jsonl until the leader has its
+// events; a stopped job leaves the parts, which the next run merges in with
+// --resume (and drops without it), and a report reads beside the journal.
+struct EventJournal {
+  std::string path;            // the journal itself
+  std::vector<json> records;   // what was done before this run
+  std::optional<Journal> out;  // where this process appends: the journal, or its part
+
+  void append(const json& record) const { out->append(record); }
+  // The leader holds this process's events: its part goes.
+  void drop_part() {
+    if (out && out->path() != path) {
+      std::filesystem::remove(out->path());
+      out.reset();
+    }
+  }
+};
+
+std::string part_path(const std::string& dir, const std::string& stem, size_t process) {
+  return dir + "/" + stem + ".part" + std::to_string(process) + ".jsonl";
+}
+
+// The parts of <dir>/<stem>.jsonl there are, whatever the job that left them.
+std::vector<std::string> part_paths(const std::string& dir, const std::string& stem) {
+  std::vector<std::string> parts;
+  std::error_code missing;
+  for (const auto& f : std::filesystem::directory_iterator(dir, missing)) {
+    const std::string name = f.path().filename().string();
+    const std::string prefix = stem + ".part", suffix = ".jsonl";
+    if (name.size() > prefix.size() + suffix.size() && name.starts_with(prefix) && name.ends_with(suffix) &&
+        name.find_first_not_of("0123456789", prefix.size()) == name.size() - suffix.size())
+      parts.push_back(f.path().string());
+  }
+  std::sort(parts.begin(), parts.end());
+  return parts;
+}
+
+// Opens the journal `stem` in o.journal_dir for this run: started afresh, or
+// with o.resume kept (a stopped job's parts merged in first); read only with
+// o.journal_only, where the events (seed, truth, scene, points) must be this
+// run's and the estimator is whatever made the journal (added to
+// `estimators`).
+EventJournal open_event_journal(const EvaluationOptions& o, const std::string& stem, const json& header,
+                                const std::string& on_mismatch, std::vector<std::string>& estimators) {
+  EventJournal j;
+  j.path = o.journal_dir + "/" + stem + ".jsonl";
+  const WorkShare& share = o.share;
+  if (!o.journal_only) {
+    if (share.leads()) {
+      std::filesystem::create_directories(o.journal_dir);
+      if (!o.resume) {
+        std::filesystem::remove(j.path);
+        for (const auto& part : part_paths(o.journal_dir, stem)) std::filesystem::remove(part);
+      }
+      j.out.emplace(j.path, header, on_mismatch);
+      j.records = j.out->records();
+      for (const auto& path : part_paths(o.journal_dir, stem)) {
+        const Journal part(path, header, on_mismatch, /*read_only=*/true);
+        for (const json& record : part.records()) {
+          j.out->append(record);
+          j.records.push_back(record);
+        }
+        std::filesystem::remove(path);
+      }
+    }
+    share.wait_for_all();  // the leader's journal is whole
+    if (!share.leads()) {
+      j.records = Journal(j.path, header, on_mismatch, /*read_only=*/true).records();
+      j.out.emplace(part_path(o.journal_dir, stem, share.index), header, on_mismatch);
+    }
+    return j;
+  }
+  if (!std::filesystem::exists(j.path))
+    throw std::runtime_error(j.path + ": no journal to report from; run prism evaluate with the same options "
+                             "and without --journal-only first");
+  json events = header;
+  events.erase("search");
+  events.erase("refine");
+  const std::string mismatch =
+      "give --journal-only the options of the run that made it (--seed, --experiments, --trials, the truth's --rays "
+      "and splat, the scene and dictionary)";
+  const Journal journal(j.path, events, mismatch, /*read_only=*/true);
+  j.records = journal.records();
+  // A running job's other processes keep their events in parts until its end.
+  for (const auto& path : part_paths(o.journal_dir, stem)) {
+    const Journal part(path, events, mismatch, /*read_only=*/true);
+    j.records.insert(j.records.end(), part.records().begin(), part.records().end());
+  }
+  const json& made = journal.header();
+  estimators.push_back(j.path + ": search " + (made.contains("search") ? made["search"].dump() : "?") +
+                       ", refine " + (made.contains("refine") ? made["refine"].dump() : "?"));
+  return j;
+}
+
 // A volume event as one journal record, and back.
 json to_json(const VolumeEvent& v) {
   json j = {{"index", v.index},
@@ -299,6 +395,8 @@ void check_experiments(const std::vector<std::string>& names) {
 Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader& dictionary,
                     const EvaluationOptions& o, const std::function<void(size_t, size_t)>& progress) {
   if (o.trials < 3) throw std::invalid_argument("--trials: at least 3 (the best and the worst are dropped)");
+  if (o.journal_only && o.share.count > 1)
+    throw std::invalid_argument("journal_only: a report reconstructs nothing; run it as one process");
   if (o.journal_only && o.journal_dir.empty())
     throw std::invalid_argument("journal_only: name the directory whose journals to report (journal_dir)");
   check_experiments(o.experiments);
@@ -342,18 +440,6 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
       volume_rngs.push_back(rng);
     }
   }
-
-  // CRLB of every vertex position in one study, scaled to its photon count.
-  std::vector<glm::dvec3> positions;
-  for (const auto& p : points)
-    for (const auto& v : p.vertices) positions.push_back(v.position);
-  positions.insert(positions.end(), volume_positions.begin(), volume_positions.end());
-  auto bounds = crlb_study(scene, positions, t, Backend::vulkan, SensorModel::poisson, &ctx);
-  auto crlb_at = [&](size_t i, double photons) {
-    const auto& b = bounds.at(i);
-    const double scale = b.photons > 0 ? std::sqrt(b.photons / photons) : INFINITY;
-    return std::pair(glm::dvec3(b.crlb.x_mm, b.crlb.y_mm, b.crlb.depth_mm) * scale, b.crlb.r3_mm * scale);
-  };
 
   ReconstructionSettings s = o.settings;
   if (s.search_level < 0) s.search_level = default_search_level(m, o.level, s.tau_mm);
@@ -408,35 +494,22 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
     run["search"]["carry"] = {{"select_level", select_level(s, o.level)}, {"margin_nll", s.carry_margin_nll},
                               {"max", s.carry_max}};
   const std::string on_mismatch = "rerun with the same options, or without --resume to start over";
-  // A journal of an earlier run is resumed only when asked for.
-  auto open_journal = [&](std::optional<Journal>& j, const std::string& name, const json& header,
-                          const std::string& mismatch) {
-    const std::string path = o.journal_dir + "/" + name;
-    if (!o.journal_only) {
-      std::filesystem::create_directories(o.journal_dir);
-      if (!o.resume) std::filesystem::remove(path);
-      j.emplace(path, header, mismatch);
-      return;
-    }
-    // Read only: the events (seed, truth, scene, points) must be this
-    // run's; the estimator is whatever made the journal, reported as such.
-    if (!std::filesystem::exists(path))
-      throw std::runtime_error(path + ": no journal to report from; run prism evaluate with the same options "
-                               "and without --journal-only first");
-    json events = header;
-    events.erase("search");
-    events.erase("refine");
-    j.emplace(path, events,
-              "give --journal-only the options of the run that made it (--seed, --experiments, --trials, the "
-              "truth's --rays and splat, the scene and dictionary)",
-              /*read_only=*/true);
-    const json& made = j->header();
-    result.journal_estimators.push_back(path + ": search " + (made.contains("search") ? made["search"].dump() : "?") +
-                                        ", refine " + (made.contains("refine") ? made["refine"].dump() : "?"));
-  };
-  // The protocol's trials already in its journal: point -> trial -> estimate.
-  std::optional<Journal> points_journal;
+  const WorkShare& share = o.share;
+  // The protocol's trials done: point -> trial -> estimate. A record of a
+  // journal or of another process goes in unless its trial is there already.
+  std::optional<EventJournal> points_journal;
   std::vector<std::map<int, std::vector<ReconstructedVertex>>> trials_done(points.size());
+  auto take_trial = [&](const json& j, const std::string& from) {
+    return read_record(j, from, [&](const json& r) {
+      const size_t p = r.at("point").get<size_t>();
+      const int trial = r.at("trial").get<int>();
+      std::vector<ReconstructedVertex> est;
+      for (const json& v : r.at("estimate")) est.push_back(vertex_from_json(v));
+      if (p >= points.size() || trial >= o.trials || trials_done[p].count(trial)) return false;
+      trials_done[p].emplace(trial, std::move(est));
+      return true;
+    });
+  };
   if (!points.empty() && !o.journal_dir.empty()) {
     json header = run;
     header["prism_evaluate_protocol"] = 1;
@@ -446,23 +519,20 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
     header["experiments"] = protocol;
     header["quick"] = o.quick;
     header["trials"] = o.trials;  // event ids are point * trials + trial
-    open_journal(points_journal, "protocol-journal.jsonl", header, on_mismatch);
-    for (const json& j : points_journal->records())
-      read_record(j, points_journal->path(), [&](const json& r) {
-        const size_t p = r.at("point").get<size_t>();
-        const int trial = r.at("trial").get<int>();
-        std::vector<ReconstructedVertex> est;
-        for (const json& v : r.at("estimate")) est.push_back(vertex_from_json(v));
-        if (p < points.size() && trial < o.trials && !trials_done[p].count(trial)) {
-          trials_done[p].emplace(trial, std::move(est));
-          ++result.resumed;
-        }
-        return 0;
-      });
+    points_journal = open_event_journal(o, "protocol-journal", header, on_mismatch, result.journal_estimators);
+    for (const json& j : points_journal->records) result.resumed += take_trial(j, points_journal->path);
   }
-  // The volume's events already in its journal.
-  std::optional<Journal> volume_journal;
+  // The volume's events done; a later record of an event replaces an earlier.
+  std::optional<EventJournal> volume_journal;
   std::vector<std::optional<VolumeEvent>> volume_done(volume_positions.size());
+  auto take_volume_event = [&](const json& j, const std::string& from) {
+    VolumeEvent v = read_record(j, from, volume_event_from_json);
+    if (!o.volume_ambiguity) v.alias_kl = v.p_confusion = NAN, v.alias_mm = glm::dvec3(NAN);  // not asked for
+    if (v.index >= volume_done.size()) return false;
+    const bool first = !volume_done[v.index];
+    volume_done[v.index] = v;
+    return first;
+  };
   if (volume && !o.journal_dir.empty()) {
     json header = run;
     header["prism_evaluate_volume"] = 1;
@@ -472,25 +542,52 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
       header["ambiguity"] = {{"min_separation_mm", o.ambiguity.min_separation_mm},
                              {"refined", o.ambiguity.refined}, {"iterations", o.ambiguity.iterations}};
     header["field_mm"] = {{field.x.x, field.x.y}, {field.y.x, field.y.y}, {field.depth.x, field.depth.y}};
-    open_journal(volume_journal, "volume-journal.jsonl", header,
-                 "rerun with the same options (--volume-events may differ), or without --resume to start over");
-    for (const json& j : volume_journal->records()) {
-      VolumeEvent v = read_record(j, volume_journal->path(), volume_event_from_json);
-      if (!o.volume_ambiguity) v.alias_kl = v.p_confusion = NAN, v.alias_mm = glm::dvec3(NAN);  // not asked for
-      if (v.index < volume_done.size()) {
-        if (!volume_done[v.index]) ++result.resumed;
-        volume_done[v.index] = v;
-      }
-    }
+    volume_journal = open_event_journal(
+        o, "volume-journal", header,
+        "rerun with the same options (--volume-events may differ), or without --resume to start over",
+        result.journal_estimators);
+    for (const json& j : volume_journal->records) result.resumed += take_volume_event(j, volume_journal->path);
   }
+
+  // This process's events: of those the journals lack, in the order every
+  // process enumerates them (the protocol's points and trials, then the
+  // volume's events), the ones its share takes.
+  std::vector<std::vector<int>> my_trials(points.size());
+  std::vector<size_t> my_volume;
+  size_t pending = 0;
+  if (!o.journal_only) {
+    for (size_t pi = 0; pi < points.size(); ++pi)
+      for (int trial = 0; trial < o.trials; ++trial)
+        if (!trials_done[pi].count(trial) && share.takes(pending++)) my_trials[pi].push_back(trial);
+    for (size_t i = 0; i < volume_positions.size(); ++i)
+      if (!volume_done[i] && share.takes(pending++)) my_volume.push_back(i);
+  }
+  size_t total = my_volume.size();
+  for (const auto& trials : my_trials) total += trials.size();
+
+  // The CRLB of every vertex position in one study, scaled to its photon
+  // count. Every process makes the whole study, as one process would: the
+  // device's float sums group a position's with its batch's, so a study of
+  // other positions would differ from one process's in the last bits.
+  std::vector<glm::dvec3> positions;
+  for (const auto& p : points)
+    for (const auto& v : p.vertices) positions.push_back(v.position);
+  const size_t volume_bounds = positions.size();
+  positions.insert(positions.end(), volume_positions.begin(), volume_positions.end());
+  const auto bounds = crlb_study(scene, positions, t, Backend::vulkan, SensorModel::poisson, &ctx);
+  auto crlb_at = [&](size_t i, double photons) {
+    const auto& b = bounds.at(i);
+    const double scale = b.photons > 0 ? std::sqrt(b.photons / photons) : INFINITY;
+    return std::pair(glm::dvec3(b.crlb.x_mm, b.crlb.y_mm, b.crlb.depth_mm) * scale, b.crlb.r3_mm * scale);
+  };
+
   EvaluationCost& spent = result.cost;
-  const size_t total = points.size() * size_t(o.trials) + volume_positions.size() - result.resumed;
   size_t done = 0;
   // The search, then the refinement, of a batch of K-vertex events.
   // `each(i, estimate, seconds, renders)` is called as event i is done, with
   // its share of the batch's search and its own refinement.
   using EachEvent = std::function<void(size_t, const std::vector<ReconstructedVertex>&, double, uint64_t)>;
-  auto reconstruct = [&](const std::vector<Event>& events, int k, const EachEvent& each = {}) {
+  auto reconstruct = [&](const std::vector<Event>& events, int k, const EachEvent& each) {
     ReconstructionSettings ks = s;
     ks.vertices = k;
     auto& r = reconstructors[k];
@@ -508,11 +605,9 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
       if (refiner) estimates[i] = refiner->refine(events[i], std::move(estimates[i]));
       const double seconds =
           search_share + std::chrono::duration<double>(std::chrono::steady_clock::now() - refine_start).count();
-      if (each) {
-        const auto each_start = std::chrono::steady_clock::now();
-        each(i, estimates[i], seconds, source_model ? source_model->renders() - renders_before : 0);
-        each_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - each_start).count();
-      }
+      const auto each_start = std::chrono::steady_clock::now();
+      each(i, estimates[i], seconds, source_model ? source_model->renders() - renders_before : 0);
+      each_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - each_start).count();
       if (progress) progress(++done, total);
     }
     const auto end = std::chrono::steady_clock::now();
@@ -520,9 +615,105 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
     spent.refine_s += std::chrono::duration<double>(end - searched).count() - each_s;
     spent.events += events.size();
     if (source_model) spent.renders = source_model->renders();
-    return estimates;
   };
+  // What this process did, for the leader when there are others.
+  json my_trial_records = json::array(), my_volume_records = json::array();
 
+  // The protocol's trials, a point's together: event ids pi * trials + trial.
+  for (size_t pi = 0; pi < points.size(); ++pi) {
+    if (my_trials[pi].empty()) continue;
+    const Point& p = points[pi];
+    std::vector<std::shared_ptr<const PsfSampler>> held;
+    std::vector<ClickSource> sources;
+    for (const auto& v : p.vertices) {
+      held.push_back(truth->psf(v.position));
+      sources.push_back({held.back().get(), v.photons});
+    }
+    std::vector<Event> events;
+    for (int trial : my_trials[pi]) {
+      Event& e = events.emplace_back();
+      e.id = uint64_t(pi) * uint64_t(o.trials) + uint64_t(trial);
+      auto rng = event_rng(o.seed, e.id);
+      sample_clicks(sources, rng, e.clicks);
+    }
+    reconstruct(events, int(p.vertices.size()),
+                [&](size_t i, const std::vector<ReconstructedVertex>& estimate, double, uint64_t) {
+                  const int trial = my_trials[pi][i];
+                  json rows = json::array();
+                  for (const auto& v : estimate) rows.push_back(to_json(v));
+                  const json record = {{"point", pi}, {"trial", trial}, {"estimate", rows}};
+                  if (points_journal) points_journal->append(record);
+                  if (share.count > 1) my_trial_records.push_back(record);
+                  trials_done[pi][trial] = estimate;
+                });
+  }
+
+  // The volume's events, in batches.
+  const size_t batch = 32;
+  for (size_t first = 0; first < my_volume.size(); first += batch) {
+    const size_t n = std::min(batch, my_volume.size() - first);
+    std::vector<Event> events(n);
+    for (size_t i = 0; i < n; ++i) {
+      const size_t index = my_volume[first + i];
+      auto& e = events[i];
+      e.id = volume_first_id + index;
+      auto psf = truth->psf(volume_positions[index]);
+      const ClickSource source{psf.get(), o.volume_photons};
+      sample_clicks(std::span(&source, 1), volume_rngs[index], e.clicks);
+    }
+    reconstruct(events, 1, [&](size_t i, const std::vector<ReconstructedVertex>& estimate, double seconds,
+                               uint64_t renders) {
+      const size_t index = my_volume[first + i];
+      VolumeEvent v;
+      v.seconds = seconds;
+      v.renders = double(renders);
+      v.index = index;
+      v.truth_mm = volume_positions[index];
+      v.estimate = estimate.at(0);
+      v.crlb_mm = crlb_at(volume_bounds + index, o.volume_photons).first;
+      if (ambiguity_model) {
+        const auto ambiguity_start = std::chrono::steady_clock::now();
+        AmbiguitySettings as = o.ambiguity;
+        as.dark_rate = s.dark_rate;
+        const Ambiguity a = ambiguity(*ambiguity_model, scene, v.truth_mm, o.volume_photons, as);
+        v.alias_kl = a.kl;
+        v.alias_mm = a.impostor_mm;
+        v.p_confusion = a.p_confusion;
+        spent.ambiguity_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - ambiguity_start).count();
+        spent.ambiguity_renders = ambiguity_model->renders();
+      }
+      const json record = to_json(v);
+      if (volume_journal) volume_journal->append(record);
+      if (share.count > 1) my_volume_records.push_back(record);
+      volume_done[index] = v;
+    });
+  }
+
+  // Several processes: every one's events to the leader, which keeps them in
+  // its journals and makes the figures from all of them; the others are done.
+  if (share.count > 1) {
+    const auto all = share.all_gather(json{{"protocol", my_trial_records}, {"volume", my_volume_records}}.dump());
+    if (share.leads())
+      for (size_t r = 1; r < all.size(); ++r) {
+        const json theirs = json::parse(all[r]);
+        const std::string from = "the events of process " + std::to_string(r);
+        for (const json& j : theirs.at("protocol")) {
+          take_trial(j, from);
+          if (points_journal) points_journal->append(j);
+        }
+        for (const json& j : theirs.at("volume")) {
+          take_volume_event(j, from);
+          if (volume_journal) volume_journal->append(j);
+        }
+      }
+    share.wait_for_all();  // the leader's journals hold every event now
+    for (auto* j : {&points_journal, &volume_journal})
+      if (*j) (*j)->drop_part();
+    if (!share.leads()) return result;
+  }
+
+  // The protocol's figures: per point, its trials with the best and the
+  // worst dropped.
   size_t bound = 0;
   for (size_t pi = 0; pi < points.size(); ++pi) {
     const Point& p = points[pi];
@@ -530,33 +721,6 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
     std::vector<std::vector<double>> err(n), alpha_err(n);
     std::vector<std::vector<glm::dvec3>> axis_err(n);
     std::vector<int> flagged(n, 0);
-    // The trials not in the journal: event ids pi * trials + trial.
-    std::vector<Event> events;
-    std::vector<int> event_trial;
-    std::vector<std::shared_ptr<const PsfSampler>> held;
-    std::vector<ClickSource> sources;
-    for (int trial = 0; trial < o.trials; ++trial) {
-      if (trials_done[pi].count(trial) || o.journal_only) continue;
-      if (sources.empty())
-        for (const auto& v : p.vertices) {
-          held.push_back(truth->psf(v.position));
-          sources.push_back({held.back().get(), v.photons});
-        }
-      Event& e = events.emplace_back();
-      e.id = uint64_t(pi) * uint64_t(o.trials) + uint64_t(trial);
-      auto rng = event_rng(o.seed, e.id);
-      sample_clicks(sources, rng, e.clicks);
-      event_trial.push_back(trial);
-    }
-    if (!events.empty())
-      reconstruct(events, int(n), [&](size_t i, const std::vector<ReconstructedVertex>& estimate, double, uint64_t) {
-        if (points_journal) {
-          json rows = json::array();
-          for (const auto& v : estimate) rows.push_back(to_json(v));
-          points_journal->append({{"point", pi}, {"trial", event_trial[i]}, {"estimate", rows}});
-        }
-        trials_done[pi][event_trial[i]] = estimate;
-      });
     std::vector<std::vector<ReconstructedVertex>> estimates;
     for (auto& [trial, estimate] : trials_done[pi]) estimates.push_back(std::move(estimate));
     if (estimates.size() < 3) {  // only from a journal of a stopped run: too few trials to trim
@@ -592,46 +756,6 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   }
 
   if (volume) {
-    std::vector<size_t> pending;
-    for (size_t i = 0; i < volume_positions.size() && !o.journal_only; ++i)
-      if (!volume_done[i]) pending.push_back(i);
-    const size_t batch = 32;
-    for (size_t first = 0; first < pending.size(); first += batch) {
-      const size_t n = std::min(batch, pending.size() - first);
-      std::vector<Event> events(n);
-      for (size_t i = 0; i < n; ++i) {
-        const size_t index = pending[first + i];
-        auto& e = events[i];
-        e.id = volume_first_id + index;
-        auto psf = truth->psf(volume_positions[index]);
-        const ClickSource source{psf.get(), o.volume_photons};
-        sample_clicks(std::span(&source, 1), volume_rngs[index], e.clicks);
-      }
-      reconstruct(events, 1, [&](size_t i, const std::vector<ReconstructedVertex>& estimate, double seconds,
-                                 uint64_t renders) {
-        const size_t index = pending[first + i];
-        VolumeEvent v;
-        v.seconds = seconds;
-        v.renders = double(renders);
-        v.index = index;
-        v.truth_mm = volume_positions[index];
-        v.estimate = estimate.at(0);
-        v.crlb_mm = crlb_at(bound + index, o.volume_photons).first;
-        if (ambiguity_model) {
-          const auto ambiguity_start = std::chrono::steady_clock::now();
-          AmbiguitySettings as = o.ambiguity;
-          as.dark_rate = s.dark_rate;
-          const Ambiguity a = ambiguity(*ambiguity_model, scene, v.truth_mm, o.volume_photons, as);
-          v.alias_kl = a.kl;
-          v.alias_mm = a.impostor_mm;
-          v.p_confusion = a.p_confusion;
-          spent.ambiguity_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - ambiguity_start).count();
-          spent.ambiguity_renders = ambiguity_model->renders();
-        }
-        if (volume_journal) volume_journal->append(to_json(v));
-        volume_done[index] = v;
-      });
-    }
     for (const auto& v : volume_done)
       if (v) result.volume.push_back(*v);  // all of them unless journal_only
     // By depth band, then the whole field.

@@ -52,6 +52,7 @@
 #include "host/reconstruct/reconstruct.h"
 #include "host/reconstruct/refine.h"
 #include "host/scene/scene.h"
+#include "host/util/work_share.h"
 
 namespace prism {
 
@@ -132,6 +133,13 @@ struct EvaluationOptions {
   // events (seed, truth, scene, points), made by any search and refinement
   // (Evaluation::journal_estimators says which).
   bool journal_only = false;
+  // The processes that share the events (prism evaluate under MPI): each
+  // reconstructs those its share takes of the events the journals lack, in
+  // the order the protocol's points and the volume's events come, appending
+  // them to its own part of each journal; the leader gathers them all and
+  // alone makes the figures (the others' Evaluation holds only their cost).
+  // The figures equal one process's. journal_only needs a single process.
+  WorkShare share;
 };
 
 // What the reconstructions of an evaluation cost.

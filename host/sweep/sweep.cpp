@@ -72,9 +72,14 @@ Evaluated evaluate_design(const DesignSpace& space, const Design& d, const Trace
 
 namespace {
 
-// JSON has no infinity: a design with no light somewhere scores "inf".
-json num(double v) { return std::isfinite(v) ? json(v) : json(v > 0 ? "inf" : "-inf"); }
+// JSON has no infinity: a design with no light somewhere scores "inf"; nor
+// NaN (not scored), which is null.
+json num(double v) {
+  if (std::isnan(v)) return nullptr;
+  return std::isfinite(v) ? json(v) : json(v > 0 ? "inf" : "-inf");
+}
 double num(const json& j) {
+  if (j.is_null()) return NAN;
   if (j.is_string()) return j == "inf" ? INFINITY : -INFINITY;
   return j.get<double>();
 }
@@ -152,15 +157,19 @@ json Sweep::header() const {
   return h;
 }
 
-Sweep::Sweep(const DesignSpace& space, SweepSettings settings, std::string state_path)
-    : space_(space), settings_(std::move(settings)), state_path_(std::move(state_path)) {
+Sweep::Sweep(const DesignSpace& space, SweepSettings settings, std::string state_path, WorkShare share)
+    : space_(space), settings_(std::move(settings)), state_path_(std::move(state_path)), share_(std::move(share)) {
   objective_value(Objectives{}, settings_.objective);  // an unknown name fails before any work
   if (settings_.budget == 0) throw SweepError("--budget must be at least 1");
   if (settings_.names_ambiguity() && !settings_.ambiguity) settings_.ambiguity.emplace();
   try {
-    journal_.emplace(state_path_, header(),
-                     "rerun with the same space and --rays/--binning/--device kind (and the ambiguity's options, when "
-                     "the objective or a bound names it), or use a new --out");
+    const std::string on_mismatch =
+        "rerun with the same space and --rays/--binning/--device kind (and the ambiguity's options, when the "
+        "objective or a bound names it), or use a new --out";
+    // The leader makes (or checks) the state file; the others read it.
+    if (share_.leads()) journal_.emplace(state_path_, header(), on_mismatch);
+    share_.wait_for_all();
+    if (!share_.leads()) journal_.emplace(state_path_, header(), on_mismatch, /*read_only=*/true);
   } catch (const JournalError& e) {
     throw SweepError(e.what());
   }
@@ -172,6 +181,7 @@ Sweep::Sweep(const DesignSpace& space, SweepSettings settings, std::string state
 }
 
 void Sweep::append(const Evaluated& e) const {
+  if (!share_.leads()) return;
   try {
     journal_->append(to_json(e));
   } catch (const JournalError& err) {
@@ -206,14 +216,33 @@ std::vector<const Evaluated*> Sweep::ranked() const {
   return r;
 }
 
+std::vector<Evaluated> Sweep::score(const std::vector<Design>& fresh, vk::Context* ctx) const {
+  const AmbiguityScoring* ambiguity = settings_.ambiguity ? &*settings_.ambiguity : nullptr;
+  if (share_.count == 1) return evaluate_designs(space_, fresh, settings_.trace, settings_.backend, ctx, ambiguity);
+  // Each process scores the candidates its share takes; every one gets all
+  // the scores, in the candidates' order, as the state file holds them.
+  std::vector<Design> mine;
+  for (size_t i = 0; i < fresh.size(); ++i)
+    if (share_.takes(i)) mine.push_back(fresh[i]);
+  json scored = json::array();
+  for (const auto& e : evaluate_designs(space_, mine, settings_.trace, settings_.backend, ctx, ambiguity))
+    scored.push_back(to_json(e));
+  const auto all = share_.all_gather(scored.dump());
+  std::vector<Evaluated> out(fresh.size());
+  for (size_t r = 0; r < all.size(); ++r) {
+    const json theirs = json::parse(all[r]);
+    for (size_t k = 0; k < theirs.size(); ++k) out.at(r + k * share_.count) = evaluated_from_json(theirs[k]);
+  }
+  return out;
+}
+
 void Sweep::consume(const std::vector<std::pair<Design, std::string>>& queue, vk::Context* ctx,
                     std::vector<size_t>& pool, const std::function<void(const Evaluated&, size_t)>& on_design) {
   // Score what the state file does not hold yet, all together.
   std::vector<Design> fresh;
   for (const auto& [d, origin] : queue)
     if (!stored_.count(d.key())) fresh.push_back(d);
-  std::vector<Evaluated> scored = evaluate_designs(space_, fresh, settings_.trace, settings_.backend, ctx,
-                                                     settings_.ambiguity ? &*settings_.ambiguity : nullptr);
+  std::vector<Evaluated> scored = score(fresh, ctx);
   size_t next = 0;
   size_t consumed = seen_.size() - queue.size();
   for (const auto& [d, origin] : queue) {

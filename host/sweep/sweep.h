@@ -21,6 +21,7 @@
 #include "host/sweep/objectives.h"
 #include "host/sweep/space.h"
 #include "host/util/journal.h"
+#include "host/util/work_share.h"
 
 namespace prism {
 
@@ -52,7 +53,11 @@ class Sweep {
  public:
   // Reads `state_path` when it exists (a sweep to resume); it must have been
   // made with the same space and trace settings.
-  Sweep(const DesignSpace& space, SweepSettings settings, std::string state_path);
+  // Under several processes (`share`; prism sweep under MPI) every one runs
+  // the same search from the seed; each batch's candidates are scored by the
+  // processes their share gives them to, every one gets all the scores, and
+  // the leader alone writes the state file. The sweep equals one process's.
+  Sweep(const DesignSpace& space, SweepSettings settings, std::string state_path, WorkShare share = {});
 
   // Generates candidates from the seed until the budget is met or stop()
   // returns true. Designs already in the state are replayed, not scored, so
@@ -73,6 +78,8 @@ class Sweep {
   // and appends each to the state file.
   void consume(const std::vector<std::pair<Design, std::string>>& queue, vk::Context* ctx, std::vector<size_t>& pool,
                const std::function<void(const Evaluated&, size_t)>& on_design);
+  // Validates and scores fresh candidates (this process's share of them).
+  std::vector<Evaluated> score(const std::vector<Design>& fresh, vk::Context* ctx) const;
   bool better(const Evaluated& a, const Evaluated& b) const;
   void append(const Evaluated& e) const;
   nlohmann::json header() const;
@@ -80,6 +87,7 @@ class Sweep {
   const DesignSpace& space_;
   SweepSettings settings_;
   std::string state_path_;
+  WorkShare share_;
   std::optional<Journal> journal_;  // the state file
   std::vector<Evaluated> done_;           // in state-file order
   std::unordered_map<std::string, Evaluated> stored_;  // read from the state file, not yet replayed

@@ -1,7 +1,10 @@
 // `mpirun -n N prism ...` (host/cmd/ranks.h): the commands that split their
-// work over MPI ranks (dictionary build, simulate, reconstruct) write the
-// files of one process, byte for byte, with even and uneven shares; a failing rank stops the job with its message and
-// leaves no output; the other commands refuse to run under several ranks.
+// work over MPI ranks write the files of one process, with even and uneven
+// shares, and resume what a job of another size left, byte for byte but
+// for the times measured (evaluate and sweep render on the device, whose
+// float sums repeat only on one lavapipe thread: they run so here). A failing
+// rank stops the job with its message and leaves no output; the other
+// commands refuse to run under several ranks.
 // Built when MPI is (PRISM_WITH_MPI); the ranks run on lavapipe with the
 // validation layer on, as every test does (the environment is inherited).
 #ifdef PRISM_WITH_MPI
@@ -10,6 +13,8 @@
 #include <fstream>
 #include <iterator>
 #include <map>
+#include <regex>
+#include <sstream>
 #include <string>
 #include <vector>
 
@@ -57,6 +62,37 @@ void check_clean(const prism::test::CommandResult& r, const std::string& summary
   REQUIRE(r.status == 0);
   CHECK(r.output.find("vulkan validation") == std::string::npos);
   CHECK(count(r.output, summary) == 1);
+}
+
+// A CSV file without the column named `times` (seconds measured).
+std::string without_column(const std::string& path, const std::string& times) {
+  std::istringstream in(contents(path));
+  std::string out, line;
+  long skip = -1;
+  for (bool header = true; std::getline(in, line); header = false) {
+    std::vector<std::string> cells;
+    std::istringstream row(line);
+    for (std::string cell; std::getline(row, cell, ',');) cells.push_back(cell);
+    if (header)
+      for (size_t c = 0; c < cells.size(); ++c)
+        if (cells[c] == times) skip = long(c);
+    for (size_t c = 0; c < cells.size(); ++c)
+      if (long(c) != skip) out += cells[c] + ",";
+    out += "\n";
+  }
+  return out;
+}
+
+// A journal's records (the lines after its header) without their measured
+// "seconds", sorted: the ranks' records reach rank 0's journal in rank order.
+std::vector<std::string> records_of(const std::string& path) {
+  std::vector<std::string> lines;
+  std::istringstream in(contents(path));
+  for (std::string line; std::getline(in, line);)
+    lines.push_back(std::regex_replace(line, std::regex("\"seconds\":[^,}]*"), ""));
+  if (!lines.empty()) lines.erase(lines.begin());
+  std::sort(lines.begin(), lines.end());
+  return lines;
 }
 
 }  // namespace
@@ -138,6 +174,84 @@ TEST_CASE("mpirun -n 2 and 3: dictionary build, simulate and reconstruct write w
   }
 }
 
+TEST_CASE("mpirun -n 2 and 3: evaluate and sweep give one process's figures, and resume a job of another size") {
+  const std::string dir = scratch() + "/figures";
+  fs::remove_all(dir);
+  fs::create_directories(dir);
+  const std::string dict = dir + "/dict";
+  REQUIRE(prism::test::run_prism("dictionary build --out " + dict + " --grid-x-mm -5,0,5 --grid-y-mm -5,0,5 "
+                                 "--grid-depth-mm 25,30,35 --binning 16 --splat point --rays 256").status == 0);
+  // The device's float sums (the events' truth, the CRLB, a design's
+  // scores) repeat their last bits only when one lavapipe thread does them
+  // in a fixed order, and with the point splat: the footprint splat's lists
+  // of split triangles interleave the sources of a dispatch, so a design's
+  // sums group with those of the designs it shares a dispatch with (1e-9
+  // relative: README "MPI").
+  const std::string one_thread = "LP_NUM_THREADS=1";
+  auto ranks = [&](int n, const std::string& args) {
+    return prism::test::run_prism(args, one_thread + " " + PRISM_MPIEXEC + " --allow-run-as-root --oversubscribe -n " +
+                                            std::to_string(n));
+  };
+  // The protocol's photons experiment (2 points of 3 trials) and 7 volume
+  // events: 13 events, shared 7 + 6 by 2 ranks.
+  const std::string evaluate = "evaluate --dictionary " + dict +
+                               " --experiments photons,volume --quick --trials 3 --volume-events 7 --model none --splat point --out ";
+  auto single = prism::test::run_prism(evaluate + dir + "/one", one_thread);
+  INFO(single.output);
+  REQUIRE(single.status == 0);
+  auto check_evaluation = [&](const std::string& out) {
+    for (const char* table : {"photons.csv", "photons.png", "volume.csv", "volume.png", "volume-catastrophic.png"})
+      CHECK_MESSAGE(contents(dir + "/one/" + table) == contents(out + "/" + table), table);
+    CHECK(without_column(dir + "/one/volume-events.csv", "seconds") ==
+          without_column(out + "/volume-events.csv", "seconds"));
+    for (const char* journal : {"protocol-journal.jsonl", "volume-journal.jsonl"})
+      CHECK_MESSAGE(records_of(dir + "/one/" + journal) == records_of(out + "/" + journal), journal);
+    for (const auto& f : fs::directory_iterator(out))  // the ranks' parts are merged in and gone
+      CHECK(f.path().filename().string().find(".part") == std::string::npos);
+  };
+  auto two = ranks(2, evaluate + dir + "/two");
+  check_clean(two, "reconstruction: 13 events");
+  CHECK(two.output.find("2 MPI ranks") != std::string::npos);
+  check_evaluation(dir + "/two");
+
+  // A stopped 2-rank job: rank 0's journals hold some events, rank 1's parts
+  // others. 3 ranks resume it: the parts are merged, the 5 events neither
+  // holds are done (2 + 2 + 1), and the figures are one process's.
+  const std::string resumed = dir + "/resumed";
+  fs::create_directories(resumed);
+  for (const std::string journal : {"protocol-journal", "volume-journal"}) {
+    std::istringstream in(contents(dir + "/one/" + journal + ".jsonl"));
+    std::string header;
+    std::getline(in, header);
+    std::ofstream main(resumed + "/" + journal + ".jsonl"), part(resumed + "/" + journal + ".part1.jsonl");
+    main << header << '\n';
+    part << header << '\n';
+    int n = 0;
+    for (std::string line; n < 4 && std::getline(in, line); ++n) (n < 2 ? main : part) << line << '\n';
+  }
+  auto three = ranks(3, evaluate + resumed + " --resume");
+  check_clean(three, "reconstruction: 5 events");
+  CHECK(three.output.find("8 events read from the journals") != std::string::npos);
+  check_evaluation(resumed);
+
+  // A sweep of 12 designs in batches of 4 (2 + 2 under 2 ranks, 2 + 1 + 1
+  // under 3): the first 6 under 2 ranks, the rest resumed under 3.
+  std::ofstream(dir + "/space.json") << R"({"base": "prototype", "focal_mm": [9, 15], "assignment": "free",
+      "samples": {"x_mm": [0], "y_mm": [0], "depth_mm": [10, 20]}})";
+  const std::string sweep = "sweep --space " + dir + "/space.json --batch 4 --rays 256 --binning 64 --splat point --out ";
+  auto alone = prism::test::run_prism(sweep + dir + "/sw1 --budget 12", one_thread);
+  INFO(alone.output);
+  REQUIRE(alone.status == 0);
+  check_clean(ranks(2, sweep + dir + "/sw --budget 6"), "designs scored this run");
+  auto rest = ranks(3, sweep + dir + "/sw --budget 12");
+  check_clean(rest, "designs scored this run");
+  CHECK(rest.output.find("6 designs scored this run, 6 replayed") != std::string::npos);
+  CHECK(without_column(dir + "/sw1/ranked.csv", "seconds") == without_column(dir + "/sw/ranked.csv", "seconds"));
+  CHECK(records_of(dir + "/sw1/evaluated.jsonl") == records_of(dir + "/sw/evaluated.jsonl"));
+  for (const char* file : {"best-1.json", "best-2.json", "best-3.json", "pareto.png", "crlb-depth.png"})
+    CHECK_MESSAGE(contents(dir + "/sw1/" + file) == contents(dir + "/sw/" + file), file);
+}
+
 TEST_CASE("mpirun: a rank that fails stops the job with its message and no output, and the other commands refuse ranks") {
   const std::string dir = scratch();
   const std::string dict = dir + "/dict";
@@ -160,6 +274,11 @@ TEST_CASE("mpirun: a rank that fails stops the job with its message and no outpu
   CHECK(r.output.find("cut.events") != std::string::npos);
   for (const auto& f : fs::directory_iterator(dir))  // neither the CSV nor a temporary of it
     CHECK(f.path().filename().string().rfind("v.csv", 0) != 0);
+
+  auto report = run_ranks(2, "evaluate --dictionary " + dict + " --experiments volume --journal-only --out " + dir + "/j");
+  INFO(report.output);
+  CHECK(report.status != 0);
+  CHECK(report.output.find("--journal-only reconstructs nothing: run it as one process") != std::string::npos);
 
   auto crlb = run_ranks(2, "crlb --depth-mm 20 --csv " + dir + "/c.csv");
   INFO(crlb.output);
