@@ -220,6 +220,9 @@ void run(const SweepArgs& a) {
       });
   progress.finish();
   std::signal(SIGINT, previous);
+  // Baselines at the same settings and samples: the prototype and the
+  // unifocal arrays, shared out like a batch.
+  auto baselines = score_baselines(space, s, ctx.get(), ranks::work_share());
   if (!ranks::root()) return;
 
   auto ranked = sweep.ranked();
@@ -234,8 +237,6 @@ void run(const SweepArgs& a) {
     });
   }
 
-  // Baselines at the same settings and samples: the prototype and the unifocal arrays.
-  auto baselines = score_baselines(space, s, ctx.get());
   write_plots(a, sweep, ranked, baselines, stated);
   if (s.ambiguity) write_ambiguity_plot(a.out + "/ambiguity.png", ranked, baselines, *s.ambiguity, stated);
 

@@ -4,15 +4,29 @@
 
 namespace prism {
 
-std::vector<Baseline> score_baselines(const DesignSpace& space, const SweepSettings& s, vk::Context* ctx) {
+std::vector<Baseline> score_baselines(const DesignSpace& space, const SweepSettings& s, vk::Context* ctx,
+                                      const WorkShare& share) {
+  const std::vector<std::string> names{"prototype", "unifocal-f3", "unifocal-f9", "unifocal-f15"};
   std::vector<Baseline> baselines;
-  for (const char* name : {"prototype", "unifocal-f3", "unifocal-f9", "unifocal-f15"}) {
-    Scene b = builtin_scene(name);
+  nlohmann::json mine = nlohmann::json::array();
+  for (size_t i = 0; i < names.size(); ++i) {
+    if (!share.takes(i)) continue;
+    Scene b = builtin_scene(names[i]);
     b.volume = space.base.volume;
     Objectives o = score(b, space.samples, s.trace, s.backend, ctx);
     if (s.ambiguity)
       score_ambiguity(b, space.ambiguity_samples, *s.ambiguity, s.backend == Backend::vulkan ? ctx : nullptr, o);
-    baselines.push_back({name, o});
+    baselines.push_back({names[i], o});
+    mine.push_back(to_json(o));
+  }
+  if (share.count == 1) return baselines;
+  // Process r scored baselines r, r + N, ...: every one gets them all, in order.
+  const auto all = share.all_gather(mine.dump());
+  baselines.assign(names.size(), {});
+  for (size_t r = 0; r < all.size(); ++r) {
+    const auto theirs = nlohmann::json::parse(all[r]);
+    for (size_t k = 0; k < theirs.size(); ++k)
+      baselines.at(r + k * share.count) = {names.at(r + k * share.count), objectives_from_json(theirs[k])};
   }
   return baselines;
 }

@@ -15,7 +15,10 @@ struct Baseline {
 };
 
 // The prototype and the unifocal arrays (f3, f9, f15), in the space's volume.
-std::vector<Baseline> score_baselines(const DesignSpace& space, const SweepSettings& settings, vk::Context* ctx);
+// Under several processes (`share`) each scores those its share takes and
+// every one gets them all.
+std::vector<Baseline> score_baselines(const DesignSpace& space, const SweepSettings& settings, vk::Context* ctx,
+                                      const WorkShare& share = {});
 
 struct Confirmation {
   size_t rank = 0;             // 1-based, in the sweep's ranking

@@ -10,6 +10,56 @@
 
 namespace prism {
 
+namespace {
+
+using json = nlohmann::json;
+
+// JSON has no infinity: a design with no light somewhere scores "inf"; nor
+// NaN (not scored), which is null.
+json num(double v) {
+  if (std::isnan(v)) return nullptr;
+  return std::isfinite(v) ? json(v) : json(v > 0 ? "inf" : "-inf");
+}
+double num(const json& j) {
+  if (j.is_null()) return NAN;
+  if (j.is_string()) return j == "inf" ? INFINITY : -INFINITY;
+  return j.get<double>();
+}
+
+}  // namespace
+
+nlohmann::json to_json(const Objectives& o) {
+  nlohmann::json by_depth = nlohmann::json::array();
+  for (double v : o.crlb_3d_by_depth_mm) by_depth.push_back(num(v));
+  nlohmann::json j = {{"mean_crlb_3d_mm", num(o.mean_crlb_3d_mm)}, {"worst_crlb_3d_mm", num(o.worst_crlb_3d_mm)},
+                      {"mean_crlb_x_mm", num(o.mean_crlb_x_mm)},   {"mean_crlb_y_mm", num(o.mean_crlb_y_mm)},
+                      {"mean_crlb_z_mm", num(o.mean_crlb_z_mm)},   {"mean_photons", num(o.mean_photons)},
+                      {"depth_ratio", num(o.depth_ratio)},         {"crlb_3d_by_depth_mm", by_depth}};
+  if (!std::isnan(o.mean_p_confusion))
+    j.update({{"mean_p_confusion", num(o.mean_p_confusion)},
+              {"worst_p_confusion", num(o.worst_p_confusion)},
+              {"min_alias_kl", num(o.min_alias_kl)}});
+  return j;
+}
+
+Objectives objectives_from_json(const nlohmann::json& o) {
+  Objectives b;
+  b.mean_crlb_3d_mm = num(o.at("mean_crlb_3d_mm"));
+  b.worst_crlb_3d_mm = num(o.at("worst_crlb_3d_mm"));
+  b.mean_crlb_x_mm = num(o.at("mean_crlb_x_mm"));
+  b.mean_crlb_y_mm = num(o.at("mean_crlb_y_mm"));
+  b.mean_crlb_z_mm = num(o.at("mean_crlb_z_mm"));
+  b.mean_photons = num(o.at("mean_photons"));
+  b.depth_ratio = num(o.at("depth_ratio"));
+  for (const auto& v : o.at("crlb_3d_by_depth_mm")) b.crlb_3d_by_depth_mm.push_back(num(v));
+  if (o.contains("mean_p_confusion")) {
+    b.mean_p_confusion = num(o.at("mean_p_confusion"));
+    b.worst_p_confusion = num(o.at("worst_p_confusion"));
+    b.min_alias_kl = num(o.at("min_alias_kl"));
+  }
+  return b;
+}
+
 // ---- Sample grid
 
 std::vector<glm::dvec3> SampleGrid::positions() const {

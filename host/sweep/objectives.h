@@ -84,6 +84,11 @@ Bound parse_bound(const std::string& text);
 Objectives score(const Scene& scene, const SampleGrid& grid, const TraceSettings& settings, Backend backend,
                  vk::Context* ctx);
 
+// Objectives as JSON (a sweep's state file, the scores its processes
+// exchange), and back, every double exactly; the ambiguity's only when scored.
+nlohmann::json to_json(const Objectives& o);
+Objectives objectives_from_json(const nlohmann::json& j);
+
 // Adds the ambiguity objectives of one scene at `samples`, with the scene's
 // model on the device (`ctx`) or the double reference (nullptr).
 void score_ambiguity(const Scene& scene, const SampleGrid& samples, const AmbiguityScoring& scoring, vk::Context* ctx,

@@ -72,35 +72,13 @@ Evaluated evaluate_design(const DesignSpace& space, const Design& d, const Trace
 
 namespace {
 
-// JSON has no infinity: a design with no light somewhere scores "inf"; nor
-// NaN (not scored), which is null.
-json num(double v) {
-  if (std::isnan(v)) return nullptr;
-  return std::isfinite(v) ? json(v) : json(v > 0 ? "inf" : "-inf");
-}
-double num(const json& j) {
-  if (j.is_null()) return NAN;
-  if (j.is_string()) return j == "inf" ? INFINITY : -INFINITY;
-  return j.get<double>();
-}
-
 json to_json(const Evaluated& e) {
   json j = {{"key", e.key}, {"design", e.design.to_json()}, {"origin", e.origin}, {"valid", e.valid}};
   if (!e.valid) {
     j["reason"] = e.reason;
     return j;
   }
-  const Objectives& o = e.objectives;
-  json by_depth = json::array();
-  for (double v : o.crlb_3d_by_depth_mm) by_depth.push_back(num(v));
-  j["objectives"] = {{"mean_crlb_3d_mm", num(o.mean_crlb_3d_mm)}, {"worst_crlb_3d_mm", num(o.worst_crlb_3d_mm)},
-                     {"mean_crlb_x_mm", num(o.mean_crlb_x_mm)},   {"mean_crlb_y_mm", num(o.mean_crlb_y_mm)},
-                     {"mean_crlb_z_mm", num(o.mean_crlb_z_mm)},   {"mean_photons", num(o.mean_photons)},
-                     {"depth_ratio", num(o.depth_ratio)},         {"crlb_3d_by_depth_mm", by_depth}};
-  if (!std::isnan(o.mean_p_confusion))
-    j["objectives"].update({{"mean_p_confusion", num(o.mean_p_confusion)},
-                            {"worst_p_confusion", num(o.worst_p_confusion)},
-                            {"min_alias_kl", num(o.min_alias_kl)}});
+  j["objectives"] = to_json(e.objectives);
   j["seconds"] = e.seconds;
   return j;
 }
@@ -115,21 +93,7 @@ Evaluated evaluated_from_json(const json& j) {
     e.reason = j.at("reason");
     return e;
   }
-  const json& o = j.at("objectives");
-  Objectives& b = e.objectives;
-  b.mean_crlb_3d_mm = num(o.at("mean_crlb_3d_mm"));
-  b.worst_crlb_3d_mm = num(o.at("worst_crlb_3d_mm"));
-  b.mean_crlb_x_mm = num(o.at("mean_crlb_x_mm"));
-  b.mean_crlb_y_mm = num(o.at("mean_crlb_y_mm"));
-  b.mean_crlb_z_mm = num(o.at("mean_crlb_z_mm"));
-  b.mean_photons = num(o.at("mean_photons"));
-  b.depth_ratio = num(o.at("depth_ratio"));
-  for (const auto& v : o.at("crlb_3d_by_depth_mm")) b.crlb_3d_by_depth_mm.push_back(num(v));
-  if (o.contains("mean_p_confusion")) {
-    b.mean_p_confusion = num(o.at("mean_p_confusion"));
-    b.worst_p_confusion = num(o.at("worst_p_confusion"));
-    b.min_alias_kl = num(o.at("min_alias_kl"));
-  }
+  e.objectives = objectives_from_json(j.at("objectives"));
   e.seconds = j.value("seconds", 0.0);
   return e;
 }
