@@ -229,6 +229,13 @@ TEST_CASE("mpirun -n 2 and 3: evaluate and sweep give one process's figures, and
     int n = 0;
     for (std::string line; n < 4 && std::getline(in, line); ++n) (n < 2 ? main : part) << line << '\n';
   }
+  // A report of the stopped job reads the parts beside the journals: 4 of
+  // the 7 volume events.
+  auto report = prism::test::run_prism(evaluate + resumed + " --journal-only", one_thread);
+  INFO(report.output);
+  REQUIRE(report.status == 0);
+  CHECK(report.output.find("volume: 4 events") != std::string::npos);
+  CHECK(fs::exists(resumed + "/volume-journal.part1.jsonl"));  // a report changes nothing
   auto three = ranks(3, evaluate + resumed + " --resume");
   check_clean(three, "reconstruction: 5 events");
   CHECK(three.output.find("8 events read from the journals") != std::string::npos);
