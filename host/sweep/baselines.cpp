@@ -20,14 +20,9 @@ std::vector<Baseline> score_baselines(const DesignSpace& space, const SweepSetti
     mine.push_back(to_json(o));
   }
   if (share.count == 1) return baselines;
-  // Process r scored baselines r, r + N, ...: every one gets them all, in order.
-  const auto all = share.all_gather(mine.dump());
-  baselines.assign(names.size(), {});
-  for (size_t r = 0; r < all.size(); ++r) {
-    const auto theirs = nlohmann::json::parse(all[r]);
-    for (size_t k = 0; k < theirs.size(); ++k)
-      baselines.at(r + k * share.count) = {names.at(r + k * share.count), objectives_from_json(theirs[k])};
-  }
+  const auto all = share.gather_items(names.size(), mine);
+  baselines.clear();
+  for (size_t i = 0; i < names.size(); ++i) baselines.push_back({names[i], objectives_from_json(all[i])});
   return baselines;
 }
 

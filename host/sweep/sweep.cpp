@@ -191,12 +191,8 @@ std::vector<Evaluated> Sweep::score(const std::vector<Design>& fresh, vk::Contex
   json scored = json::array();
   for (const auto& e : evaluate_designs(space_, mine, settings_.trace, settings_.backend, ctx, ambiguity))
     scored.push_back(to_json(e));
-  const auto all = share_.all_gather(scored.dump());
-  std::vector<Evaluated> out(fresh.size());
-  for (size_t r = 0; r < all.size(); ++r) {
-    const json theirs = json::parse(all[r]);
-    for (size_t k = 0; k < theirs.size(); ++k) out.at(r + k * share_.count) = evaluated_from_json(theirs[k]);
-  }
+  std::vector<Evaluated> out;
+  for (const json& e : share_.gather_items(fresh.size(), scored)) out.push_back(evaluated_from_json(e));
   return out;
 }
 

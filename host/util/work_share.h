@@ -10,6 +10,8 @@
 #include <string_view>
 #include <vector>
 
+#include <nlohmann/json.hpp>
+
 namespace prism {
 
 struct WorkShare {
@@ -28,6 +30,18 @@ struct WorkShare {
   std::function<void()> barrier;
   void wait_for_all() const {
     if (count > 1) barrier();
+  }
+  // Collective: items 0..n-1 done in turn (item i by the process that takes
+  // it); `mine` holds this process's results in item order, and every
+  // process gets all n, in item order.
+  std::vector<nlohmann::json> gather_items(size_t n, const nlohmann::json& mine) const {
+    std::vector<nlohmann::json> all(n);
+    const auto parts = all_gather(mine.dump());
+    for (size_t r = 0; r < parts.size(); ++r) {
+      const auto theirs = nlohmann::json::parse(parts[r]);
+      for (size_t k = 0; k < theirs.size(); ++k) all.at(r + k * count) = theirs[k];
+    }
+    return all;
   }
 };
 
