@@ -4,6 +4,8 @@
 #include <chrono>
 #include <filesystem>
 #include <fstream>
+#include <future>
+#include <memory>
 
 #include "engine/forward.h"
 #include "host/util/format.h"
@@ -82,12 +84,14 @@ void check_disk(const std::string& dir, const std::string& first_file, size_t re
 
 void check_build_memory(const vk::Context& ctx, const Scene& scene, const DictionaryBuildOptions& o) {
   const DictionaryManifest wanted = manifest_for(scene, o);
-  // One PSF at a time: level 0, its copy in half floats as it is written, and
-  // a coarser level with its double accumulator (binned from level 0).
+  // One PSF written at a time: level 0, its copy in half floats, and a
+  // coarser level with its double accumulator (binned from level 0); beside
+  // it the next PSF's level 0 as the device renders it.
   const double px = double(wanted.width) * wanted.height;
   MemoryEstimate memory("dictionary build at binning " + std::to_string(o.base_binning) + " (" +
                         std::to_string(wanted.width) + " x " + std::to_string(wanted.height) + " px per PSF)");
   memory.add("a PSF's level 0 in float and half", 6 * px).add("its coarser levels as they are binned", 3 * px);
+  memory.add("the next PSF's level 0, rendered while one is written", 4 * px);
   memory.add_device_buffers(
       double(ForwardVulkan::device_bytes_at_most(AnalysisGrid::of(scene.optics, unsigned(o.base_binning)), o.splat)),
       ctx.is_cpu());
@@ -112,27 +116,42 @@ DictionaryBuildReport build_dictionary(vk::Context& ctx, const Scene& scene, con
   ForwardVulkan fw(ctx, scene.optics, t);
 
   DictionaryBuildReport report;
-  std::vector<double> per_psf;
+  std::vector<double> per_psf;  // seconds between one PSF's file and the next's
   auto start = std::chrono::steady_clock::now();
+  auto last_written = start;
   const size_t share = o.share.taken_of(wanted.grid.size());
   size_t done = 0;
+  // A PSF's file is written (binned, converted, compressed: a thread's work)
+  // while the device renders the next one, so the two overlap.
+  std::future<void> writing;
+  size_t writing_index = 0;
+  auto finish_writing = [&] {
+    if (!writing.valid()) return;
+    writing.get();
+    if (report.rendered == 0) check_disk(dir, reader.path_of(writing_index), share - done - 1);  // at most that many left
+    auto now = std::chrono::steady_clock::now();
+    per_psf.push_back(std::chrono::duration<double>(now - last_written).count());
+    last_written = now;
+    ++report.rendered;
+    if (progress) progress(++done, share);
+  };
   for (size_t i = o.share.index; i < wanted.grid.size(); i += o.share.count) {
     if (reader.has(i)) {
       ++report.reused;
-    } else {
-      auto t0 = std::chrono::steady_clock::now();
-      PsfLevel l0{0, wanted.width, wanted.height, fw.psf_values(wanted.grid.position(i))};
-      double total = 0;
-      for (float b : l0.p) total += b;
-      // A position that puts no light on the sensor is stored as zeros.
-      for (float& p : l0.p) p = total > 0 ? float(p / total) : 0.0f;
-      write_psf_file(reader.path_of(i), wanted, i, l0, total);
-      if (report.rendered == 0) check_disk(dir, reader.path_of(i), share - done - 1);  // at most that many left
-      per_psf.push_back(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
-      ++report.rendered;
+      if (progress) progress(++done, share);
+      continue;
     }
-    if (progress) progress(++done, share);
+    auto l0 = std::make_shared<PsfLevel>(PsfLevel{0, wanted.width, wanted.height, fw.psf_values(wanted.grid.position(i))});
+    double total = 0;
+    for (float b : l0->p) total += b;
+    // A position that puts no light on the sensor is stored as zeros.
+    for (float& p : l0->p) p = total > 0 ? float(p / total) : 0.0f;
+    finish_writing();
+    writing_index = i;
+    writing = std::async(std::launch::async, [&, i, l0, total] { write_psf_file(reader.path_of(i), wanted, i, *l0, total); });
+    if (!o.overlap_writes) finish_writing();
   }
+  finish_writing();
   report.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   if (!per_psf.empty()) {
     std::sort(per_psf.begin(), per_psf.end());

@@ -19,6 +19,10 @@ struct DictionaryBuildOptions {
   Splat splat = TraceSettings{}.splat;  // how the forward model's rays become pixel values
   unsigned stratification = 0;
   int tile_px = 64;
+  // A PSF's file is written on a thread while the device renders the next;
+  // false writes it before the next render (the path before, measured
+  // against by bench_dictionary).
+  bool overlap_writes = true;
   // This process renders the entries its share takes (an MPI rank's,
   // interleaved so that each gets near and far depths alike); the others are
   // left to the processes whose share they are.
@@ -28,7 +32,7 @@ struct DictionaryBuildOptions {
 struct DictionaryBuildReport {
   size_t rendered = 0, reused = 0;
   double seconds = 0;
-  double seconds_per_psf = 0;  // rendering and writing, median
+  double seconds_per_psf = 0;  // median time between two PSF files written (rendering overlaps writing)
 };
 
 // A grid larger than this is refused before any work: the default has 2783

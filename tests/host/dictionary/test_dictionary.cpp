@@ -170,6 +170,43 @@ TEST_CASE("an interrupted build resumes, a different dictionary in the same plac
   prism::test::check_validation_clean();
 }
 
+TEST_CASE("a PSF file that cannot be written stops the build, naming it: the files before it stay whole") {
+  // The build writes a PSF's file on a thread while the device renders the
+  // next: the write's error must still stop it, and progress must still
+  // count every entry once, in order.
+  const std::string dir = (fs::temp_directory_path() / ("prism-dict-badwrite-" + std::to_string(::getpid()))).string();
+  fs::remove_all(dir);
+  prism::DictionaryBuildOptions o;
+  o.grid = {{-5.0, 0.0, 5.0}, {0.0}, {20.0}};
+  o.base_binning = 16;
+  o.rays_per_lenslet = 256;
+  const prism::Scene scene = prism::builtin_scene("prototype");
+  prism::prepare_dictionary(scene, dir, o);
+  prism::DictionaryReader r(dir);
+  // The second PSF's temporary is a folder, which OpenEXR cannot open.
+  fs::create_directories(r.path_of(1) + ".partial-" + std::to_string(::getpid()) + "/x");
+  std::vector<std::pair<size_t, size_t>> calls;
+  auto record = [&](size_t done, size_t total) { calls.emplace_back(done, total); };
+  const std::string why = r.path_of(1) + ": cannot write";
+  CHECK_THROWS_WITH_AS(prism::build_dictionary(prism::test::gpu(), scene, dir, o, record),
+                       doctest::Contains(why.c_str()), prism::DictionaryError);
+  CHECK(r.has(0));
+  CHECK_FALSE(r.has(1));
+  CHECK(calls == std::vector<std::pair<size_t, size_t>>{{1, 3}});
+  CHECK(r.read_level(0, 0).p.size() == size_t(r.manifest().width) * r.manifest().height);
+  // Mended, the build continues from the file written.
+  fs::remove_all(r.path_of(1) + ".partial-" + std::to_string(::getpid()));
+  calls.clear();
+  auto again = prism::build_dictionary(prism::test::gpu(), scene, dir, o, record);
+  CHECK(again.reused == 1);
+  CHECK(again.rendered == 2);
+  CHECK(again.seconds_per_psf > 0);
+  CHECK(calls == std::vector<std::pair<size_t, size_t>>{{1, 3}, {2, 3}, {3, 3}});
+  CHECK(r.present() == 3);
+  fs::remove_all(dir);
+  prism::test::check_validation_clean();
+}
+
 TEST_CASE("corrupt files, wrong versions and another sensor give errors naming the file") {
   auto& d = small();
   std::string copy = d.dir + "-broken";
