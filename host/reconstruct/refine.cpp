@@ -496,13 +496,17 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
   // -shift / magnification, near enough), and the candidate moved with the
   // best: sites predicted a few tenths of a mm off, where sharp images
   // near the face score as badly as wrong ones.
-  // With blur_px > 0 the images are scored blurred, and the best fitted
+  // With near_face_blur_px > 0 the images of candidates nearer the face
+  // than near_face_mm are scored blurred by it, and the best of them fitted
   // blurred first (try_start).
-  auto probe_best = [&](size_t k, std::vector<glm::dvec3> cand, int n, int reach_px = 0, double blur_px = 0) {
+  auto blur_at = [&](const glm::dvec3& at, double near_face_blur_px) {
+    return at.z < s_.near_face_mm ? near_face_blur_px : 0.0;
+  };
+  auto probe_best = [&](size_t k, std::vector<glm::dvec3> cand, int n, int reach_px = 0, double near_face_blur_px = 0) {
     if (cand.empty() || n <= 0) return;
     auto imgs = model_.render(cand);
-    if (blur_px > 0)
-      for (auto& im : imgs) im = blurred(im, blur_px, grid_);
+    for (size_t j = 0; j < cand.size(); ++j)
+      if (const double b = blur_at(cand[j], near_face_blur_px); b > 0) imgs[j] = blurred(imgs[j], b, grid_);
     Fit others = f;
     others.alpha[k] = 0;
     const auto background = others.click_rates();
@@ -535,7 +539,7 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
     }
     std::sort(scored.begin(), scored.end());
     for (size_t t = 0; t < scored.size() && t < size_t(n); ++t)
-      try_start(k, cand[std::get<1>(scored[t])], std::get<2>(scored[t]), blur_px);
+      try_start(k, cand[std::get<1>(scored[t])], std::get<2>(scored[t]), blur_at(cand[std::get<1>(scored[t])], near_face_blur_px));
   };
   auto inside = [&](glm::dvec3 a) {
     return glm::all(glm::greaterThanEqual(a, bounds_.lo)) && glm::all(glm::lessThanEqual(a, bounds_.hi));
@@ -608,7 +612,7 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
         for (size_t j = 0; j < f.K; ++j) taken = taken || glm::length(p - f.theta[j]) < kDistinctStartMm;
         if (!taken && inside(p)) cand.push_back(p);
       }
-      probe_best(k, cand, s_.search_starts);
+      probe_best(k, cand, s_.search_starts, kLatticeReachPx, s_.site_blur_px);
     }
   }
   double pvalue = fit_pvalue(f, event.id);
@@ -660,8 +664,7 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
         const glm::dvec3 site = at + glm::dvec3(double(i) * sa + double(j) * sb, 0.0);
         if ((i != 0 || j != 0) && inside(site)) sites.push_back(site);
       }
-    const double blur_px = at.z < s_.near_face_mm ? s_.site_blur_px : 0.0;
-    probe_best(k, sites, s_.alias_starts, kLatticeReachPx, blur_px);
+    probe_best(k, sites, s_.alias_starts, kLatticeReachPx, s_.site_blur_px);
   };
   // The clicks vertex k may claim: those no other vertex explains better
   // than it does (all of them for K = 1).
