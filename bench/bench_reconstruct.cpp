@@ -6,7 +6,8 @@
 // one start or all (runners-up and lattice aliases). Memory on the device and the host for each. Writes a CSV and a
 // plot of error against time per event.
 //
-//   bench_reconstruct [--device D] [--dictionary DIR] [--out DIR] [--events-per-position N] [--groups G,...]
+//   bench_reconstruct [--device D] [--dictionary DIR] [--native-dictionary DIR] [--out DIR]
+//                     [--events-per-position N] [--native-positions N] [--groups G,...]
 //
 // --groups runs only those groups of rows (backend, tier, coarse, bound, layout,
 // step, precision, K, refine, native); the ratios print where their rows ran.
@@ -16,7 +17,10 @@
 // dictionary's level 4. Its dictionary (--native-dictionary DIR, or built once
 // in /tmp: x, y in -5, 0, 5 mm, depths 15, 20, 25, binning 1, footprint at
 // 1024 cells, about 3 minutes on lavapipe) is small: the rows compare the two
-// click grids on the same events, not the 1210-PSF grid's accuracy.
+// click grids on the same events, not the 1210-PSF grid's accuracy. With
+// --native-positions N the events lie at N positions drawn uniformly over
+// the dictionary's grid instead of three inside it: for a full-resolution
+// 1210-PSF dictionary, over the whole volume.
 //
 // Without --dictionary it builds (or resumes) the paper's 1210-PSF grid at
 // 16 x 16 binning, 4096 rays per lenslet, in /tmp. Events: the ray-traced
@@ -31,6 +35,7 @@
 #include <fstream>
 #include <map>
 #include <numeric>
+#include <random>
 #include <memory>
 #include <string>
 
@@ -57,6 +62,7 @@ struct Row {
   size_t events = 0;
   double seconds_per_event = 0;  // median over repeats
   double err_mean_mm = 0, err_median_mm = 0;
+  size_t catastrophic = 0;       // events whose error exceeds defaults::catastrophic_error_mm
   double scan_share = 0;         // of the time, the support scans
   uint64_t device_bytes = 0, host_peak_bytes = 0;
   uint64_t rss_bytes = 0;  // the process's peak RSS after this row (monotone over the run)
@@ -153,13 +159,14 @@ Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, c
   auto e = errors(r.out, truth);
   r.err_mean_mm = std::accumulate(e.begin(), e.end(), 0.0) / double(e.size());
   r.err_median_mm = bench::median(e);
+  r.catastrophic = size_t(std::count_if(e.begin(), e.end(), [](double x) { return x > defaults::catastrophic_error_mm; }));
   return r;
 }
 
 void print(const Row& r) {
-  std::printf("%-10s %-26s %6zu %10.2f %10.1f %9.3f %9.3f %7.0f%% %10.1f %10.1f %10.1f\n", r.group.c_str(), r.name.c_str(),
-              r.events, r.seconds_per_event * 1e3, 1.0 / r.seconds_per_event, r.err_mean_mm, r.err_median_mm,
-              100 * r.scan_share, double(r.device_bytes) / (1 << 20), double(r.host_peak_bytes) / (1 << 20),
+  std::printf("%-10s %-26s %6zu %10.2f %10.1f %9.3f %9.3f %6zu %7.0f%% %10.1f %10.1f %10.1f\n", r.group.c_str(),
+              r.name.c_str(), r.events, r.seconds_per_event * 1e3, 1.0 / r.seconds_per_event, r.err_mean_mm,
+              r.err_median_mm, r.catastrophic, 100 * r.scan_share, double(r.device_bytes) / (1 << 20), double(r.host_peak_bytes) / (1 << 20),
               double(r.rss_bytes) / (1 << 20));
   std::fflush(stdout);
 }
@@ -177,6 +184,7 @@ bool same_vertices(const Row& a, const Row& b) {
 int main(int argc, char** argv) {
   std::string device, dict_dir, native_dir, out_dir = "bench-reconstruct";
   int per_position = 8;
+  int native_positions = 0;  // 0: three fixed positions inside the small native grid
   std::string only;  // --groups: comma-separated, empty for all
   for (int i = 1; i < argc; ++i) {
     std::string a = argv[i];
@@ -192,10 +200,11 @@ int main(int argc, char** argv) {
     else if (a == "--native-dictionary") native_dir = value();
     else if (a == "--out") out_dir = value();
     else if (a == "--events-per-position") per_position = std::max(2, std::stoi(value()));
+    else if (a == "--native-positions") native_positions = std::max(1, std::stoi(value()));
     else if (a == "--groups") only = "," + value() + ",";
     else {
       std::fprintf(stderr, "usage: bench_reconstruct [--device D] [--dictionary DIR] [--native-dictionary DIR] [--out DIR] "
-                           "[--events-per-position N] [--groups backend,tier,coarse,bound,layout,overlap,step,precision,K,refine,"
+                           "[--events-per-position N] [--native-positions N] [--groups backend,tier,coarse,bound,layout,overlap,step,precision,K,refine,"
                            "native]\n");
       return a == "--help" || a == "-h" ? 0 : 2;
     }
@@ -253,8 +262,8 @@ int main(int argc, char** argv) {
   std::printf("# events: forward model at %zu off-grid positions, 100 photons (pairs: 125 + 125); times: medians of "
               "3 repeats; error: 3D, against the truth\n\n",
               positions.size());
-  std::printf("%-10s %-26s %6s %10s %10s %9s %9s %8s %10s %10s %10s\n", "group", "configuration", "events", "ms/event",
-              "events/s", "err mean", "err med", "scan", "device MiB", "host MiB", "RSS MiB");
+  std::printf("%-10s %-26s %6s %10s %10s %9s %9s %6s %8s %10s %10s %10s\n", "group", "configuration", "events", "ms/event",
+              "events/s", "err mean", "err med", ">3 mm", "scan", "device MiB", "host MiB", "RSS MiB");
 
   using B = ReconstructionBackend;
   std::vector<Row> rows;
@@ -381,7 +390,22 @@ int main(int argc, char** argv) {
     nt.splat = Splat::footprint;
     nt.stratification = 1;
     ForwardTruth native_truth(ctx, nm.scene, nt, 4);
-    const std::vector<glm::dvec3> inner{{1, 1, 21}, {-2, 1.5, 18}, {2.5, -1.5, 23}};
+    // Three positions inside the small grid, or --native-positions drawn
+    // uniformly over the dictionary's grid (for a 1210-PSF one: the volume).
+    std::vector<glm::dvec3> inner{{1, 1, 21}, {-2, 1.5, 18}, {2.5, -1.5, 23}};
+    if (native_positions > 0) {
+      inner.clear();
+      std::mt19937_64 rng(5);
+      auto uniform = [&](const std::vector<double>& axis) {
+        return std::uniform_real_distribution<double>(axis.front(), axis.back())(rng);
+      };
+      for (int k = 0; k < native_positions; ++k) {
+        const double x = uniform(nm.grid.x_mm), y = uniform(nm.grid.y_mm);
+        inner.push_back({x, y, uniform(nm.grid.depth_mm)});
+      }
+    }
+    std::printf("# native: %zu positions x %d events%s\n", inner.size(), per_position,
+                native_positions > 0 ? ", uniform over the dictionary's grid" : "");
     const int bin = 16, binned_level = 4;  // 110 um: level 4 of a full-resolution dictionary
     const uint32_t w0 = uint32_t(nm.width), wb = uint32_t(nm.level_width(binned_level));
     std::vector<Event> fine, binned;
@@ -473,11 +497,11 @@ int main(int argc, char** argv) {
   fs::create_directories(out_dir);
   {
     std::ofstream csv(out_dir + "/reconstruct.csv");
-    csv << "group,configuration,events,ms_per_event,events_per_s,err_mean_mm,err_median_mm,scan_share,device_mib,host_mib,"
-           "peak_rss_mib\n";
+    csv << "group,configuration,events,ms_per_event,events_per_s,err_mean_mm,err_median_mm,beyond_3mm,scan_share,device_mib,"
+           "host_mib,peak_rss_mib\n";
     for (const auto& r : rows)
       csv << r.group << ',' << r.name << ',' << r.events << ',' << r.seconds_per_event * 1e3 << ','
-          << 1 / r.seconds_per_event << ',' << r.err_mean_mm << ',' << r.err_median_mm << ',' << r.scan_share << ','
+          << 1 / r.seconds_per_event << ',' << r.err_mean_mm << ',' << r.err_median_mm << ',' << r.catastrophic << ',' << r.scan_share << ','
           << double(r.device_bytes) / (1 << 20) << ',' << double(r.host_peak_bytes) / (1 << 20) << ','
           << double(r.rss_bytes) / (1 << 20) << '\n';
   }
