@@ -27,6 +27,10 @@ inline constexpr double edge_thickness_mm = 0.5;    // DESIGN.md: centre thickne
 inline constexpr int lenslet_rows = 6;
 inline constexpr int lenslet_columns = 7;
 inline constexpr double lenslet_pitch_mm = 4.0;
+// As built (calibration): the largest tilt of a lenslet or of the sensor a
+// scene may give. Mounting errors are a degree or so; beyond 10 degrees a
+// tilted lens would cut into its neighbours and the holder.
+inline constexpr double max_tilt_deg = 10.0;
 
 // Source: the paper's isotropic emitter (Sec. II.C).
 inline constexpr double photons_emitted = 6280.0;

@@ -42,6 +42,8 @@ std::vector<shared::Lenslet> device_lenslets(const OpticalSystem& sys, const Tra
     d.curved_toward_sensor = sys.curved_toward_sensor ? 1 : 0;
     d.strata = settings.strata_for(l.diameter_mm);
     d.first_ray = uint32_t(first);
+    d.tilt_x_rad = float(l.tilt_x_deg * M_PI / 180.0);
+    d.tilt_y_rad = float(l.tilt_y_deg * M_PI / 180.0);
     first += uint64_t(d.strata) * d.strata;
     if (first > 0xffffffffull) throw std::invalid_argument("more than 2^32 rays per source: lower --rays");
   }
@@ -63,11 +65,17 @@ std::string kernel_name(const TraceSettings& t, bool values_only) {
   return std::string(t.splat == Splat::footprint ? "psf_footprint" : "psf_splat") + (values_only ? " (values)" : "");
 }
 
-// psf_splat.comp's specialisation constants: lens model, effects, derivatives.
-std::vector<uint32_t> specialisation(const OpticalSystem& s, bool derivatives) {
+// psf_splat.comp's specialisation constants: lens model, effects,
+// derivatives, and whether any design traced is as built (tilted lenslets or
+// a sensor off its nominal pose).
+std::vector<uint32_t> specialisation(const OpticalSystem& s, bool derivatives, bool as_built) {
   return {uint32_t(s.lens_model == LensModel::real ? shared::LENS_REAL : shared::LENS_THIN),
           uint32_t(s.effects.scintillator_refraction), uint32_t(s.effects.holder_vignetting), uint32_t(derivatives),
-          uint32_t(s.effects.source_extent), uint32_t(s.effects.diffraction)};
+          uint32_t(s.effects.source_extent), uint32_t(s.effects.diffraction), uint32_t(as_built)};
+}
+
+bool any_as_built(const std::vector<OpticalSystem>& designs) {
+  return std::any_of(designs.begin(), designs.end(), [](const OpticalSystem& s) { return s.as_built(); });
 }
 
 // The lenslets of every design, one after the other, and each design's range.
@@ -101,6 +109,10 @@ void check_batchable(const std::vector<OpticalSystem>& designs) {
       what = "the sensor";
     else if (a.lens_to_sensor_mm != b.lens_to_sensor_mm || a.working_distance_mm != b.working_distance_mm)
       what = "the lens-to-sensor or working distance";
+    else if (a.sensor_pose.offset_x_mm != b.sensor_pose.offset_x_mm ||
+             a.sensor_pose.offset_y_mm != b.sensor_pose.offset_y_mm ||
+             a.sensor_pose.tilt_x_deg != b.sensor_pose.tilt_x_deg || a.sensor_pose.tilt_y_deg != b.sensor_pose.tilt_y_deg)
+      what = "the sensor's pose";
     else if (a.lens_model != b.lens_model)
       what = "the lens model";
     else if (ea.scintillator_refraction != eb.scintillator_refraction || ea.scintillator_index != eb.scintillator_index ||
@@ -118,6 +130,7 @@ void check_batchable(const std::vector<OpticalSystem>& designs) {
 struct ForwardVulkan::Impl {
   vk::Context& ctx;
   OpticalSystem sys;
+  bool as_built;  // any design traced (specialisation)
   TraceSettings settings;
   shared::TraceParams params{};
   DesignBuffers layout;
@@ -153,15 +166,15 @@ struct ForwardVulkan::Impl {
     vk::Kernel split, split_values, cut, cut_values;
     List splits, cuts;
     uint32_t chunks = 1;  // the first pass over the cells in this many chunks (record_splat)
-    Footprint(vk::Context& c, const OpticalSystem& sys, uint32_t first_capacity)
+    Footprint(vk::Context& c, const OpticalSystem& sys, bool as_built, uint32_t first_capacity)
         : split(c, "psf_footprint_split", spirv(spv_psf_footprint_split), 7, sizeof(shared::TraceParams),
-                specialisation(sys, true)),
+                specialisation(sys, true, as_built)),
           split_values(c, "psf_footprint_split (values)", spirv(spv_psf_footprint_split), 7,
-                       sizeof(shared::TraceParams), specialisation(sys, false)),
+                       sizeof(shared::TraceParams), specialisation(sys, false, as_built)),
           cut(c, "psf_footprint_cut", spirv(spv_psf_footprint_cut), 7, sizeof(shared::TraceParams),
-              specialisation(sys, true)),
+              specialisation(sys, true, as_built)),
           cut_values(c, "psf_footprint_cut (values)", spirv(spv_psf_footprint_cut), 7, sizeof(shared::TraceParams),
-                     specialisation(sys, false)) {
+                     specialisation(sys, false, as_built)) {
       splits.grow(c, first_capacity);
       cuts.grow(c, first_capacity);
     }
@@ -176,15 +189,16 @@ struct ForwardVulkan::Impl {
        uint64_t budget, DesignBuffers b)
       : ctx(c),
         sys(all.front()),
+        as_built(any_as_built(all)),
         settings(t),
         layout(std::move(b)),
         lenses(c, layout.lenses.size() * sizeof(shared::Lenslet)),
         designs(c, layout.ranges.size() * sizeof(shared::DesignRange)),
         design_zero(c, sizeof(uint32_t)),
         splat(c, kernel_name(t, false), splat_spirv(t), splat_buffers(t), sizeof(shared::TraceParams),
-              specialisation(sys, true)),
+              specialisation(sys, true, as_built)),
         splat_values(c, kernel_name(t, true), splat_spirv(t), splat_buffers(t), sizeof(shared::TraceParams),
-                     specialisation(sys, false)),
+                     specialisation(sys, false, as_built)),
         reduce(c, "fisher_reduce", spirv(spv_fisher_reduce), 2, 3 * sizeof(uint32_t),
                {uint32_t(t.estimator == FisherEstimator::split ? shared::FISHER_SPLIT : shared::FISHER_NAIVE)}) {
     const OpticalSystem& s = sys;
@@ -210,6 +224,10 @@ struct ForwardVulkan::Impl {
     params.grid_w = grid.width;
     params.grid_h = grid.height;
     params.lens_count = uint32_t(layout.lenses.size());
+    params.sensor_offset_x_mm = float(s.sensor_pose.offset_x_mm);
+    params.sensor_offset_y_mm = float(s.sensor_pose.offset_y_mm);
+    params.sensor_tilt_x_rad = float(s.sensor_pose.tilt_x_deg * M_PI / 180.0);
+    params.sensor_tilt_y_rad = float(s.sensor_pose.tilt_y_deg * M_PI / 180.0);
 
     // One image buffer of at most maxStorageBufferRange and the budget: bands
     // of rows when one image is larger, batches of sources when it is smaller.
@@ -221,7 +239,7 @@ struct ForwardVulkan::Impl {
     sources_per_batch = uint32_t(std::clamp<uint64_t>(cap / image_bytes, 1, 65535));
     list_limit_bytes = std::max<uint64_t>(cap, 64u << 10);
     if (t.splat == Splat::footprint)
-      footprint = std::make_unique<Footprint>(c, sys, uint32_t(std::min<uint64_t>(1u << 14, max_list_entries())));
+      footprint = std::make_unique<Footprint>(c, sys, as_built, uint32_t(std::min<uint64_t>(1u << 14, max_list_entries())));
   }
 
   // Record the splat of the dispatch's sources (p.source_offset, count) into
@@ -455,6 +473,9 @@ std::vector<float> ForwardVulkan::psf_values(const glm::dvec3& theta) {
 
 std::vector<glm::vec3> landing_points_vulkan(vk::Context& ctx, const OpticalSystem& sys, size_t lens_index,
                                          std::span<const glm::vec3> origin_dir_pairs) {
+  if (sys.as_built())
+    throw std::invalid_argument("landing points: tilted lenslets or a sensor off its nominal pose are not traced by "
+                                "this check (it compares nominal lenses with an optics library)");
   size_t n = origin_dir_pairs.size() / 2;
   if (n == 0) return {};
   shared::Lenslet lens = device_lenslets(sys, TraceSettings{})[lens_index];

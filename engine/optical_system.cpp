@@ -17,6 +17,12 @@ Splat splat_from_string(const std::string& s) {
   throw std::invalid_argument("splat '" + s + "': choose point or footprint");
 }
 
+bool OpticalSystem::as_built() const {
+  for (const auto& l : lenslets)
+    if (l.tilt_x_deg != 0 || l.tilt_y_deg != 0) return true;
+  return !sensor_pose.nominal();
+}
+
 double OpticalSystem::sag_mm(size_t i) const {
   double r = curvature_radius_mm(i);
   double a = 0.5 * lenslets[i].diameter_mm;
@@ -56,6 +62,10 @@ void validate(const OpticalSystem& sys) {
     if (!(l.focal_mm > 0)) fail(at + ".focal_mm", "must be > 0");
     if (std::abs(l.x_mm) > 0.5 * sys.sensor_width_mm() || std::abs(l.y_mm) > 0.5 * sys.sensor_height_mm())
       fail(at, "centre (" + std::to_string(l.x_mm) + ", " + std::to_string(l.y_mm) + ") mm lies off the sensor");
+    for (auto [name, tilt] : {std::pair{".tilt_x_deg", l.tilt_x_deg}, std::pair{".tilt_y_deg", l.tilt_y_deg}})
+      if (!(std::abs(tilt) <= defaults::max_tilt_deg))
+        fail(at + name, "must be within +-" + std::to_string(int(defaults::max_tilt_deg)) +
+                            " degrees (an as-built tilt), got " + std::to_string(tilt));
     if (sys.lens_model == LensModel::real) {
       double r = sys.curvature_radius_mm(i);
       if (r < 0.5 * l.diameter_mm)
@@ -71,6 +81,15 @@ void validate(const OpticalSystem& sys) {
         fail(at, "overlaps lenslets[" + std::to_string(j) + "] (centres " + std::to_string(d) + " mm apart)");
     }
   }
+  const SensorPose& pose = sys.sensor_pose;
+  for (auto [name, tilt] : {std::pair{"sensor.tilt_x_deg", pose.tilt_x_deg}, std::pair{"sensor.tilt_y_deg", pose.tilt_y_deg}})
+    if (!(std::abs(tilt) <= defaults::max_tilt_deg))
+      fail(name, "must be within +-" + std::to_string(int(defaults::max_tilt_deg)) + " degrees (an as-built tilt), got " +
+                     std::to_string(tilt));
+  if (!(std::abs(pose.offset_x_mm) <= 0.5 * sys.sensor_width_mm()))
+    fail("sensor.offset_x_mm", "must be within half the sensor's width, got " + std::to_string(pose.offset_x_mm));
+  if (!(std::abs(pose.offset_y_mm) <= 0.5 * sys.sensor_height_mm()))
+    fail("sensor.offset_y_mm", "must be within half the sensor's height, got " + std::to_string(pose.offset_y_mm));
   const Effects& e = sys.effects;
   if (e.scintillator_refraction && !(e.scintillator_index >= 1.0)) fail("effects.scintillator_refraction.index", "must be >= 1");
   if (e.holder_vignetting && !(e.holder_bore_mm >= 0 && e.holder_bore_mm <= sys.lens_to_sensor_mm))

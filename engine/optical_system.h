@@ -17,6 +17,21 @@ struct LensletGeometry {
   double y_mm = 0;
   double diameter_mm = defaults::lenslet_diameter_mm;
   double focal_mm = 0;
+  // As built: the lens turned about its centre on the lens plane, about the
+  // x axis by tilt_x, then about the y axis by tilt_y (tilt_matrix).
+  double tilt_x_deg = 0;
+  double tilt_y_deg = 0;
+};
+
+// As built: the sensor moved within its plane and turned about its centre
+// (about x by tilt_x, then about y by tilt_y, as a lenslet's tilt). Pixel
+// coordinates run along the turned sensor's own axes.
+struct SensorPose {
+  double offset_x_mm = 0;
+  double offset_y_mm = 0;
+  double tilt_x_deg = 0;
+  double tilt_y_deg = 0;
+  bool nominal() const { return offset_x_mm == 0 && offset_y_mm == 0 && tilt_x_deg == 0 && tilt_y_deg == 0; }
 };
 
 // Effects beyond the plain model. Each is off unless a scene names it, and an
@@ -46,7 +61,14 @@ struct OpticalSystem {
   double pixel_um = defaults::pixel_um;
   double lens_to_sensor_mm = defaults::lens_to_sensor_mm;
   double working_distance_mm = defaults::working_distance_mm;
+  SensorPose sensor_pose;
   Effects effects;
+
+  // Whether a lenslet is tilted or the sensor is off its nominal pose: the
+  // kernels then trace through each lens's own frame and onto the turned
+  // sensor (specialisation constant AS_BUILT); a nominal system compiles that
+  // out.
+  bool as_built() const;
 
   // Plano-convex geometry of lenslet i (real model): R = f (n - 1), the sag of
   // the front face at the rim, and centre thickness = sag + edge thickness.

@@ -12,7 +12,7 @@ using uint = unsigned int;
 #include "common/footprint.glsl"
 #undef PRISM_FN
 
-static_assert(sizeof(Lenslet) == 48, "Lenslet must match its std430 layout");
+static_assert(sizeof(Lenslet) == 56, "Lenslet must match its std430 layout");
 static_assert(sizeof(DesignRange) == 16, "DesignRange must match its std430 layout");
-static_assert(sizeof(TraceParams) == 92, "TraceParams must match its std430 push-constant layout");
+static_assert(sizeof(TraceParams) == 108, "TraceParams must match its std430 push-constant layout");
 }  // namespace prism::shared

@@ -27,7 +27,7 @@ void main() {
     // Hash by the lens's index within its design: a design traces the same
     // rays batched with others as alone.
     Hit hit = trace_sample(theta, lenses[lens_index], lens_index - design.first_lens, sample_index, P, LENS_MODEL,
-                           SCINT_REFRACTION, HOLDER, SOURCE_EXTENT);
+                           SCINT_REFRACTION, HOLDER, SOURCE_EXTENT, AS_BUILT);
     uint half_offset = 1u + 3u * ray_half(sample_index, lenses[lens_index].strata);
     if (DIFFRACTION) {
       // Effect diffraction: the ray's light blurred by its lenslet's Airy

@@ -45,13 +45,38 @@ Geometry geometry(const OpticalSystem& sys, size_t i) {
           sys.sag_mm(i), sys.glass_index};
 }
 
-// Propagate a ray from `o` along `dir` through lenslet g to the sensor plane.
-// Returns the landing point (x, y) or nothing when stopped. Sampled rays start
-// inside the entrance disk by construction and skip its test.
-std::optional<std::pair<D, D>> propagate(const OpticalSystem& sys, const Geometry& g, V3 o, V3 dir,
-                                         bool test_entrance) {
+// A ray leaving the lens: a point and a direction, in the lens's own frame.
+struct LensExit {
+  V3 p, d;
+};
+
+// Rotation of an as-built tilt: about x by ax, then about y by ay (degrees),
+// v -> Ry Rx v, as rows.
+struct Turn {
+  double m[3][3];
+  V3 apply(const V3& v) const {  // m v
+    return {v.x * D(m[0][0]) + v.y * D(m[0][1]) + v.z * D(m[0][2]), v.x * D(m[1][0]) + v.y * D(m[1][1]) + v.z * D(m[1][2]),
+            v.x * D(m[2][0]) + v.y * D(m[2][1]) + v.z * D(m[2][2])};
+  }
+  V3 undo(const V3& v) const {  // m^T v
+    return {v.x * D(m[0][0]) + v.y * D(m[1][0]) + v.z * D(m[2][0]), v.x * D(m[0][1]) + v.y * D(m[1][1]) + v.z * D(m[2][1]),
+            v.x * D(m[0][2]) + v.y * D(m[1][2]) + v.z * D(m[2][2])};
+  }
+  V3 column(int j) const { return {D(m[0][j]), D(m[1][j]), D(m[2][j])}; }
+};
+Turn turn_of(double ax_deg, double ay_deg) {
+  const double ax = ax_deg * M_PI / 180, ay = ay_deg * M_PI / 180;
+  const double cx = std::cos(ax), sx = std::sin(ax), cy = std::cos(ay), sy = std::sin(ay);
+  // Ry = [cy 0 sy; 0 1 0; -sy 0 cy], Rx = [1 0 0; 0 cx -sx; 0 sx cx].
+  return {{{cy, sy * sx, sy * cx}, {0, cx, -sx}, {-sy, cy * sx, cy * cx}}};
+}
+
+// Through lenslet g from `o` along `dir`, both in the lens's own frame:
+// where the ray leaves the glass (thin: the lens plane) and the holder's
+// bore, or nothing when stopped. Sampled rays start inside the entrance disk
+// by construction and skip its test.
+std::optional<LensExit> through_lens(const OpticalSystem& sys, const Geometry& g, V3 o, V3 dir, bool test_entrance) {
   double bore = sys.effects.holder_vignetting ? sys.effects.holder_bore_mm : 0.0;
-  double L = sys.lens_to_sensor_mm;
   if (sys.lens_model == LensModel::thin) {
     D t = -o.z / dir.z;
     V3 p = o + dir * t;
@@ -59,7 +84,7 @@ std::optional<std::pair<D, D>> propagate(const OpticalSystem& sys, const Geometr
     D sx = dir.x / dir.z - (p.x - D(g.cx)) / D(g.focal);
     D sy = dir.y / dir.z - (p.y - D(g.cy)) / D(g.focal);
     if (bore > 0 && !within(V3{p.x + sx * D(bore), p.y + sy * D(bore), D(bore)}, g.cx, g.cy, g.radius)) return std::nullopt;
-    return std::make_pair(p.x + sx * D(L), p.y + sy * D(L));
+    return LensExit{p, V3{sx, sy, D(1.0)}};
   }
   V3 d = unit(dir);
   V3 exit_point, exit_dir;
@@ -102,8 +127,35 @@ std::optional<std::pair<D, D>> propagate(const OpticalSystem& sys, const Geometr
     D tb = (D(bore) - exit_point.z) / exit_dir.z;
     if (!within(exit_point + exit_dir * tb, g.cx, g.cy, g.radius)) return std::nullopt;
   }
-  D ts = (D(L) - exit_point.z) / exit_dir.z;
-  return std::make_pair(exit_point.x + exit_dir.x * ts, exit_point.y + exit_dir.y * ts);
+  return LensExit{exit_point, exit_dir};
+}
+
+// Propagate a world ray from `o` along `dir` through lenslet `lens` (traced in
+// its own frame, turned about its centre on the lens plane) to the sensor as
+// built (the plane through (offset, lens_to_sensor) turned by its tilt).
+// Returns the landing point in the sensor's own axes from its centre, or
+// nothing when stopped. For a nominal system: the plane z = lens_to_sensor.
+std::optional<std::pair<D, D>> propagate(const OpticalSystem& sys, size_t lens, V3 o, V3 dir, bool test_entrance) {
+  const Geometry g = geometry(sys, lens);
+  const auto& l = sys.lenslets[lens];
+  const bool tilted = l.tilt_x_deg != 0 || l.tilt_y_deg != 0;
+  const Turn m = turn_of(l.tilt_x_deg, l.tilt_y_deg);
+  const V3 c{D(g.cx), D(g.cy), D(0.0)};
+  auto out = tilted ? through_lens(sys, g, c + m.undo(o - c), m.undo(dir), test_entrance)
+                    : through_lens(sys, g, o, dir, test_entrance);
+  if (!out) return std::nullopt;
+  const V3 p = tilted ? c + m.apply(out->p - c) : out->p, d = tilted ? m.apply(out->d) : out->d;
+  const SensorPose& pose = sys.sensor_pose;
+  if (pose.nominal()) {
+    const D ts = (D(sys.lens_to_sensor_mm) - p.z) / d.z;
+    return std::make_pair(p.x + d.x * ts, p.y + d.y * ts);
+  }
+  const Turn s = turn_of(pose.tilt_x_deg, pose.tilt_y_deg);
+  const V3 s0{D(pose.offset_x_mm), D(pose.offset_y_mm), D(sys.lens_to_sensor_mm)};
+  const V3 normal = s.column(2);
+  const D t = dot(s0 - p, normal) / dot(d, normal);
+  const V3 h = p + d * t - s0;
+  return std::make_pair(dot(h, s.column(0)), dot(h, s.column(1)));
 }
 
 // The sample points: the device's own sampling code (shaders/common/optics.glsl
@@ -183,7 +235,10 @@ SampleHit trace_point(const OpticalSystem& sys, const TraceSettings& settings, c
                       glm::dvec2 u, double area_mm2) {
   Geometry g = geometry(sys, lens);
   double z_ap = (sys.lens_model == LensModel::real && !sys.curved_toward_sensor) ? g.sag : 0.0;
-  V3 p{D(g.cx + g.radius * u.x), D(g.cy + g.radius * u.y), D(z_ap)};
+  // The entrance disk turns with its lens (as built).
+  const Turn m = turn_of(sys.lenslets[lens].tilt_x_deg, sys.lenslets[lens].tilt_y_deg);
+  const V3 c{D(g.cx), D(g.cy), D(0.0)};
+  const V3 p = c + m.apply(V3{D(g.radius * u.x), D(g.radius * u.y), D(z_ap)});
   V3 s{D(centre.x, {1, 0, 0}), D(centre.y, {0, 1, 0}), D(-(centre.z + sys.working_distance_mm), {0, 0, -1})};
   double photons = settings.photons_emitted * sys.effects.detection_efficiency / (4 * M_PI) * area_mm2;
   V3 origin = s;
@@ -193,7 +248,7 @@ SampleHit trace_point(const OpticalSystem& sys, const TraceSettings& settings, c
     D h = D(face_z) - s.z;
     if (h.v < 1e-3) h = D(1e-3, h.d);
     D ex = p.x - s.x, ey = p.y - s.y;
-    FacePath fp = face_path(h, ex * ex + ey * ey, z_ap - face_z, sys.effects.scintillator_index);
+    FacePath fp = face_path(h, ex * ex + ey * ey, p.z.v - face_z, sys.effects.scintillator_index);  // p.z: the turned disk's point
     origin = V3{s.x + ex * fp.rho_over_pr, s.y + ey * fp.rho_over_pr, D(face_z)};
     weight = fp.weight;
   } else {
@@ -201,9 +256,12 @@ SampleHit trace_point(const OpticalSystem& sys, const TraceSettings& settings, c
     D len = sqrt(dot(r, r));
     weight = r.z / (len * len * len);  // cos / r^2
   }
-  weight = weight * D(photons);
+  // The flux through a disk turned away from z: the emitters' weight is per
+  // area seen along z, the disk is seen along its normal.
+  const V3 along = p - origin;
+  weight = weight * D(photons) * (dot(along, m.column(2)) / along.z);
   SampleHit out;
-  auto hit = propagate(sys, g, origin, p - origin, false);
+  auto hit = propagate(sys, lens, origin, along, false);
   if (!hit) return out;
   out.ok = true;
   out.x_mm = hit->first.v;
@@ -305,10 +363,9 @@ FisherResult fisher(const OpticalSystem& sys, const TraceSettings& settings, con
 
 std::optional<glm::dvec2> trace_ray(const OpticalSystem& sys, size_t lens_index, const glm::dvec3& origin,
                                     const glm::dvec3& direction) {
-  Geometry g = geometry(sys, lens_index);
   OpticalSystem plain = sys;
   plain.effects.holder_vignetting = false;
-  auto hit = propagate(plain, g, V3{D(origin.x), D(origin.y), D(origin.z)},
+  auto hit = propagate(plain, lens_index, V3{D(origin.x), D(origin.y), D(origin.z)},
                        V3{D(direction.x), D(direction.y), D(direction.z)}, true);
   if (!hit) return std::nullopt;
   return glm::dvec2(hit->first.v, hit->second.v);

@@ -118,6 +118,9 @@ SparseImage thin_lens_image(const OpticalSystem& sys, const TraceSettings& setti
   const auto& e = sys.effects;
   if (sys.lens_model != LensModel::thin)
     throw std::invalid_argument("thin-lens oracle: the system has real lenses; the oracle is exact for ideal thin lenses only");
+  if (sys.as_built())
+    throw std::invalid_argument("thin-lens oracle: tilted lenslets or a sensor off its nominal pose; the oracle is for "
+                                "lenses in the lens plane and the sensor parallel to it, trace as-built systems instead");
   if (e.scintillator_refraction || e.holder_vignetting || e.source_extent)
     throw std::invalid_argument("thin-lens oracle: effects other than detection efficiency and dark counts are not "
                                 "affine in the aperture point; trace them instead");

@@ -162,23 +162,26 @@ Scene parse_scene(const json& j, const std::string& origin) {
   }
   if (j.contains("lenslets")) {
     const json& ls = j["lenslets"];
-    if (!ls.is_array()) rd.fail("lenslets", "must be an array of {x_mm, y_mm, diameter_mm, focal_mm}");
+    if (!ls.is_array())
+      rd.fail("lenslets", "must be an array of {x_mm, y_mm, diameter_mm, focal_mm} (as built also tilt_x_deg, tilt_y_deg)");
     o.lenslets.clear();
     for (size_t i = 0; i < ls.size(); ++i) {
       std::string path = "lenslets[" + std::to_string(i) + "].";
       if (!ls[i].is_object()) rd.fail(path.substr(0, path.size() - 1), "must be an object");
-      check_keys(rd, ls[i], path, {"x_mm", "y_mm", "diameter_mm", "focal_mm"});
+      check_keys(rd, ls[i], path, {"x_mm", "y_mm", "diameter_mm", "focal_mm", "tilt_x_deg", "tilt_y_deg"});
       LensletGeometry l;
       l.x_mm = rd.number(ls[i], "x_mm", path, 0, true);
       l.y_mm = rd.number(ls[i], "y_mm", path, 0, true);
       l.diameter_mm = rd.number(ls[i], "diameter_mm", path, defaults::lenslet_diameter_mm);
       l.focal_mm = rd.number(ls[i], "focal_mm", path, 0, true);
+      l.tilt_x_deg = rd.number(ls[i], "tilt_x_deg", path, 0);
+      l.tilt_y_deg = rd.number(ls[i], "tilt_y_deg", path, 0);
       o.lenslets.push_back(l);
     }
   }
   if (j.contains("sensor")) {
     const json& sj = j["sensor"];
-    check_keys(rd, sj, "sensor.", {"width_px", "height_px", "pixel_um"});
+    check_keys(rd, sj, "sensor.", {"width_px", "height_px", "pixel_um", "offset_x_mm", "offset_y_mm", "tilt_x_deg", "tilt_y_deg"});
     // Sizes bounded before anything is allocated for them: a full-resolution
     // image holds 16 bytes per pixel (value and three derivatives).
     auto side = [&](const char* key, int current) {
@@ -196,6 +199,11 @@ Scene parse_scene(const json& j, const std::string& origin) {
                             " px is more than " + format_number(double(max_sensor_pixels)) +
                             " pixels (the prototype's has 3.2e7); bin them, e.g. twice the pixel_um at half the size");
     o.pixel_um = rd.number(sj, "pixel_um", "sensor.", o.pixel_um);
+    SensorPose& pose = o.sensor_pose;
+    pose.offset_x_mm = rd.number(sj, "offset_x_mm", "sensor.", pose.offset_x_mm);
+    pose.offset_y_mm = rd.number(sj, "offset_y_mm", "sensor.", pose.offset_y_mm);
+    pose.tilt_x_deg = rd.number(sj, "tilt_x_deg", "sensor.", pose.tilt_x_deg);
+    pose.tilt_y_deg = rd.number(sj, "tilt_y_deg", "sensor.", pose.tilt_y_deg);
   }
   o.lens_to_sensor_mm = rd.number(j, "lens_to_sensor_mm", "", o.lens_to_sensor_mm);
   o.working_distance_mm = rd.number(j, "working_distance_mm", "", o.working_distance_mm);
@@ -289,8 +297,19 @@ Scene load_scene(const std::string& name_or_path) {
 json to_json(const Scene& s) {
   const OpticalSystem& o = s.optics;
   json ls = json::array();
-  for (const auto& l : o.lenslets)
+  for (const auto& l : o.lenslets) {
     ls.push_back({{"x_mm", l.x_mm}, {"y_mm", l.y_mm}, {"diameter_mm", l.diameter_mm}, {"focal_mm", l.focal_mm}});
+    // As-built fields only where they are not nominal: a nominal scene's
+    // JSON (and so a dictionary's manifest) is what it was before them.
+    if (l.tilt_x_deg != 0 || l.tilt_y_deg != 0) ls.back()["tilt_x_deg"] = l.tilt_x_deg, ls.back()["tilt_y_deg"] = l.tilt_y_deg;
+  }
+  json sensor = {{"width_px", o.sensor_width_px}, {"height_px", o.sensor_height_px}, {"pixel_um", o.pixel_um}};
+  if (!o.sensor_pose.nominal()) {
+    sensor["offset_x_mm"] = o.sensor_pose.offset_x_mm;
+    sensor["offset_y_mm"] = o.sensor_pose.offset_y_mm;
+    sensor["tilt_x_deg"] = o.sensor_pose.tilt_x_deg;
+    sensor["tilt_y_deg"] = o.sensor_pose.tilt_y_deg;
+  }
   json fx = json::array();
   const Effects& e = o.effects;
   if (e.scintillator_refraction) fx.push_back({{"name", "scintillator_refraction"}, {"index", e.scintillator_index}});
@@ -306,7 +325,7 @@ json to_json(const Scene& s) {
             {"edge_thickness_mm", o.edge_thickness_mm},
             {"curved_face", o.curved_toward_sensor ? "sensor" : "source"}}},
           {"lenslets", ls},
-          {"sensor", {{"width_px", o.sensor_width_px}, {"height_px", o.sensor_height_px}, {"pixel_um", o.pixel_um}}},
+          {"sensor", sensor},
           {"lens_to_sensor_mm", o.lens_to_sensor_mm},
           {"working_distance_mm", o.working_distance_mm},
           {"volume",

@@ -65,7 +65,7 @@ struct Corner {
 };
 
 Corner trace_corner(vec3 theta, Lenslet lens, vec2 unit) {
-  Hit hit = trace_aperture_point(theta, lens, unit, 1.0f, P, LENS_MODEL, SCINT_REFRACTION, HOLDER);
+  Hit hit = trace_aperture_point(theta, lens, unit, 1.0f, P, LENS_MODEL, SCINT_REFRACTION, HOLDER, AS_BUILT);
   float inv_px = 1.0f / P.pixel_mm;
   return Corner(d_scale(d_addc(hit.x_mm, P.sensor_half_w_mm), inv_px),
                 d_scale(d_addc(hit.y_mm, P.sensor_half_h_mm), inv_px), hit.weight, hit.ok);

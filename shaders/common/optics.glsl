@@ -17,7 +17,7 @@
 const int LENS_THIN = 0;  // ideal thin lens: paraxial deflection by -h/f
 const int LENS_REAL = 1;  // plano-convex: spherical front face, flat back face
 
-// One lenslet as the kernels see it (std430, 48 bytes).
+// One lenslet as the kernels see it (std430, 56 bytes).
 struct Lenslet {
   vec2 center_mm;             // lateral centre on the lens plane
   float radius_mm;            // clear aperture radius of both faces
@@ -29,6 +29,8 @@ struct Lenslet {
   int curved_toward_sensor;   // real model: 0 = curved face toward the source, 1 = flipped
   uint strata;                // aperture samples = strata^2 (equal density over lens sizes)
   uint first_ray;             // index of its first ray (or footprint cell) among its design's
+  float tilt_x_rad;           // as built: turned about its centre, about x, then
+  float tilt_y_rad;           //   about y (tilt_matrix; traced with AS_BUILT only)
   uint pad_;                  // std430: the struct aligns to its vec2
 };
 
@@ -41,7 +43,7 @@ struct DesignRange {
   uint pad_;
 };
 
-// Per-dispatch constants (push constants, std430, 84 bytes).
+// Per-dispatch constants (push constants, std430, 108 bytes).
 struct TraceParams {
   float pixel_mm;             // analysis pixel pitch (sensor pixel x binning)
   float sensor_half_w_mm;     // half the physical sensor width (x)
@@ -66,6 +68,10 @@ struct TraceParams {
   uint cell_count;
   uint split_first;           // footprint split pass: its level's list entries, [split_first, split_end)
   uint split_end;
+  float sensor_offset_x_mm;   // as built (AS_BUILT only): the sensor's centre moved within its plane,
+  float sensor_offset_y_mm;
+  float sensor_tilt_x_rad;    //   and the sensor turned about it (tilt_matrix)
+  float sensor_tilt_y_rad;
 };
 
 // A ray on its way to the sensor, with the photons it carries.
@@ -250,13 +256,21 @@ PRISM_FN bool inside_aperture(Dual x, Dual y, vec2 center, float radius) {
 // re-testing them would only let float rounding at the rim clip a few.
 // Explicit rays (landing_points.comp) are tested.
 
+// Where the ray leaves the last surface, its direction, and whether it got there.
+struct Exit {
+  DVec3 p;
+  DVec3 d;
+  bool ok;
+};
+
 // Ideal thin lens in the plane z = 0: the slope turns by -h/f (paraxial).
-PRISM_FN Hit trace_thin(Ray ray, Lenslet lens, float holder_bore_mm, float lens_to_sensor_mm, bool test_entrance) {
+// The ray leaves the lens plane with direction (slope x, slope y, 1).
+PRISM_FN Exit thin_exit(Ray ray, Lenslet lens, float holder_bore_mm, bool test_entrance) {
   // Cross the lens plane.
   Dual t = d_div(d_neg(ray.origin.z), ray.dir.z);
   Dual x0 = d_add(ray.origin.x, d_mul(ray.dir.x, t));
   Dual y0 = d_add(ray.origin.y, d_mul(ray.dir.y, t));
-  Hit hit = Hit(x0, y0, ray.weight, !test_entrance || inside_aperture(x0, y0, lens.center_mm, lens.radius_mm));
+  bool ok = !test_entrance || inside_aperture(x0, y0, lens.center_mm, lens.radius_mm);
   // Deflect.
   float inv_f = 1.0f / lens.focal_mm;
   Dual sx = d_sub(d_div(ray.dir.x, ray.dir.z), d_scale(d_addc(x0, -lens.center_mm.x), inv_f));
@@ -266,11 +280,15 @@ PRISM_FN Hit trace_thin(Ray ray, Lenslet lens, float holder_bore_mm, float lens_
   if (holder_bore_mm > 0.0f) {
     Dual bx = d_add(x0, d_scale(sx, holder_bore_mm));
     Dual by = d_add(y0, d_scale(sy, holder_bore_mm));
-    hit.ok = hit.ok && inside_aperture(bx, by, lens.center_mm, lens.radius_mm);
+    ok = ok && inside_aperture(bx, by, lens.center_mm, lens.radius_mm);
   }
-  hit.x_mm = d_add(x0, d_scale(sx, lens_to_sensor_mm));
-  hit.y_mm = d_add(y0, d_scale(sy, lens_to_sensor_mm));
-  return hit;
+  return Exit(DVec3(x0, y0, d_const(0.0f)), DVec3(sx, sy, d_const(1.0f)), ok);
+}
+
+PRISM_FN Hit trace_thin(Ray ray, Lenslet lens, float holder_bore_mm, float lens_to_sensor_mm, bool test_entrance) {
+  Exit e = thin_exit(ray, lens, holder_bore_mm, test_entrance);
+  return Hit(d_add(e.p.x, d_scale(e.d.x, lens_to_sensor_mm)), d_add(e.p.y, d_scale(e.d.y, lens_to_sensor_mm)),
+             ray.weight, e.ok);
 }
 
 // Snell's law in vector form for unit direction i and unit normal n facing
@@ -282,13 +300,6 @@ PRISM_FN DVec3 refract_dual(DVec3 i, DVec3 n, float eta) {
   if (k.v <= 0.0f) return DVec3(d_const(0.0f), d_const(0.0f), d_const(0.0f));
   return dv_add(dv_scalec(i, eta), dv_scale(n, d_sub(d_scale(cos_i, eta), d_sqrt(k))));
 }
-
-// Where the ray leaves the last surface, its direction, and whether it got there.
-struct Exit {
-  DVec3 p;
-  DVec3 d;
-  bool ok;
-};
 
 // Distance along unit direction d from o to the sphere (centre c, radius r):
 // the near root when `far` is false. The discriminant is formed as
@@ -353,23 +364,92 @@ PRISM_FN Exit through_flat_first(Ray ray, Lenslet lens, DVec3 dir, bool test_ent
   return Exit(p1, d2, true);
 }
 
-// Real plano-convex lens, either way round, then holder and sensor.
-PRISM_FN Hit trace_real(Ray ray, Lenslet lens, float holder_bore_mm, float lens_to_sensor_mm, bool test_entrance) {
+// Real plano-convex lens, either way round: where the ray leaves the glass.
+PRISM_FN Exit real_exit(Ray ray, Lenslet lens, bool test_entrance) {
   DVec3 dir = dv_normalize(ray.dir);
-  Exit e = (lens.curved_toward_sensor != 0) ? through_flat_first(ray, lens, dir, test_entrance)
-                                           : through_convex_first(ray, lens, dir, test_entrance);
+  return (lens.curved_toward_sensor != 0) ? through_flat_first(ray, lens, dir, test_entrance)
+                                          : through_convex_first(ray, lens, dir, test_entrance);
+}
+
+// Holder bore beyond the glass (see thin_exit): whether the ray leaving the
+// glass passes it.
+PRISM_FN bool passes_bore(Exit e, Lenslet lens, float holder_bore_mm) {
+  if (!(holder_bore_mm > e.p.z.v)) return true;
+  Dual tb = d_div(d_sub(d_const(holder_bore_mm), e.p.z), e.d.z);
+  return inside_aperture(d_add(e.p.x, d_mul(e.d.x, tb)), d_add(e.p.y, d_mul(e.d.y, tb)), lens.center_mm, lens.radius_mm);
+}
+
+// Real lens, holder, and transport to the sensor plane z = lens_to_sensor_mm.
+// A ray the holder stops keeps its landing point (not ok); one the glass
+// stops has none.
+PRISM_FN Hit trace_real(Ray ray, Lenslet lens, float holder_bore_mm, float lens_to_sensor_mm, bool test_entrance) {
   Hit hit = Hit(d_const(0.0f), d_const(0.0f), ray.weight, false);
+  Exit e = real_exit(ray, lens, test_entrance);
   if (!e.ok) return hit;
-  // Holder bore beyond the glass (see trace_thin).
-  bool ok = true;
-  if (holder_bore_mm > e.p.z.v) {
-    Dual tb = d_div(d_sub(d_const(holder_bore_mm), e.p.z), e.d.z);
-    ok = inside_aperture(d_add(e.p.x, d_mul(e.d.x, tb)), d_add(e.p.y, d_mul(e.d.y, tb)), lens.center_mm, lens.radius_mm);
-  }
-  // Transport to the sensor plane.
+  bool ok = passes_bore(e, lens, holder_bore_mm);
   Dual ts = d_div(d_sub(d_const(lens_to_sensor_mm), e.p.z), e.d.z);
   hit.x_mm = d_add(e.p.x, d_mul(e.d.x, ts));
   hit.y_mm = d_add(e.p.y, d_mul(e.d.y, ts));
+  hit.ok = ok;
+  return hit;
+}
+
+// ---------------------------------------------------------------------------
+// As built: tilted lenslets and a sensor off its nominal pose (AS_BUILT)
+
+// The turn of a tilt: about the x axis by ax, then about the y axis by ay
+// (radians), v -> Ry(ay) Rx(ax) v. Columns: the turned unit vectors.
+PRISM_FN mat3 tilt_matrix(float ax, float ay) {
+  float cx = cos(ax);
+  float sx = sin(ax);
+  float cy = cos(ay);
+  float sy = sin(ay);
+  return mat3(vec3(cy, 0.0f, -sy), vec3(sy * sx, cx, cy * sx), vec3(sy * cx, -sx, cy * cx));
+}
+
+PRISM_FN DVec3 dv_turn(mat3 m, DVec3 v) {  // m v
+  return DVec3(d_add(d_add(d_scale(v.x, m[0][0]), d_scale(v.y, m[1][0])), d_scale(v.z, m[2][0])),
+               d_add(d_add(d_scale(v.x, m[0][1]), d_scale(v.y, m[1][1])), d_scale(v.z, m[2][1])),
+               d_add(d_add(d_scale(v.x, m[0][2]), d_scale(v.y, m[1][2])), d_scale(v.z, m[2][2])));
+}
+PRISM_FN DVec3 dv_unturn(mat3 m, DVec3 v) {  // m^T v: m's inverse
+  return DVec3(dv_dot(dv_const(m[0]), v), dv_dot(dv_const(m[1]), v), dv_dot(dv_const(m[2]), v));
+}
+
+// A lenslet's own frame: the lens as designed, turned about its centre on the
+// lens plane. Points map local -> world as c + m (p - c).
+PRISM_FN vec3 lens_pivot(Lenslet lens) { return vec3(lens.center_mm.x, lens.center_mm.y, 0.0f); }
+
+// The world ray `ray` through a tilted lenslet (traced in its own frame) and
+// onto the sensor as built: the plane through (offset_x, offset_y,
+// lens_to_sensor) turned by the sensor's tilt, the landing point in the
+// sensor's own axes from its centre.
+PRISM_FN Hit trace_as_built(Ray ray, Lenslet lens, int lens_model, float holder_bore_mm, TraceParams P,
+                            bool test_entrance) {
+  Hit hit = Hit(d_const(0.0f), d_const(0.0f), ray.weight, false);
+  vec3 c = lens_pivot(lens);
+  mat3 m = tilt_matrix(lens.tilt_x_rad, lens.tilt_y_rad);
+  Ray local = Ray(dv_add(dv_const(c), dv_unturn(m, dv_sub(ray.origin, dv_const(c)))), dv_unturn(m, ray.dir),
+                  ray.weight);
+  Exit e;
+  bool ok;
+  if (lens_model == LENS_REAL) {
+    e = real_exit(local, lens, test_entrance);
+    if (!e.ok) return hit;  // as trace_real
+    ok = passes_bore(e, lens, holder_bore_mm);
+  } else {
+    e = thin_exit(local, lens, holder_bore_mm, test_entrance);
+    ok = e.ok;
+  }
+  DVec3 p = dv_add(dv_const(c), dv_turn(m, dv_sub(e.p, dv_const(c))));
+  DVec3 d = dv_turn(m, e.d);
+  mat3 s = tilt_matrix(P.sensor_tilt_x_rad, P.sensor_tilt_y_rad);
+  vec3 s0 = vec3(P.sensor_offset_x_mm, P.sensor_offset_y_mm, P.lens_to_sensor_mm);
+  DVec3 normal = dv_const(s[2]);
+  Dual t = d_div(dv_dot(dv_sub(dv_const(s0), p), normal), dv_dot(d, normal));
+  DVec3 on_sensor = dv_sub(dv_add(p, dv_scale(d, t)), dv_const(s0));
+  hit.x_mm = dv_dot(on_sensor, dv_const(s[0]));
+  hit.y_mm = dv_dot(on_sensor, dv_const(s[1]));
   hit.ok = ok;
   return hit;
 }
@@ -380,15 +460,27 @@ PRISM_FN Hit trace_real(Ray ray, Lenslet lens, float holder_bore_mm, float lens_
 // constants in the kernels (specialisation constants), so an effect the scene
 // does not name is compiled out.
 PRISM_FN Hit trace_aperture_point(vec3 theta, Lenslet lens, vec2 unit, float area_mm2, TraceParams P, int lens_model,
-                                  bool scint_refraction, bool holder) {
+                                  bool scint_refraction, bool holder, bool as_built) {
   // The entrance disk: the rim plane of a front sphere, else the plane z = 0.
   float aperture_z = (lens_model == LENS_REAL && lens.curved_toward_sensor == 0) ? lens.sag_mm : 0.0f;
   vec3 p = vec3(lens.center_mm.x + lens.radius_mm * unit.x, lens.center_mm.y + lens.radius_mm * unit.y, aperture_z);
+  mat3 m = mat3(1.0f);
+  if (as_built) {
+    // The disk turns with its lens.
+    m = tilt_matrix(lens.tilt_x_rad, lens.tilt_y_rad);
+    p = lens_pivot(lens) + m * (p - lens_pivot(lens));
+  }
   float photons = P.photons_per_sr * area_mm2;
   DVec3 src = source_point(theta, P.working_distance_mm);
   Ray ray = scint_refraction ? emit_through_face(src, p, photons, P.scint_index, -P.working_distance_mm)
                              : emit_direct(src, p, photons);
   float bore = holder ? P.holder_bore_mm : 0.0f;
+  if (as_built) {
+    // The emitters weigh the ray by the disk's area seen along z; a turned
+    // disk is seen along its own normal: times (d . normal) / d.z.
+    ray.weight = d_mul(ray.weight, d_div(dv_dot(ray.dir, dv_const(m[2])), ray.dir.z));
+    return trace_as_built(ray, lens, lens_model, bore, P, false);
+  }
   return (lens_model == LENS_REAL) ? trace_real(ray, lens, bore, P.lens_to_sensor_mm, false)
                                    : trace_thin(ray, lens, bore, P.lens_to_sensor_mm, false);
 }
@@ -396,11 +488,11 @@ PRISM_FN Hit trace_aperture_point(vec3 theta, Lenslet lens, vec2 unit, float are
 // Trace aperture sample `sample_index` of lenslet `lens_index` from source
 // theta: its jittered stratum's point, carrying an equal share of the area.
 PRISM_FN Hit trace_sample(vec3 theta, Lenslet lens, uint lens_index, uint sample_index, TraceParams P,
-                          int lens_model, bool scint_refraction, bool holder, bool source_extent) {
+                          int lens_model, bool scint_refraction, bool holder, bool source_extent, bool as_built) {
   if (source_extent) theta = theta + source_offset(lens_index, sample_index, P.source_sigma_mm, P.stratification);
   vec2 unit = aperture_sample(lens_index, sample_index, lens.strata, P.stratification);
   float area = 3.14159265358979f * lens.radius_mm * lens.radius_mm / float(lens.strata * lens.strata);
-  return trace_aperture_point(theta, lens, unit, area, P, lens_model, scint_refraction, holder);
+  return trace_aperture_point(theta, lens, unit, area, P, lens_model, scint_refraction, holder, as_built);
 }
 
 // ---------------------------------------------------------------------------
