@@ -314,7 +314,8 @@ double cross2(glm::dvec2 a, glm::dvec2 b, glm::dvec2 c) {
 
 }  // namespace
 
-SparseImage psf_footprint(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta) {
+SparseImage psf_footprint(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta,
+                          const Tangents& tangents) {
   validate(sys);
   const AnalysisGrid grid = AnalysisGrid::of(sys, settings.binning);
   SparseImage img{grid.width, grid.height, {}};
@@ -329,7 +330,7 @@ SparseImage psf_footprint(const OpticalSystem& sys, const TraceSettings& setting
     target.blur_half_px = sys.effects.diffraction ? sys.airy_half_side_mm(l) / px : 0.0;
     auto unit = [&](uint32_t i, uint32_t j) { return glm::dvec2(shared::aperture_corner(i, j, n, turn)); };
     auto trace = [&](const glm::dvec3& from, glm::dvec2 u) {
-      return to_grid(trace_point(sys, settings, from, l, u, 1.0), half_w, half_h, px);
+      return to_grid(trace_point(sys, settings, from, l, u, 1.0, tangents), half_w, half_h, px);
     };
     // The corners, shared by neighbouring cells (without an extended source).
     std::vector<GridCorner> shared_corners;

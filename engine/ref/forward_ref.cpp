@@ -36,13 +36,31 @@ bool within(const V3& p, double cx, double cy, double r) {
   return dx * dx + dy * dy <= r * r;
 }
 
+// `value` as a dual whose gradient is 1 in the slots of `t` that name
+// parameter p (of lenslet `lens`, for a lens parameter).
+D seeded(double value, Param p, int lens, const Tangents& t) {
+  glm::dvec3 g(0.0);
+  for (int k = 0; k < 3; ++k)
+    if (t[k].param == p && (t[k].lens < 0 || t[k].lens == lens || p < Param::lens_x || p > Param::lens_tilt_y)) g[k] = 1;
+  return D(value, g);
+}
+bool seeds(const Tangents& t, Param p, int lens) { return seeded(0.0, p, lens, t).d != glm::dvec3(0.0); }
+
+// A lenslet's geometry, with the derivatives of its position and focal
+// length: R = f (n - 1), sag at the rim, centre thickness = sag + edge.
 struct Geometry {
-  double cx, cy, radius, focal, R, thickness, sag, n;
+  D cx, cy, focal, R, thickness, sag;
+  double radius, n;
 };
-Geometry geometry(const OpticalSystem& sys, size_t i) {
+Geometry geometry(const OpticalSystem& sys, size_t i, const Tangents& t) {
   const auto& l = sys.lenslets[i];
-  return {l.x_mm, l.y_mm, 0.5 * l.diameter_mm, l.focal_mm, sys.curvature_radius_mm(i), sys.center_thickness_mm(i),
-          sys.sag_mm(i), sys.glass_index};
+  const int lens = int(i);
+  const D f = seeded(l.focal_mm, Param::lens_focal, lens, t);
+  const D R = f * D(sys.glass_index - 1.0);
+  const double a = 0.5 * l.diameter_mm;
+  const D sag = R - sqrt(R * R - D(a * a));
+  return {seeded(l.x_mm, Param::lens_x, lens, t), seeded(l.y_mm, Param::lens_y, lens, t), f, R,
+          sag + D(sys.edge_thickness_mm), sag, a, sys.glass_index};
 }
 
 // A ray leaving the lens: a point and a direction, in the lens's own frame.
@@ -53,22 +71,22 @@ struct LensExit {
 // Rotation of an as-built tilt: about x by ax, then about y by ay (degrees),
 // v -> Ry Rx v, as rows.
 struct Turn {
-  double m[3][3];
+  D m[3][3];
   V3 apply(const V3& v) const {  // m v
-    return {v.x * D(m[0][0]) + v.y * D(m[0][1]) + v.z * D(m[0][2]), v.x * D(m[1][0]) + v.y * D(m[1][1]) + v.z * D(m[1][2]),
-            v.x * D(m[2][0]) + v.y * D(m[2][1]) + v.z * D(m[2][2])};
+    return {v.x * m[0][0] + v.y * m[0][1] + v.z * m[0][2], v.x * m[1][0] + v.y * m[1][1] + v.z * m[1][2],
+            v.x * m[2][0] + v.y * m[2][1] + v.z * m[2][2]};
   }
   V3 undo(const V3& v) const {  // m^T v
-    return {v.x * D(m[0][0]) + v.y * D(m[1][0]) + v.z * D(m[2][0]), v.x * D(m[0][1]) + v.y * D(m[1][1]) + v.z * D(m[2][1]),
-            v.x * D(m[0][2]) + v.y * D(m[1][2]) + v.z * D(m[2][2])};
+    return {v.x * m[0][0] + v.y * m[1][0] + v.z * m[2][0], v.x * m[0][1] + v.y * m[1][1] + v.z * m[2][1],
+            v.x * m[0][2] + v.y * m[1][2] + v.z * m[2][2]};
   }
-  V3 column(int j) const { return {D(m[0][j]), D(m[1][j]), D(m[2][j])}; }
+  V3 column(int j) const { return {m[0][j], m[1][j], m[2][j]}; }
 };
-Turn turn_of(double ax_deg, double ay_deg) {
-  const double ax = ax_deg * M_PI / 180, ay = ay_deg * M_PI / 180;
-  const double cx = std::cos(ax), sx = std::sin(ax), cy = std::cos(ay), sy = std::sin(ay);
+Turn turn_of(D ax_deg, D ay_deg) {
+  const D ax = ax_deg * D(M_PI / 180), ay = ay_deg * D(M_PI / 180);
+  const D cx = cos(ax), sx = sin(ax), cy = cos(ay), sy = sin(ay);
   // Ry = [cy 0 sy; 0 1 0; -sy 0 cy], Rx = [1 0 0; 0 cx -sx; 0 sx cx].
-  return {{{cy, sy * sx, sy * cx}, {0, cx, -sx}, {-sy, cy * sx, cy * cx}}};
+  return {{{cy, sy * sx, sy * cx}, {D(0.0), cx, -sx}, {-sy, cy * sx, cy * cx}}};
 }
 
 // Through lenslet g from `o` along `dir`, both in the lens's own frame:
@@ -80,28 +98,29 @@ std::optional<LensExit> through_lens(const OpticalSystem& sys, const Geometry& g
   if (sys.lens_model == LensModel::thin) {
     D t = -o.z / dir.z;
     V3 p = o + dir * t;
-    if (test_entrance && !within(p, g.cx, g.cy, g.radius)) return std::nullopt;
-    D sx = dir.x / dir.z - (p.x - D(g.cx)) / D(g.focal);
-    D sy = dir.y / dir.z - (p.y - D(g.cy)) / D(g.focal);
-    if (bore > 0 && !within(V3{p.x + sx * D(bore), p.y + sy * D(bore), D(bore)}, g.cx, g.cy, g.radius)) return std::nullopt;
+    if (test_entrance && !within(p, g.cx.v, g.cy.v, g.radius)) return std::nullopt;
+    D sx = dir.x / dir.z - (p.x - g.cx) / g.focal;
+    D sy = dir.y / dir.z - (p.y - g.cy) / g.focal;
+    if (bore > 0 && !within(V3{p.x + sx * D(bore), p.y + sy * D(bore), D(bore)}, g.cx.v, g.cy.v, g.radius))
+      return std::nullopt;
     return LensExit{p, V3{sx, sy, D(1.0)}};
   }
   V3 d = unit(dir);
   V3 exit_point, exit_dir;
   if (!sys.curved_toward_sensor) {
     // Spherical front face, centre (cx, cy, R): first intersection from the source side.
-    V3 c{D(g.cx), D(g.cy), D(g.R)};
+    V3 c{g.cx, g.cy, g.R};
     V3 oc = o - c;
     D b = dot(oc, d);
-    D disc = b * b - (dot(oc, oc) - D(g.R * g.R));
+    D disc = b * b - (dot(oc, oc) - g.R * g.R);
     if (disc.v <= 0) return std::nullopt;
     V3 p1 = o + d * (-b - sqrt(disc));
-    if (test_entrance && (!within(p1, g.cx, g.cy, g.radius) || p1.z.v > g.sag)) return std::nullopt;
-    auto d1 = snell(d, (p1 - c) * D(1.0 / g.R), 1.0 / g.n);  // outward normal faces the source
+    if (test_entrance && (!within(p1, g.cx.v, g.cy.v, g.radius) || p1.z.v > g.sag.v)) return std::nullopt;
+    auto d1 = snell(d, (p1 - c) * (D(1.0) / g.R), 1.0 / g.n);  // outward normal faces the source
     if (!d1) return std::nullopt;
     // Flat back face.
-    V3 p2 = p1 + *d1 * ((D(g.thickness) - p1.z) / d1->z);
-    if (!within(p2, g.cx, g.cy, g.radius)) return std::nullopt;
+    V3 p2 = p1 + *d1 * ((g.thickness - p1.z) / d1->z);
+    if (!within(p2, g.cx.v, g.cy.v, g.radius)) return std::nullopt;
     auto d2 = snell(*d1, V3{D(0.0), D(0.0), D(-1.0)}, g.n);
     if (!d2) return std::nullopt;
     exit_point = p2;
@@ -109,23 +128,23 @@ std::optional<LensExit> through_lens(const OpticalSystem& sys, const Geometry& g
   } else {
     // Flat front face at z = 0, then the sphere centred at z = thickness - R, left from inside.
     V3 p0 = o + d * (-o.z / d.z);
-    if (test_entrance && !within(p0, g.cx, g.cy, g.radius)) return std::nullopt;
+    if (test_entrance && !within(p0, g.cx.v, g.cy.v, g.radius)) return std::nullopt;
     auto d1 = snell(d, V3{D(0.0), D(0.0), D(-1.0)}, 1.0 / g.n);
-    V3 c{D(g.cx), D(g.cy), D(g.thickness - g.R)};
+    V3 c{g.cx, g.cy, g.thickness - g.R};
     V3 oc = p0 - c;
     D b = dot(oc, *d1);
-    D disc = b * b - (dot(oc, oc) - D(g.R * g.R));
+    D disc = b * b - (dot(oc, oc) - g.R * g.R);
     if (disc.v <= 0) return std::nullopt;
     V3 p1 = p0 + *d1 * (-b + sqrt(disc));
-    if (!within(p1, g.cx, g.cy, g.radius) || p1.z.v < g.thickness - g.sag) return std::nullopt;
-    auto d2 = snell(*d1, (c - p1) * D(1.0 / g.R), g.n);  // inward normal faces the outgoing ray
+    if (!within(p1, g.cx.v, g.cy.v, g.radius) || p1.z.v < g.thickness.v - g.sag.v) return std::nullopt;
+    auto d2 = snell(*d1, (c - p1) * (D(1.0) / g.R), g.n);  // inward normal faces the outgoing ray
     if (!d2) return std::nullopt;
     exit_point = p1;
     exit_dir = *d2;
   }
   if (bore > exit_point.z.v) {
     D tb = (D(bore) - exit_point.z) / exit_dir.z;
-    if (!within(exit_point + exit_dir * tb, g.cx, g.cy, g.radius)) return std::nullopt;
+    if (!within(exit_point + exit_dir * tb, g.cx.v, g.cy.v, g.radius)) return std::nullopt;
   }
   return LensExit{exit_point, exit_dir};
 }
@@ -135,26 +154,34 @@ std::optional<LensExit> through_lens(const OpticalSystem& sys, const Geometry& g
 // built (the plane through (offset, lens_to_sensor) turned by its tilt).
 // Returns the landing point in the sensor's own axes from its centre, or
 // nothing when stopped. For a nominal system: the plane z = lens_to_sensor.
-std::optional<std::pair<D, D>> propagate(const OpticalSystem& sys, size_t lens, V3 o, V3 dir, bool test_entrance) {
-  const Geometry g = geometry(sys, lens);
+std::optional<std::pair<D, D>> propagate(const OpticalSystem& sys, size_t lens, V3 o, V3 dir, bool test_entrance,
+                                         const Tangents& t) {
+  const Geometry g = geometry(sys, lens, t);
   const auto& l = sys.lenslets[lens];
-  const bool tilted = l.tilt_x_deg != 0 || l.tilt_y_deg != 0;
-  const Turn m = turn_of(l.tilt_x_deg, l.tilt_y_deg);
-  const V3 c{D(g.cx), D(g.cy), D(0.0)};
+  const int li = int(lens);
+  const bool tilted = l.tilt_x_deg != 0 || l.tilt_y_deg != 0 || seeds(t, Param::lens_tilt_x, li) ||
+                      seeds(t, Param::lens_tilt_y, li);
+  const Turn m = turn_of(seeded(l.tilt_x_deg, Param::lens_tilt_x, li, t), seeded(l.tilt_y_deg, Param::lens_tilt_y, li, t));
+  const V3 c{g.cx, g.cy, D(0.0)};
   auto out = tilted ? through_lens(sys, g, c + m.undo(o - c), m.undo(dir), test_entrance)
                     : through_lens(sys, g, o, dir, test_entrance);
   if (!out) return std::nullopt;
   const V3 p = tilted ? c + m.apply(out->p - c) : out->p, d = tilted ? m.apply(out->d) : out->d;
   const SensorPose& pose = sys.sensor_pose;
-  if (pose.nominal()) {
-    const D ts = (D(sys.lens_to_sensor_mm) - p.z) / d.z;
+  const D L = seeded(sys.lens_to_sensor_mm, Param::lens_to_sensor, li, t);
+  const bool moved = !pose.nominal() || seeds(t, Param::sensor_offset_x, li) || seeds(t, Param::sensor_offset_y, li) ||
+                     seeds(t, Param::sensor_tilt_x, li) || seeds(t, Param::sensor_tilt_y, li);
+  if (!moved) {
+    const D ts = (L - p.z) / d.z;
     return std::make_pair(p.x + d.x * ts, p.y + d.y * ts);
   }
-  const Turn s = turn_of(pose.tilt_x_deg, pose.tilt_y_deg);
-  const V3 s0{D(pose.offset_x_mm), D(pose.offset_y_mm), D(sys.lens_to_sensor_mm)};
+  const Turn s = turn_of(seeded(pose.tilt_x_deg, Param::sensor_tilt_x, li, t),
+                         seeded(pose.tilt_y_deg, Param::sensor_tilt_y, li, t));
+  const V3 s0{seeded(pose.offset_x_mm, Param::sensor_offset_x, li, t),
+              seeded(pose.offset_y_mm, Param::sensor_offset_y, li, t), L};
   const V3 normal = s.column(2);
-  const D t = dot(s0 - p, normal) / dot(d, normal);
-  const V3 h = p + d * t - s0;
+  const D along = dot(s0 - p, normal) / dot(d, normal);
+  const V3 h = p + d * along - s0;
   return std::make_pair(dot(h, s.column(0)), dot(h, s.column(1)));
 }
 
@@ -174,7 +201,7 @@ struct FacePath {
   D rho_over_pr;  // q = s + (rho / pr) (p - s) laterally
   D weight;       // Fresnel T * cos/L^2 inside * dA_face / dA_aperture
 };
-FacePath face_path(D h, D pr2, double w, double n) {
+FacePath face_path(D h, D pr2, D w, double n) {
   D pr = sqrt(pr2 + D(1e-30));
   auto air_tan = [&](D rho) {
     D L = sqrt(rho * rho + h * h);
@@ -183,15 +210,15 @@ FacePath face_path(D h, D pr2, double w, double n) {
   };
   // Start from the paraxial guess, kept below the critical angle (beyond it
   // no ray leaves the scintillator).
-  D rho = pr * h / (h + D(n * w));
+  D rho = pr * h / (h + D(n) * w);
   double rho_max = n > 1.0 ? h.v / std::sqrt(n * n - 1.0) : INFINITY;
   if (rho.v >= rho_max) rho = D(0.99) * D(rho_max, h.d / std::sqrt(n * n - 1.0));
   for (int it = 0; it < 60; ++it) {
     D L = sqrt(rho * rho + h * h);
     D s = D(n) * rho / L;
     D c3 = (D(1.0) - s * s) * sqrt(D(1.0) - s * s);
-    D f = rho + D(w) * air_tan(rho) - pr;
-    D fp = D(1.0) + D(w * n) * h * h / (L * L * L * c3);
+    D f = rho + w * air_tan(rho) - pr;
+    D fp = D(1.0) + w * D(n) * h * h / (L * L * L * c3);
     D next = rho - f / fp;
     if (next.v >= rho_max) next = D(0.5) * (rho + D(rho_max));
     if (next.v < 0) next = D(0.5) * rho;
@@ -204,22 +231,22 @@ FacePath face_path(D h, D pr2, double w, double n) {
   D rs = (D(n) * cos_i - cos_t) / (D(n) * cos_i + cos_t);
   D rp = (D(n) * cos_t - cos_i) / (D(n) * cos_t + cos_i);
   D transmit = D(1.0) - D(0.5) * (rs * rs + rp * rp);
-  D dpr_drho = D(1.0) + D(w * n) * h * h / (L * L * L * (D(1.0) - sin_t * sin_t) * cos_t);
+  D dpr_drho = D(1.0) + w * D(n) * h * h / (L * L * L * (D(1.0) - sin_t * sin_t) * cos_t);
   // Radial area map: dA_aperture / dA_face = (pr / rho) * dpr/drho.
-  D ratio = (pr.v < 1e-12) ? D(1.0) / (D(1.0) + D(w * n) / h) : rho / pr;
+  D ratio = (pr.v < 1e-12) ? D(1.0) / (D(1.0) + w * D(n) / h) : rho / pr;
   D area = ratio / dpr_drho;
   return {ratio, transmit * cos_i / (L * L) * area};
 }
 
 SampleHit trace_sample_impl(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta,
-                            size_t lens, uint32_t sample) {
+                            size_t lens, uint32_t sample, const Tangents& t) {
   const uint32_t strata = settings.strata_for(sys.lenslets[lens].diameter_mm);
   glm::dvec2 u = unit_disk_sample(uint32_t(lens), sample, strata, settings.stratification);
   glm::dvec3 centre = theta;
   if (sys.effects.source_extent)
     centre += source_offset(uint32_t(lens), sample, sys.effects.source_sigma_mm, settings.stratification);
   const double r = 0.5 * sys.lenslets[lens].diameter_mm;
-  return trace_point(sys, settings, centre, lens, u, M_PI * r * r / double(strata * strata));
+  return trace_point(sys, settings, centre, lens, u, M_PI * r * r / double(strata * strata), t);
 }
 
 }  // namespace
@@ -232,24 +259,28 @@ glm::dvec3 source_offset(uint32_t lens, uint32_t sample, double sigma, uint32_t 
 // entrance disk (unit-disk coordinates), carrying the photons of `area_mm2`
 // of aperture there.
 SampleHit trace_point(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& centre, size_t lens,
-                      glm::dvec2 u, double area_mm2) {
-  Geometry g = geometry(sys, lens);
-  double z_ap = (sys.lens_model == LensModel::real && !sys.curved_toward_sensor) ? g.sag : 0.0;
+                      glm::dvec2 u, double area_mm2, const Tangents& t) {
+  const int li = int(lens);
+  Geometry g = geometry(sys, lens, t);
+  const D z_ap = (sys.lens_model == LensModel::real && !sys.curved_toward_sensor) ? g.sag : D(0.0);
   // The entrance disk turns with its lens (as built).
-  const Turn m = turn_of(sys.lenslets[lens].tilt_x_deg, sys.lenslets[lens].tilt_y_deg);
-  const V3 c{D(g.cx), D(g.cy), D(0.0)};
-  const V3 p = c + m.apply(V3{D(g.radius * u.x), D(g.radius * u.y), D(z_ap)});
-  V3 s{D(centre.x, {1, 0, 0}), D(centre.y, {0, 1, 0}), D(-(centre.z + sys.working_distance_mm), {0, 0, -1})};
+  const Turn m = turn_of(seeded(sys.lenslets[lens].tilt_x_deg, Param::lens_tilt_x, li, t),
+                         seeded(sys.lenslets[lens].tilt_y_deg, Param::lens_tilt_y, li, t));
+  const V3 c{g.cx, g.cy, D(0.0)};
+  const V3 p = c + m.apply(V3{D(g.radius * u.x), D(g.radius * u.y), z_ap});
+  const D wd = seeded(sys.working_distance_mm, Param::working_distance, li, t);
+  V3 s{seeded(centre.x, Param::source_x, li, t), seeded(centre.y, Param::source_y, li, t),
+       -(seeded(centre.z, Param::source_depth, li, t) + wd)};
   double photons = settings.photons_emitted * sys.effects.detection_efficiency / (4 * M_PI) * area_mm2;
   V3 origin = s;
   D weight;
   if (sys.effects.scintillator_refraction) {
-    double face_z = -sys.working_distance_mm;
-    D h = D(face_z) - s.z;
+    const D face_z = -wd;
+    D h = face_z - s.z;
     if (h.v < 1e-3) h = D(1e-3, h.d);
     D ex = p.x - s.x, ey = p.y - s.y;
-    FacePath fp = face_path(h, ex * ex + ey * ey, p.z.v - face_z, sys.effects.scintillator_index);  // p.z: the turned disk's point
-    origin = V3{s.x + ex * fp.rho_over_pr, s.y + ey * fp.rho_over_pr, D(face_z)};
+    FacePath fp = face_path(h, ex * ex + ey * ey, p.z - face_z, sys.effects.scintillator_index);  // p.z: the turned disk's point
+    origin = V3{s.x + ex * fp.rho_over_pr, s.y + ey * fp.rho_over_pr, face_z};
     weight = fp.weight;
   } else {
     V3 r = p - s;
@@ -261,7 +292,7 @@ SampleHit trace_point(const OpticalSystem& sys, const TraceSettings& settings, c
   const V3 along = p - origin;
   weight = weight * D(photons) * (dot(along, m.column(2)) / along.z);
   SampleHit out;
-  auto hit = propagate(sys, lens, origin, along, false);
+  auto hit = propagate(sys, lens, origin, along, false, t);
   if (!hit) return out;
   out.ok = true;
   out.x_mm = hit->first.v;
@@ -289,11 +320,11 @@ std::array<double, 4> SparseImage::value(int64_t key) const {
 
 SampleHit trace_sample(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta, size_t lens,
                        uint32_t sample) {
-  return trace_sample_impl(sys, settings, theta, lens, sample);
+  return trace_sample_impl(sys, settings, theta, lens, sample, source_tangents);
 }
 
-SparseImage psf(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta) {
-  if (settings.splat == Splat::footprint) return psf_footprint(sys, settings, theta);
+SparseImage psf(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta, const Tangents& t) {
+  if (settings.splat == Splat::footprint) return psf_footprint(sys, settings, theta, t);
   validate(sys);
   AnalysisGrid grid = AnalysisGrid::of(sys, settings.binning);
   SparseImage img{grid.width, grid.height, {}};
@@ -301,7 +332,7 @@ SparseImage psf(const OpticalSystem& sys, const TraceSettings& settings, const g
   for (size_t l = 0; l < sys.lenslets.size(); ++l) {
     const uint32_t strata = settings.strata_for(sys.lenslets[l].diameter_mm);
     for (uint32_t k = 0; k < strata * strata; ++k) {
-      SampleHit h = trace_sample_impl(sys, settings, theta, l, k);
+      SampleHit h = trace_sample_impl(sys, settings, theta, l, k, t);
       // Checkerboard half of the strata; each half estimates the whole gradient.
       const int half = int(shared::ray_half(k, strata));
       if (sys.effects.diffraction) {
@@ -366,7 +397,7 @@ std::optional<glm::dvec2> trace_ray(const OpticalSystem& sys, size_t lens_index,
   OpticalSystem plain = sys;
   plain.effects.holder_vignetting = false;
   auto hit = propagate(plain, lens_index, V3{D(origin.x), D(origin.y), D(origin.z)},
-                       V3{D(direction.x), D(direction.y), D(direction.z)}, true);
+                       V3{D(direction.x), D(direction.y), D(direction.z)}, true, source_tangents);
   if (!hit) return std::nullopt;
   return glm::dvec2(hit->first.v, hit->second.v);
 }

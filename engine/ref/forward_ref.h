@@ -18,8 +18,25 @@
 
 namespace prism::ref {
 
+// What the three derivatives of a reference trace are taken with respect to:
+// the source position (the default), or parameters of the scene
+// (calibration, issue 18). Units: mm for positions and distances, degrees
+// for tilts. A lens parameter names its lenslet; lens = -1 takes every
+// lenslet's own (the image's derivative is then the sum of each lenslet's).
+enum class Param {
+  source_x, source_y, source_depth,
+  lens_x, lens_y, lens_focal, lens_tilt_x, lens_tilt_y,
+  lens_to_sensor, working_distance, sensor_offset_x, sensor_offset_y, sensor_tilt_x, sensor_tilt_y
+};
+struct Tangent {
+  Param param;
+  int lens = -1;
+};
+using Tangents = std::array<Tangent, 3>;
+inline constexpr Tangents source_tangents{{{Param::source_x}, {Param::source_y}, {Param::source_depth}}};
+
 // Per touched pixel, keyed by row * grid_width + col: expected photons b, and
-// d b/d(x, y, depth) estimated from each half of the rays (checkerboard of
+// d b/d(x, y, depth) (or the tangents') estimated from each half of the rays (checkerboard of
 // strata) separately: {b, gA.x, gA.y, gA.z, gB.x, gB.y, gB.z}.
 struct SparseImage {
   int width = 0;
@@ -33,10 +50,13 @@ struct SparseImage {
   std::array<double, 4> value(int64_t key) const;
 };
 
-// The image by settings.splat: point rays splatted bilinearly, or footprints.
-SparseImage psf(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta);
+// The image by settings.splat: point rays splatted bilinearly, or footprints;
+// its derivatives with respect to `tangents`.
+SparseImage psf(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta,
+                const Tangents& tangents = source_tangents);
 // The footprint splat's image (psf() with Splat::footprint).
-SparseImage psf_footprint(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta);
+SparseImage psf_footprint(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta,
+                          const Tangents& tangents = source_tangents);
 FisherResult fisher(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta);
 FisherResult fisher_of(const SparseImage& image, double dark_counts_per_pixel, FisherEstimator estimator);
 
@@ -50,7 +70,7 @@ std::optional<glm::dvec2> trace_ray(const OpticalSystem& sys, size_t lens_index,
 struct SampleHit {
   bool ok = false;
   double x_mm = 0, y_mm = 0, weight = 0;
-  glm::dvec3 dx{0}, dy{0}, dweight{0};  // d/d(x, y, depth)
+  glm::dvec3 dx{0}, dy{0}, dweight{0};  // d/d(x, y, depth), or d/d(the tangents)
 };
 SampleHit trace_sample(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta,
                        size_t lens, uint32_t sample);
@@ -59,7 +79,7 @@ SampleHit trace_sample(const OpticalSystem& sys, const TraceSettings& settings, 
 // coordinates) of lenslet `lens`'s entrance disk, carrying the photons of
 // `area_mm2` of aperture there (the footprint's corners: footprint_ref.cpp).
 SampleHit trace_point(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& centre, size_t lens,
-                      glm::dvec2 u, double area_mm2);
+                      glm::dvec2 u, double area_mm2, const Tangents& tangents = source_tangents);
 // Effect diffraction: `weight` at point (u, v) (grid pixels) blurred by a
 // uniform square of half side h (the Airy core, shaders/common/blur.glsl):
 // each box pixel gets the square's share in it, the sensor's far edges

@@ -1,0 +1,134 @@
+// The double reference's derivatives with respect to the scene's parameters
+// (ref::Tangents; what calibration fits, issue 18): forward mode through the
+// lens positions, focal lengths, tilts, distances and the sensor's pose,
+// against central differences of its own pixel values. Footprint splat, whose
+// pixel values are smooth in every parameter (exact areas of moving cells);
+// an as-built real-lens array with tilts and a moved, tilted sensor, so that
+// no parameter sits at a special value.
+#include <cmath>
+#include <functional>
+#include <string>
+
+#include "compare.h"
+#include "engine/ref/forward_ref.h"
+#include "support.h"
+
+namespace {
+
+using prism::ref::Param;
+using prism::ref::Tangent;
+using prism::test::channel;
+
+struct Parameter {
+  std::string name;
+  Tangent tangent;
+  double step;  // of the central difference (mm or degrees)
+  std::function<void(prism::OpticalSystem&, double)> move;
+};
+
+// Every lenslet (lens < 0) or one.
+void each_lens(prism::OpticalSystem& s, int lens, const std::function<void(prism::LensletGeometry&)>& f) {
+  for (size_t i = 0; i < s.lenslets.size(); ++i)
+    if (lens < 0 || size_t(lens) == i) f(s.lenslets[i]);
+}
+
+std::vector<Parameter> parameters() {
+  std::vector<Parameter> p;
+  for (int lens : {1, -1}) {
+    const std::string at = lens < 0 ? " (every lenslet)" : " (lenslet 1)";
+    p.push_back({"lens x" + at, {Param::lens_x, lens}, 1e-4,
+                 [=](auto& s, double h) { each_lens(s, lens, [&](auto& l) { l.x_mm += h; }); }});
+    p.push_back({"lens y" + at, {Param::lens_y, lens}, 1e-4,
+                 [=](auto& s, double h) { each_lens(s, lens, [&](auto& l) { l.y_mm += h; }); }});
+    p.push_back({"focal length" + at, {Param::lens_focal, lens}, 1e-4,
+                 [=](auto& s, double h) { each_lens(s, lens, [&](auto& l) { l.focal_mm += h; }); }});
+    p.push_back({"lens tilt x" + at, {Param::lens_tilt_x, lens}, 1e-3,
+                 [=](auto& s, double h) { each_lens(s, lens, [&](auto& l) { l.tilt_x_deg += h; }); }});
+    p.push_back({"lens tilt y" + at, {Param::lens_tilt_y, lens}, 1e-3,
+                 [=](auto& s, double h) { each_lens(s, lens, [&](auto& l) { l.tilt_y_deg += h; }); }});
+  }
+  p.push_back({"lens to sensor", {Param::lens_to_sensor}, 1e-4, [](auto& s, double h) { s.lens_to_sensor_mm += h; }});
+  p.push_back({"working distance", {Param::working_distance}, 1e-4,
+               [](auto& s, double h) { s.working_distance_mm += h; }});
+  p.push_back({"sensor offset x", {Param::sensor_offset_x}, 1e-4,
+               [](auto& s, double h) { s.sensor_pose.offset_x_mm += h; }});
+  p.push_back({"sensor offset y", {Param::sensor_offset_y}, 1e-4,
+               [](auto& s, double h) { s.sensor_pose.offset_y_mm += h; }});
+  p.push_back({"sensor tilt x", {Param::sensor_tilt_x}, 1e-3, [](auto& s, double h) { s.sensor_pose.tilt_x_deg += h; }});
+  p.push_back({"sensor tilt y", {Param::sensor_tilt_y}, 1e-3, [](auto& s, double h) { s.sensor_pose.tilt_y_deg += h; }});
+  return p;
+}
+
+prism::OpticalSystem as_built(bool face) {
+  auto s = prism::test::small_system(prism::LensModel::real);
+  s.lenslets = std::vector<prism::LensletGeometry>(s.lenslets.begin() + 2, s.lenslets.begin() + 5);
+  for (size_t i = 0; i < s.lenslets.size(); ++i) {
+    s.lenslets[i].tilt_x_deg = 0.8 * std::sin(double(i) + 1.0);
+    s.lenslets[i].tilt_y_deg = -0.6 * std::cos(double(i) + 0.3);
+  }
+  s.sensor_pose = {0.04, -0.06, 0.5, -0.3};
+  s.effects.scintillator_refraction = face;
+  return s;
+}
+
+// Footprint at 256 cells on 110 um pixels; the source off axis at depth 12.
+prism::TraceSettings settings() {
+  prism::TraceSettings t;
+  t.splat = prism::Splat::footprint;
+  t.rays_per_lenslet = 256;
+  t.binning = 16;
+  return t;
+}
+const glm::dvec3 theta(1.3, -0.7, 12.0);
+
+}  // namespace
+
+TEST_CASE("reference derivatives with respect to the scene's parameters equal central differences of its pixels") {
+  const auto t = settings();
+  const auto all = parameters();
+  for (bool face : {false, true}) {
+    CAPTURE(face);
+    const auto sys = as_built(face);
+    for (size_t first = 0; first < all.size(); first += 3) {
+      prism::ref::Tangents tangents = prism::ref::source_tangents;
+      const size_t n = std::min<size_t>(3, all.size() - first);
+      for (size_t k = 0; k < n; ++k) tangents[k] = all[first + k].tangent;
+      const auto analytic = prism::ref::psf(sys, t, theta, tangents);
+      for (size_t k = 0; k < n; ++k) {
+        const Parameter& p = all[first + k];
+        CAPTURE(p.name);
+        auto plus = sys, minus = sys;
+        p.move(plus, p.step);
+        p.move(minus, -p.step);
+        const auto bp = channel(prism::ref::psf(plus, t, theta), 0), bm = channel(prism::ref::psf(minus, t, theta), 0);
+        std::vector<double> fd(bp.size());
+        for (size_t i = 0; i < fd.size(); ++i) fd[i] = (bp[i] - bm[i]) / (2 * p.step);
+        const auto got = channel(analytic, 1 + int(k));
+        const double peak = prism::test::peak_abs(fd);
+        REQUIRE(peak > 0);  // the parameter moves the image
+        // A footprint piece that changes its split across the step makes a
+        // pixel's difference jump: at most a couple of pixels.
+        auto cmp = prism::test::compare(fd, got, {.abs = 2e-3 * peak});
+        CHECK_MESSAGE(cmp.mismatches <= 2, cmp.report("d b / d " + p.name + " (forward mode vs central differences)"));
+      }
+    }
+  }
+}
+
+TEST_CASE("reference derivatives: the default tangents are the source's, and every lenslet's equals the sum of each") {
+  const auto t = settings();
+  const auto sys = as_built(false);
+  const auto plain = prism::ref::psf(sys, t, theta);
+  const auto named = prism::ref::psf(sys, t, theta, {{{Param::source_x}, {Param::source_y}, {Param::source_depth}}});
+  for (int c = 0; c < 4; ++c) {
+    auto cmp = prism::test::compare(channel(plain, c), channel(named, c), {});
+    CHECK_MESSAGE(cmp.ok(), cmp.report("channel " + std::to_string(c)));
+  }
+  const auto every = prism::ref::psf(sys, t, theta, {{{Param::lens_focal, -1}, {Param::lens_focal, 0}, {Param::lens_focal, 1}}});
+  const auto third = prism::ref::psf(sys, t, theta, {{{Param::lens_focal, 2}, {Param::lens_focal, 2}, {Param::lens_focal, 2}}});
+  const auto all = channel(every, 1), a = channel(every, 2), b = channel(every, 3), c = channel(third, 1);
+  std::vector<double> sum(all.size());
+  for (size_t i = 0; i < sum.size(); ++i) sum[i] = a[i] + b[i] + c[i];
+  auto cmp = prism::test::compare(all, sum, {.abs = 1e-12 * prism::test::peak_abs(all)});
+  CHECK_MESSAGE(cmp.ok(), cmp.report("d b / d every focal length vs the sum over lenslets"));
+}
