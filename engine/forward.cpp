@@ -9,9 +9,13 @@
 #include "spv/fisher_reduce.spv.h"
 #include "spv/landing_points.spv.h"
 #include "spv/psf_footprint.spv.h"
+#include "spv/psf_footprint_as_built.spv.h"
 #include "spv/psf_footprint_cut.spv.h"
+#include "spv/psf_footprint_cut_as_built.spv.h"
 #include "spv/psf_footprint_split.spv.h"
+#include "spv/psf_footprint_split_as_built.spv.h"
 #include "spv/psf_splat.spv.h"
+#include "spv/psf_splat_as_built.spv.h"
 
 namespace prism {
 
@@ -56,22 +60,23 @@ double PixelImage::photons() const {
   return s;
 }
 
-// The splat kernel of the settings (both take the same buffers and constants).
-std::span<const uint32_t> splat_spirv(const TraceSettings& t) {
-  return t.splat == Splat::footprint ? spirv(spv_psf_footprint) : spirv(spv_psf_splat);
+// The splat kernel of the settings (both take the same buffers and
+// constants), in its as-built variant (shaders/CMakeLists.txt) when a design
+// traced is as built.
+std::span<const uint32_t> splat_spirv(const TraceSettings& t, bool as_built) {
+  if (t.splat == Splat::footprint) return as_built ? spirv(spv_psf_footprint_as_built) : spirv(spv_psf_footprint);
+  return as_built ? spirv(spv_psf_splat_as_built) : spirv(spv_psf_splat);
 }
 uint32_t splat_buffers(const TraceSettings& t) { return t.splat == Splat::footprint ? 7 : 5; }
 std::string kernel_name(const TraceSettings& t, bool values_only) {
   return std::string(t.splat == Splat::footprint ? "psf_footprint" : "psf_splat") + (values_only ? " (values)" : "");
 }
 
-// psf_splat.comp's specialisation constants: lens model, effects,
-// derivatives, and whether any design traced is as built (tilted lenslets or
-// a sensor off its nominal pose).
-std::vector<uint32_t> specialisation(const OpticalSystem& s, bool derivatives, bool as_built) {
+// psf_splat.comp's specialisation constants: lens model, effects, derivatives.
+std::vector<uint32_t> specialisation(const OpticalSystem& s, bool derivatives) {
   return {uint32_t(s.lens_model == LensModel::real ? shared::LENS_REAL : shared::LENS_THIN),
           uint32_t(s.effects.scintillator_refraction), uint32_t(s.effects.holder_vignetting), uint32_t(derivatives),
-          uint32_t(s.effects.source_extent), uint32_t(s.effects.diffraction), uint32_t(as_built)};
+          uint32_t(s.effects.source_extent), uint32_t(s.effects.diffraction)};
 }
 
 bool any_as_built(const std::vector<OpticalSystem>& designs) {
@@ -130,7 +135,7 @@ void check_batchable(const std::vector<OpticalSystem>& designs) {
 struct ForwardVulkan::Impl {
   vk::Context& ctx;
   OpticalSystem sys;
-  bool as_built;  // any design traced (specialisation)
+  bool as_built;  // any design traced: the kernels' as-built variants
   TraceSettings settings;
   shared::TraceParams params{};
   DesignBuffers layout;
@@ -166,15 +171,20 @@ struct ForwardVulkan::Impl {
     vk::Kernel split, split_values, cut, cut_values;
     List splits, cuts;
     uint32_t chunks = 1;  // the first pass over the cells in this many chunks (record_splat)
+    static std::span<const uint32_t> split_spirv(bool as_built) {
+      return as_built ? spirv(spv_psf_footprint_split_as_built) : spirv(spv_psf_footprint_split);
+    }
+    static std::span<const uint32_t> cut_spirv(bool as_built) {
+      return as_built ? spirv(spv_psf_footprint_cut_as_built) : spirv(spv_psf_footprint_cut);
+    }
     Footprint(vk::Context& c, const OpticalSystem& sys, bool as_built, uint32_t first_capacity)
-        : split(c, "psf_footprint_split", spirv(spv_psf_footprint_split), 7, sizeof(shared::TraceParams),
-                specialisation(sys, true, as_built)),
-          split_values(c, "psf_footprint_split (values)", spirv(spv_psf_footprint_split), 7,
-                       sizeof(shared::TraceParams), specialisation(sys, false, as_built)),
-          cut(c, "psf_footprint_cut", spirv(spv_psf_footprint_cut), 7, sizeof(shared::TraceParams),
-              specialisation(sys, true, as_built)),
-          cut_values(c, "psf_footprint_cut (values)", spirv(spv_psf_footprint_cut), 7, sizeof(shared::TraceParams),
-                     specialisation(sys, false, as_built)) {
+        : split(c, "psf_footprint_split", split_spirv(as_built), 7, sizeof(shared::TraceParams),
+                specialisation(sys, true)),
+          split_values(c, "psf_footprint_split (values)", split_spirv(as_built), 7, sizeof(shared::TraceParams),
+                       specialisation(sys, false)),
+          cut(c, "psf_footprint_cut", cut_spirv(as_built), 7, sizeof(shared::TraceParams), specialisation(sys, true)),
+          cut_values(c, "psf_footprint_cut (values)", cut_spirv(as_built), 7, sizeof(shared::TraceParams),
+                     specialisation(sys, false)) {
       splits.grow(c, first_capacity);
       cuts.grow(c, first_capacity);
     }
@@ -195,10 +205,10 @@ struct ForwardVulkan::Impl {
         lenses(c, layout.lenses.size() * sizeof(shared::Lenslet)),
         designs(c, layout.ranges.size() * sizeof(shared::DesignRange)),
         design_zero(c, sizeof(uint32_t)),
-        splat(c, kernel_name(t, false), splat_spirv(t), splat_buffers(t), sizeof(shared::TraceParams),
-              specialisation(sys, true, as_built)),
-        splat_values(c, kernel_name(t, true), splat_spirv(t), splat_buffers(t), sizeof(shared::TraceParams),
-                     specialisation(sys, false, as_built)),
+        splat(c, kernel_name(t, false), splat_spirv(t, as_built), splat_buffers(t), sizeof(shared::TraceParams),
+              specialisation(sys, true)),
+        splat_values(c, kernel_name(t, true), splat_spirv(t, as_built), splat_buffers(t), sizeof(shared::TraceParams),
+                     specialisation(sys, false)),
         reduce(c, "fisher_reduce", spirv(spv_fisher_reduce), 2, 3 * sizeof(uint32_t),
                {uint32_t(t.estimator == FisherEstimator::split ? shared::FISHER_SPLIT : shared::FISHER_NAIVE)}) {
     const OpticalSystem& s = sys;

@@ -14,6 +14,14 @@
 
 #include "dual.glsl"
 
+// The as-built path (tilted lenslets, a moved sensor) is compiled only into
+// the splat kernels' as-built variants (PRISM_AS_BUILT=1, shaders/CMakeLists.txt)
+// and into the C++ side (engine/shared_math.h, where a bool chooses it): in a
+// nominal kernel, dead as it is there, it still cost lavapipe's JIT a third more.
+#ifndef PRISM_AS_BUILT
+#define PRISM_AS_BUILT 1
+#endif
+
 const int LENS_THIN = 0;  // ideal thin lens: paraxial deflection by -h/f
 const int LENS_REAL = 1;  // plano-convex: spherical front face, flat back face
 
@@ -394,6 +402,7 @@ PRISM_FN Hit trace_real(Ray ray, Lenslet lens, float holder_bore_mm, float lens_
   return hit;
 }
 
+#if PRISM_AS_BUILT
 // ---------------------------------------------------------------------------
 // As built: tilted lenslets and a sensor off its nominal pose (AS_BUILT)
 
@@ -453,6 +462,7 @@ PRISM_FN Hit trace_as_built(Ray ray, Lenslet lens, int lens_model, float holder_
   hit.ok = ok;
   return hit;
 }
+#endif  // PRISM_AS_BUILT
 
 // Trace the ray from source theta through point `unit` of the lenslet's
 // entrance disk (unit-disk coordinates). Its weight is the photons per mm^2
@@ -464,23 +474,27 @@ PRISM_FN Hit trace_aperture_point(vec3 theta, Lenslet lens, vec2 unit, float are
   // The entrance disk: the rim plane of a front sphere, else the plane z = 0.
   float aperture_z = (lens_model == LENS_REAL && lens.curved_toward_sensor == 0) ? lens.sag_mm : 0.0f;
   vec3 p = vec3(lens.center_mm.x + lens.radius_mm * unit.x, lens.center_mm.y + lens.radius_mm * unit.y, aperture_z);
+#if PRISM_AS_BUILT
   mat3 m = mat3(1.0f);
   if (as_built) {
     // The disk turns with its lens.
     m = tilt_matrix(lens.tilt_x_rad, lens.tilt_y_rad);
     p = lens_pivot(lens) + m * (p - lens_pivot(lens));
   }
+#endif
   float photons = P.photons_per_sr * area_mm2;
   DVec3 src = source_point(theta, P.working_distance_mm);
   Ray ray = scint_refraction ? emit_through_face(src, p, photons, P.scint_index, -P.working_distance_mm)
                              : emit_direct(src, p, photons);
   float bore = holder ? P.holder_bore_mm : 0.0f;
+#if PRISM_AS_BUILT
   if (as_built) {
     // The emitters weigh the ray by the disk's area seen along z; a turned
     // disk is seen along its own normal: times (d . normal) / d.z.
     ray.weight = d_mul(ray.weight, d_div(dv_dot(ray.dir, dv_const(m[2])), ray.dir.z));
     return trace_as_built(ray, lens, lens_model, bore, P, false);
   }
+#endif
   return (lens_model == LENS_REAL) ? trace_real(ray, lens, bore, P.lens_to_sensor_mm, false)
                                    : trace_thin(ray, lens, bore, P.lens_to_sensor_mm, false);
 }

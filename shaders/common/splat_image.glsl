@@ -17,8 +17,9 @@ layout(constant_id = 2) const bool HOLDER = false;
 layout(constant_id = 3) const bool DERIVATIVES = true;
 layout(constant_id = 4) const bool SOURCE_EXTENT = false;
 layout(constant_id = 5) const bool DIFFRACTION = false;
-// Tilted lenslets or a sensor off its nominal pose (optics.glsl, trace_as_built).
-layout(constant_id = 6) const bool AS_BUILT = false;
+// Tilted lenslets or a sensor off its nominal pose (optics.glsl,
+// trace_as_built): the kernels' as-built variants, compiled apart.
+const bool AS_BUILT = PRISM_AS_BUILT != 0;
 const uint PIXEL_FLOATS = DERIVATIVES ? 8u : 1u;
 
 layout(push_constant) uniform Push { TraceParams P; };
