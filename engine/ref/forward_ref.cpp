@@ -161,7 +161,9 @@ std::optional<std::pair<D, D>> propagate(const OpticalSystem& sys, size_t lens, 
   const int li = int(lens);
   const bool tilted = l.tilt_x_deg != 0 || l.tilt_y_deg != 0 || seeds(t, Param::lens_tilt_x, li) ||
                       seeds(t, Param::lens_tilt_y, li);
-  const Turn m = turn_of(seeded(l.tilt_x_deg, Param::lens_tilt_x, li, t), seeded(l.tilt_y_deg, Param::lens_tilt_y, li, t));
+  const Turn m = tilted ? turn_of(seeded(l.tilt_x_deg, Param::lens_tilt_x, li, t),
+                                  seeded(l.tilt_y_deg, Param::lens_tilt_y, li, t))
+                        : Turn{};
   const V3 c{g.cx, g.cy, D(0.0)};
   auto out = tilted ? through_lens(sys, g, c + m.undo(o - c), m.undo(dir), test_entrance)
                     : through_lens(sys, g, o, dir, test_entrance);
@@ -263,11 +265,17 @@ SampleHit trace_point(const OpticalSystem& sys, const TraceSettings& settings, c
   const int li = int(lens);
   Geometry g = geometry(sys, lens, t);
   const D z_ap = (sys.lens_model == LensModel::real && !sys.curved_toward_sensor) ? g.sag : D(0.0);
-  // The entrance disk turns with its lens (as built).
-  const Turn m = turn_of(seeded(sys.lenslets[lens].tilt_x_deg, Param::lens_tilt_x, li, t),
-                         seeded(sys.lenslets[lens].tilt_y_deg, Param::lens_tilt_y, li, t));
+  // The entrance disk turns with its lens (as built; the turn's trigonometry
+  // only where there is one or its derivative is asked for).
+  const auto& l = sys.lenslets[lens];
+  const bool tilted = l.tilt_x_deg != 0 || l.tilt_y_deg != 0 || seeds(t, Param::lens_tilt_x, li) ||
+                      seeds(t, Param::lens_tilt_y, li);
   const V3 c{g.cx, g.cy, D(0.0)};
-  const V3 p = c + m.apply(V3{D(g.radius * u.x), D(g.radius * u.y), z_ap});
+  const V3 on_disk{D(g.radius * u.x), D(g.radius * u.y), z_ap};
+  const Turn m = tilted ? turn_of(seeded(l.tilt_x_deg, Param::lens_tilt_x, li, t),
+                                  seeded(l.tilt_y_deg, Param::lens_tilt_y, li, t))
+                        : Turn{};
+  const V3 p = tilted ? c + m.apply(on_disk) : c + on_disk;
   const D wd = seeded(sys.working_distance_mm, Param::working_distance, li, t);
   V3 s{seeded(centre.x, Param::source_x, li, t), seeded(centre.y, Param::source_y, li, t),
        -(seeded(centre.z, Param::source_depth, li, t) + wd)};
@@ -290,7 +298,8 @@ SampleHit trace_point(const OpticalSystem& sys, const TraceSettings& settings, c
   // The flux through a disk turned away from z: the emitters' weight is per
   // area seen along z, the disk is seen along its normal.
   const V3 along = p - origin;
-  weight = weight * D(photons) * (dot(along, m.column(2)) / along.z);
+  weight = weight * D(photons);
+  if (tilted) weight = weight * (dot(along, m.column(2)) / along.z);
   SampleHit out;
   auto hit = propagate(sys, lens, origin, along, false, t);
   if (!hit) return out;
