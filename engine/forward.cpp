@@ -114,9 +114,7 @@ void check_batchable(const std::vector<OpticalSystem>& designs) {
       what = "the sensor";
     else if (a.lens_to_sensor_mm != b.lens_to_sensor_mm || a.working_distance_mm != b.working_distance_mm)
       what = "the lens-to-sensor or working distance";
-    else if (a.sensor_pose.offset_x_mm != b.sensor_pose.offset_x_mm ||
-             a.sensor_pose.offset_y_mm != b.sensor_pose.offset_y_mm ||
-             a.sensor_pose.tilt_x_deg != b.sensor_pose.tilt_x_deg || a.sensor_pose.tilt_y_deg != b.sensor_pose.tilt_y_deg)
+    else if (a.sensor_pose != b.sensor_pose)
       what = "the sensor's pose";
     else if (a.lens_model != b.lens_model)
       what = "the lens model";

@@ -48,6 +48,11 @@ AnalysisGrid AnalysisGrid::of(const OpticalSystem& sys, unsigned binning) {
 
 void validate(const OpticalSystem& sys) {
   auto fail = [](const std::string& field, const std::string& why) { throw std::invalid_argument(field + ": " + why); };
+  auto check_tilt = [&](const std::string& field, double tilt_deg) {
+    if (!(std::abs(tilt_deg) <= defaults::max_tilt_deg))
+      fail(field, "must be within +-" + std::to_string(int(defaults::max_tilt_deg)) + " degrees (an as-built tilt), got " +
+                      std::to_string(tilt_deg));
+  };
   if (sys.lenslets.empty()) fail("lenslets", "at least one lenslet is needed");
   if (!(sys.glass_index > 1.0)) fail("glass.index", "must be > 1");
   if (!(sys.edge_thickness_mm >= 0)) fail("glass.edge_thickness_mm", "must be >= 0");
@@ -62,10 +67,8 @@ void validate(const OpticalSystem& sys) {
     if (!(l.focal_mm > 0)) fail(at + ".focal_mm", "must be > 0");
     if (std::abs(l.x_mm) > 0.5 * sys.sensor_width_mm() || std::abs(l.y_mm) > 0.5 * sys.sensor_height_mm())
       fail(at, "centre (" + std::to_string(l.x_mm) + ", " + std::to_string(l.y_mm) + ") mm lies off the sensor");
-    for (auto [name, tilt] : {std::pair{".tilt_x_deg", l.tilt_x_deg}, std::pair{".tilt_y_deg", l.tilt_y_deg}})
-      if (!(std::abs(tilt) <= defaults::max_tilt_deg))
-        fail(at + name, "must be within +-" + std::to_string(int(defaults::max_tilt_deg)) +
-                            " degrees (an as-built tilt), got " + std::to_string(tilt));
+    check_tilt(at + ".tilt_x_deg", l.tilt_x_deg);
+    check_tilt(at + ".tilt_y_deg", l.tilt_y_deg);
     if (sys.lens_model == LensModel::real) {
       double r = sys.curvature_radius_mm(i);
       if (r < 0.5 * l.diameter_mm)
@@ -82,10 +85,8 @@ void validate(const OpticalSystem& sys) {
     }
   }
   const SensorPose& pose = sys.sensor_pose;
-  for (auto [name, tilt] : {std::pair{"sensor.tilt_x_deg", pose.tilt_x_deg}, std::pair{"sensor.tilt_y_deg", pose.tilt_y_deg}})
-    if (!(std::abs(tilt) <= defaults::max_tilt_deg))
-      fail(name, "must be within +-" + std::to_string(int(defaults::max_tilt_deg)) + " degrees (an as-built tilt), got " +
-                     std::to_string(tilt));
+  check_tilt("sensor.tilt_x_deg", pose.tilt_x_deg);
+  check_tilt("sensor.tilt_y_deg", pose.tilt_y_deg);
   if (!(std::abs(pose.offset_x_mm) <= 0.5 * sys.sensor_width_mm()))
     fail("sensor.offset_x_mm", "must be within half the sensor's width, got " + std::to_string(pose.offset_x_mm));
   if (!(std::abs(pose.offset_y_mm) <= 0.5 * sys.sensor_height_mm()))

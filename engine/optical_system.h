@@ -31,7 +31,8 @@ struct SensorPose {
   double offset_y_mm = 0;
   double tilt_x_deg = 0;
   double tilt_y_deg = 0;
-  bool nominal() const { return offset_x_mm == 0 && offset_y_mm == 0 && tilt_x_deg == 0 && tilt_y_deg == 0; }
+  bool operator==(const SensorPose&) const = default;
+  bool nominal() const { return *this == SensorPose{}; }
 };
 
 // Effects beyond the plain model. Each is off unless a scene names it, and an

@@ -149,26 +149,39 @@ std::optional<LensExit> through_lens(const OpticalSystem& sys, const Geometry& g
   return LensExit{exit_point, exit_dir};
 }
 
-// Propagate a world ray from `o` along `dir` through lenslet `lens` (traced in
-// its own frame, turned about its centre on the lens plane) to the sensor as
-// built (the plane through (offset, lens_to_sensor) turned by its tilt).
-// Returns the landing point in the sensor's own axes from its centre, or
-// nothing when stopped. For a nominal system: the plane z = lens_to_sensor.
-std::optional<std::pair<D, D>> propagate(const OpticalSystem& sys, size_t lens, V3 o, V3 dir, bool test_entrance,
-                                         const Tangents& t) {
-  const Geometry g = geometry(sys, lens, t);
+// A lenslet as one ray sees it: its geometry and, where it is tilted (or
+// its tilt's derivative is asked for), the turn about its centre c on the
+// lens plane; the turn's trigonometry only then.
+struct LensFrame {
+  Geometry g;
+  V3 c;
+  bool tilted = false;
+  Turn m{};
+};
+LensFrame lens_frame(const OpticalSystem& sys, size_t lens, const Tangents& t) {
   const auto& l = sys.lenslets[lens];
   const int li = int(lens);
-  const bool tilted = l.tilt_x_deg != 0 || l.tilt_y_deg != 0 || seeds(t, Param::lens_tilt_x, li) ||
-                      seeds(t, Param::lens_tilt_y, li);
-  const Turn m = tilted ? turn_of(seeded(l.tilt_x_deg, Param::lens_tilt_x, li, t),
-                                  seeded(l.tilt_y_deg, Param::lens_tilt_y, li, t))
-                        : Turn{};
-  const V3 c{g.cx, g.cy, D(0.0)};
-  auto out = tilted ? through_lens(sys, g, c + m.undo(o - c), m.undo(dir), test_entrance)
-                    : through_lens(sys, g, o, dir, test_entrance);
+  LensFrame f{geometry(sys, lens, t), {}, false, {}};
+  f.c = V3{f.g.cx, f.g.cy, D(0.0)};
+  f.tilted = l.tilt_x_deg != 0 || l.tilt_y_deg != 0 || seeds(t, Param::lens_tilt_x, li) || seeds(t, Param::lens_tilt_y, li);
+  if (f.tilted)
+    f.m = turn_of(seeded(l.tilt_x_deg, Param::lens_tilt_x, li, t), seeded(l.tilt_y_deg, Param::lens_tilt_y, li, t));
+  return f;
+}
+
+// Propagate a world ray from `o` along `dir` through lenslet `lens` (traced in
+// its own frame `f`) to the sensor as built (the plane through (offset,
+// lens_to_sensor) turned by its tilt). Returns the landing point in the
+// sensor's own axes from its centre, or nothing when stopped. For a nominal
+// system: the plane z = lens_to_sensor.
+std::optional<std::pair<D, D>> propagate(const OpticalSystem& sys, size_t lens, const LensFrame& f, V3 o, V3 dir,
+                                         bool test_entrance, const Tangents& t) {
+  const int li = int(lens);
+  const V3& c = f.c;
+  auto out = f.tilted ? through_lens(sys, f.g, c + f.m.undo(o - c), f.m.undo(dir), test_entrance)
+                      : through_lens(sys, f.g, o, dir, test_entrance);
   if (!out) return std::nullopt;
-  const V3 p = tilted ? c + m.apply(out->p - c) : out->p, d = tilted ? m.apply(out->d) : out->d;
+  const V3 p = f.tilted ? c + f.m.apply(out->p - c) : out->p, d = f.tilted ? f.m.apply(out->d) : out->d;
   const SensorPose& pose = sys.sensor_pose;
   const D L = seeded(sys.lens_to_sensor_mm, Param::lens_to_sensor, li, t);
   const bool moved = !pose.nominal() || seeds(t, Param::sensor_offset_x, li) || seeds(t, Param::sensor_offset_y, li) ||
@@ -263,19 +276,12 @@ glm::dvec3 source_offset(uint32_t lens, uint32_t sample, double sigma, uint32_t 
 SampleHit trace_point(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& centre, size_t lens,
                       glm::dvec2 u, double area_mm2, const Tangents& t) {
   const int li = int(lens);
-  Geometry g = geometry(sys, lens, t);
+  const LensFrame f = lens_frame(sys, lens, t);
+  const Geometry& g = f.g;
   const D z_ap = (sys.lens_model == LensModel::real && !sys.curved_toward_sensor) ? g.sag : D(0.0);
-  // The entrance disk turns with its lens (as built; the turn's trigonometry
-  // only where there is one or its derivative is asked for).
-  const auto& l = sys.lenslets[lens];
-  const bool tilted = l.tilt_x_deg != 0 || l.tilt_y_deg != 0 || seeds(t, Param::lens_tilt_x, li) ||
-                      seeds(t, Param::lens_tilt_y, li);
-  const V3 c{g.cx, g.cy, D(0.0)};
+  // The entrance disk turns with its lens (as built).
   const V3 on_disk{D(g.radius * u.x), D(g.radius * u.y), z_ap};
-  const Turn m = tilted ? turn_of(seeded(l.tilt_x_deg, Param::lens_tilt_x, li, t),
-                                  seeded(l.tilt_y_deg, Param::lens_tilt_y, li, t))
-                        : Turn{};
-  const V3 p = tilted ? c + m.apply(on_disk) : c + on_disk;
+  const V3 p = f.tilted ? f.c + f.m.apply(on_disk) : f.c + on_disk;
   const D wd = seeded(sys.working_distance_mm, Param::working_distance, li, t);
   V3 s{seeded(centre.x, Param::source_x, li, t), seeded(centre.y, Param::source_y, li, t),
        -(seeded(centre.z, Param::source_depth, li, t) + wd)};
@@ -299,9 +305,9 @@ SampleHit trace_point(const OpticalSystem& sys, const TraceSettings& settings, c
   // area seen along z, the disk is seen along its normal.
   const V3 along = p - origin;
   weight = weight * D(photons);
-  if (tilted) weight = weight * (dot(along, m.column(2)) / along.z);
+  if (f.tilted) weight = weight * (dot(along, f.m.column(2)) / along.z);
   SampleHit out;
-  auto hit = propagate(sys, lens, origin, along, false, t);
+  auto hit = propagate(sys, lens, f, origin, along, false, t);
   if (!hit) return out;
   out.ok = true;
   out.x_mm = hit->first.v;
@@ -405,7 +411,8 @@ std::optional<glm::dvec2> trace_ray(const OpticalSystem& sys, size_t lens_index,
                                     const glm::dvec3& direction) {
   OpticalSystem plain = sys;
   plain.effects.holder_vignetting = false;
-  auto hit = propagate(plain, lens_index, V3{D(origin.x), D(origin.y), D(origin.z)},
+  auto hit = propagate(plain, lens_index, lens_frame(plain, lens_index, source_tangents),
+                       V3{D(origin.x), D(origin.y), D(origin.z)},
                        V3{D(direction.x), D(direction.y), D(direction.z)}, true, source_tangents);
   if (!hit) return std::nullopt;
   return glm::dvec2(hit->first.v, hit->second.v);

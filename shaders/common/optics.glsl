@@ -429,15 +429,14 @@ PRISM_FN DVec3 dv_unturn(mat3 m, DVec3 v) {  // m^T v: m's inverse
 // lens plane. Points map local -> world as c + m (p - c).
 PRISM_FN vec3 lens_pivot(Lenslet lens) { return vec3(lens.center_mm.x, lens.center_mm.y, 0.0f); }
 
-// The world ray `ray` through a tilted lenslet (traced in its own frame) and
-// onto the sensor as built: the plane through (offset_x, offset_y,
-// lens_to_sensor) turned by the sensor's tilt, the landing point in the
-// sensor's own axes from its centre.
-PRISM_FN Hit trace_as_built(Ray ray, Lenslet lens, int lens_model, float holder_bore_mm, TraceParams P,
+// The world ray `ray` through a lenslet turned by m (tilt_matrix; traced in
+// its own frame) and onto the sensor as built: the plane through (offset_x,
+// offset_y, lens_to_sensor) turned by the sensor's tilt, the landing point in
+// the sensor's own axes from its centre.
+PRISM_FN Hit trace_as_built(Ray ray, Lenslet lens, mat3 m, int lens_model, float holder_bore_mm, TraceParams P,
                             bool test_entrance) {
   Hit hit = Hit(d_const(0.0f), d_const(0.0f), ray.weight, false);
   vec3 c = lens_pivot(lens);
-  mat3 m = tilt_matrix(lens.tilt_x_rad, lens.tilt_y_rad);
   Ray local = Ray(dv_add(dv_const(c), dv_unturn(m, dv_sub(ray.origin, dv_const(c)))), dv_unturn(m, ray.dir),
                   ray.weight);
   Exit e;
@@ -492,7 +491,7 @@ PRISM_FN Hit trace_aperture_point(vec3 theta, Lenslet lens, vec2 unit, float are
     // The emitters weigh the ray by the disk's area seen along z; a turned
     // disk is seen along its own normal: times (d . normal) / d.z.
     ray.weight = d_mul(ray.weight, d_div(dv_dot(ray.dir, dv_const(m[2])), ray.dir.z));
-    return trace_as_built(ray, lens, lens_model, bore, P, false);
+    return trace_as_built(ray, lens, m, lens_model, bore, P, false);
   }
 #endif
   return (lens_model == LENS_REAL) ? trace_real(ray, lens, bore, P.lens_to_sensor_mm, false)
