@@ -174,4 +174,37 @@ inline constexpr double fit_pvalue_flag = 0.01;    // below it a vertex is flagg
 // counted as a rate and left out of the per-axis RMSE.
 inline constexpr double catastrophic_error_mm = 3.0;
 
+// Calibration (prism calibrate, host/calibrate/calibrate.h): a measured PSF's
+// pixel has the variance of an HDR merge, which grows with its signal (shot
+// noise) above a floor (read noise, the merge's rejected faint pixels). The
+// fit weighs pixel i of a PSF by 1 / (p_i + floor), the floor this fraction
+// of the PSF's brightest pixel: the faintest pixels a 12-bit merge keeps
+// over the paper's 7 exposures lie about 1e-4 below the peak.
+inline constexpr double calibration_weight_floor = 1e-4;
+// A measured PSF's pixels fainter than this times the faintest value its HDR
+// merge kept are left out of the fit: near the merge's threshold a pixel is
+// kept only when noise pushed it up, and rejected ones read 0
+// (host/calibrate/calibrate.cpp, Noise). Ten times the threshold is where a
+// 12-bit merge's relative noise falls to a few per cent.
+inline constexpr double calibration_reliable_over_faintest = 10.0;
+// The model's pixels: the finest level of the dictionary at least this
+// coarse (the design studies' 110 um; calibrate --level chooses another).
+inline constexpr double calibration_pixel_um = 110.0;
+// The model's footprint cells per lenslet: the refinement's. On the
+// synthetic as-built test (truth at 4096 cells) 1024 find every lenslet of
+// f >= 4.5 mm within 3 sigma; the f = 3 mm near hemisphere needs more.
+inline constexpr unsigned calibration_rays_per_lenslet = 1024;
+inline constexpr int calibration_max_steps = 40;  // Levenberg-Marquardt steps accepted at most, per level
+// The fit runs first on pixels 2^k times larger, k from this down to 1, then
+// on the model's: the disc edges make chi2 a staircase at the pixel scale,
+// and a start whose images are more than a pixel off lies outside the basin.
+inline constexpr int calibration_coarse_levels = 2;
+// How far a parameter may move from the nominal scene: mounting and
+// manufacturing tolerances are tens of um, a few % of focal length and a
+// few tenths of a mm of spacing; these bounds are 10x wider, and keep every
+// trial scene one the model can trace.
+inline constexpr double calibration_max_shift_mm = 0.5;     // lens and sensor positions
+inline constexpr double calibration_max_focal_change = 0.2; // relative
+inline constexpr double calibration_max_distance_mm = 2.0;  // lens-to-sensor and working distance
+
 }  // namespace prism::defaults

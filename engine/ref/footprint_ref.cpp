@@ -315,7 +315,7 @@ double cross2(glm::dvec2 a, glm::dvec2 b, glm::dvec2 c) {
 }  // namespace
 
 SparseImage psf_footprint(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta,
-                          const Tangents& tangents) {
+                          const Tangents& tangents, int only_lens) {
   validate(sys);
   const AnalysisGrid grid = AnalysisGrid::of(sys, settings.binning);
   SparseImage img{grid.width, grid.height, {}};
@@ -323,6 +323,7 @@ SparseImage psf_footprint(const OpticalSystem& sys, const TraceSettings& setting
   FootprintTarget target{img, 2 * half_w / px, 2 * half_h / px};
   constexpr int kCutSteps = 8;  // as the kernel (psf_footprint_cuts.comp)
   for (size_t l = 0; l < sys.lenslets.size(); ++l) {
+    if (only_lens >= 0 && size_t(only_lens) != l) continue;
     const uint32_t n = settings.strata_for(sys.lenslets[l].diameter_mm);
     const float turn = shared::strata_turn(uint32_t(l), settings.stratification);
     const double r = 0.5 * sys.lenslets[l].diameter_mm;

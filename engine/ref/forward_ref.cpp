@@ -338,13 +338,15 @@ SampleHit trace_sample(const OpticalSystem& sys, const TraceSettings& settings, 
   return trace_sample_impl(sys, settings, theta, lens, sample, source_tangents);
 }
 
-SparseImage psf(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta, const Tangents& t) {
-  if (settings.splat == Splat::footprint) return psf_footprint(sys, settings, theta, t);
+SparseImage psf(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta, const Tangents& t,
+                int only_lens) {
+  if (settings.splat == Splat::footprint) return psf_footprint(sys, settings, theta, t, only_lens);
   validate(sys);
   AnalysisGrid grid = AnalysisGrid::of(sys, settings.binning);
   SparseImage img{grid.width, grid.height, {}};
   double half_w = 0.5 * sys.sensor_width_mm(), half_h = 0.5 * sys.sensor_height_mm();
   for (size_t l = 0; l < sys.lenslets.size(); ++l) {
+    if (only_lens >= 0 && size_t(only_lens) != l) continue;
     const uint32_t strata = settings.strata_for(sys.lenslets[l].diameter_mm);
     for (uint32_t k = 0; k < strata * strata; ++k) {
       SampleHit h = trace_sample_impl(sys, settings, theta, l, k, t);

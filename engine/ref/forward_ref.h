@@ -51,12 +51,14 @@ struct SparseImage {
 };
 
 // The image by settings.splat: point rays splatted bilinearly, or footprints;
-// its derivatives with respect to `tangents`.
+// its derivatives with respect to `tangents`. With `only_lens` >= 0, the
+// image of that lenslet alone, its very rays (the images of every lenslet
+// alone sum to the whole; calibration's per-lenslet derivative images).
 SparseImage psf(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta,
-                const Tangents& tangents = source_tangents);
+                const Tangents& tangents = source_tangents, int only_lens = -1);
 // The footprint splat's image (psf() with Splat::footprint).
 SparseImage psf_footprint(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta,
-                          const Tangents& tangents = source_tangents);
+                          const Tangents& tangents = source_tangents, int only_lens = -1);
 FisherResult fisher(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta);
 FisherResult fisher_of(const SparseImage& image, double dark_counts_per_pixel, FisherEstimator estimator);
 

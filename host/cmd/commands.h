@@ -25,4 +25,5 @@ void add_dictionary_info(CLI::App& dictionary);
 void add_simulate(CLI::App& app);
 void add_reconstruct(CLI::App& app);
 void add_evaluate(CLI::App& app);
+void add_calibrate(CLI::App& app);
 }  // namespace prism::cmd

@@ -18,6 +18,7 @@ int main(int argc, char** argv) {
   prism::cmd::add_simulate(app);
   prism::cmd::add_reconstruct(app);
   prism::cmd::add_evaluate(app);
+  prism::cmd::add_calibrate(app);
 #ifdef PRISM_WITH_CAMERA
   prism::cmd::add_camera(app);
 #endif
@@ -48,7 +49,7 @@ int main(int argc, char** argv) {
       "Under an MPI launcher (mpirun -n N prism sweep ...) every rank runs the same search from the seed and scores "
       "the candidates i with i mod N = r of each batch, on its own device; the scores are shared after each batch and "
       "rank 0 writes the state and every output, as one process would (README \"MPI\"). Use a --batch of N or more.");
-  for (const char* name : {"crlb", "psf", "devices"})
+  for (const char* name : {"crlb", "psf", "calibrate", "devices"})
     prism::cmd::ranks::single_process_only(*app.get_subcommand(name));
   for (const char* name : {"merge-hdr", "info"})
     prism::cmd::ranks::single_process_only(*app.get_subcommand("dictionary")->get_subcommand(name));

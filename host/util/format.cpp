@@ -5,11 +5,11 @@
 
 namespace prism {
 
-std::string format_number(double v) {
+std::string format_number(double v, int digits) {
   if (std::isnan(v)) return "nan";
   if (std::isinf(v)) return v > 0 ? "inf" : "-inf";
-  char b[32];
-  std::snprintf(b, sizeof b, "%.6g", v);
+  char b[40];
+  std::snprintf(b, sizeof b, "%.*g", digits, v);
   return b;
 }
 

@@ -55,12 +55,42 @@ std::vector<float> read_exr_channel(const std::string& path, const std::string& 
   }
 }
 
-void write_png_preview(const std::string& path, int width, int height, const float* data, int stride, int max_side) {
+namespace {
+// 8-bit rows, `channels` bytes a pixel (1: gray, 3: RGB), written whole.
+void write_png(const std::string& path, int w, int h, int channels, const std::vector<png_byte>& pixels) {
+  write_atomically(path, [&](const std::string& tmp) {
+    std::unique_ptr<FILE, int (*)(FILE*)> f(std::fopen(tmp.c_str(), "wb"), &std::fclose);
+    if (!f) throw std::runtime_error("cannot write " + path);
+    png_structp png = png_create_write_struct(PNG_LIBPNG_VER_STRING, nullptr, nullptr, nullptr);
+    png_infop info = png_create_info_struct(png);
+    if (setjmp(png_jmpbuf(png))) {
+      png_destroy_write_struct(&png, &info);
+      throw std::runtime_error("cannot encode PNG " + path);
+    }
+    png_init_io(png, f.get());
+    png_set_IHDR(png, info, w, h, 8, channels == 3 ? PNG_COLOR_TYPE_RGB : PNG_COLOR_TYPE_GRAY, PNG_INTERLACE_NONE,
+                 PNG_COMPRESSION_TYPE_DEFAULT, PNG_FILTER_TYPE_DEFAULT);
+    png_write_info(png, info);
+    for (int r = 0; r < h; ++r) png_write_row(png, const_cast<png_byte*>(&pixels[size_t(r) * w * channels]));
+    png_write_end(png, nullptr);
+    png_destroy_write_struct(&png, &info);
+  });
+}
+
+// Box-downsampled sums so that the longer side is at most max_side pixels.
+std::vector<double> box_down(int width, int height, const float* data, int stride, int max_side, int& w, int& h) {
   int factor = std::max(1, (std::max(width, height) + max_side - 1) / max_side);
-  int w = (width + factor - 1) / factor, h = (height + factor - 1) / factor;
+  w = (width + factor - 1) / factor, h = (height + factor - 1) / factor;
   std::vector<double> box(size_t(w) * h, 0.0);
   for (int r = 0; r < height; ++r)
     for (int c = 0; c < width; ++c) box[size_t(r / factor) * w + c / factor] += data[(size_t(r) * width + c) * stride];
+  return box;
+}
+}  // namespace
+
+void write_png_preview(const std::string& path, int width, int height, const float* data, int stride, int max_side) {
+  int w, h;
+  const std::vector<double> box = box_down(width, height, data, stride, max_side, w, h);
   // Scale to the 99.5th percentile of lit pixels: a few focused spots would
   // otherwise leave every defocused disc black.
   std::vector<double> lit;
@@ -75,23 +105,22 @@ void write_png_preview(const std::string& path, int width, int height, const flo
   std::vector<png_byte> pixels(box.size());
   for (size_t i = 0; i < box.size(); ++i)
     pixels[i] = png_byte(peak > 0 ? std::lround(255.0 * std::min(1.0, std::sqrt(std::max(0.0, box[i]) / peak))) : 0);
-  write_atomically(path, [&](const std::string& tmp) {
-    std::unique_ptr<FILE, int (*)(FILE*)> f(std::fopen(tmp.c_str(), "wb"), &std::fclose);
-    if (!f) throw std::runtime_error("cannot write " + path);
-    png_structp png = png_create_write_struct(PNG_LIBPNG_VER_STRING, nullptr, nullptr, nullptr);
-    png_infop info = png_create_info_struct(png);
-    if (setjmp(png_jmpbuf(png))) {
-      png_destroy_write_struct(&png, &info);
-      throw std::runtime_error("cannot encode PNG " + path);
-    }
-    png_init_io(png, f.get());
-    png_set_IHDR(png, info, w, h, 8, PNG_COLOR_TYPE_GRAY, PNG_INTERLACE_NONE, PNG_COMPRESSION_TYPE_DEFAULT,
-                 PNG_FILTER_TYPE_DEFAULT);
-    png_write_info(png, info);
-    for (int r = 0; r < h; ++r) png_write_row(png, &pixels[size_t(r) * w]);
-    png_write_end(png, nullptr);
-    png_destroy_write_struct(&png, &info);
-  });
+  write_png(path, w, h, 1, pixels);
+}
+
+void write_png_signed(const std::string& path, int width, int height, const float* data, double limit, int max_side) {
+  int w, h;
+  const std::vector<double> box = box_down(width, height, data, 1, max_side, w, h);
+  std::vector<png_byte> pixels(3 * box.size());
+  for (size_t i = 0; i < box.size(); ++i) {
+    // White at 0, toward red for positive and blue for negative values.
+    const double t = limit > 0 ? std::clamp(box[i] / limit, -1.0, 1.0) : 0.0;
+    const png_byte fade = png_byte(std::lround(255.0 * (1.0 - std::abs(t))));
+    pixels[3 * i + 0] = t < 0 ? fade : 255;
+    pixels[3 * i + 1] = fade;
+    pixels[3 * i + 2] = t > 0 ? fade : 255;
+  }
+  write_png(path, w, h, 3, pixels);
 }
 
 }  // namespace prism

@@ -1,0 +1,575 @@
+#include "host/calibrate/calibrate.h"
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <exception>
+#include <limits>
+#include <mutex>
+#include <stdexcept>
+#include <thread>
+#include <unordered_map>
+
+#include "host/dictionary/store.h"                  // bin_level
+#include "host/reconstruct/levenberg_marquardt.h"  // solve_spd
+
+namespace prism {
+
+using ref::Param;
+
+bool CalibrationParameter::per_lens() const { return param >= Param::lens_x && param <= Param::lens_tilt_y; }
+
+std::string CalibrationParameter::name() const {
+  const std::string at = "lenslets[" + std::to_string(lens) + "].";
+  switch (param) {
+    case Param::lens_x: return at + "x_mm";
+    case Param::lens_y: return at + "y_mm";
+    case Param::lens_focal: return at + "focal_mm";
+    case Param::lens_tilt_x: return at + "tilt_x_deg";
+    case Param::lens_tilt_y: return at + "tilt_y_deg";
+    case Param::lens_to_sensor: return "lens_to_sensor_mm";
+    case Param::working_distance: return "working_distance_mm";
+    case Param::sensor_offset_x: return "sensor.offset_x_mm";
+    case Param::sensor_offset_y: return "sensor.offset_y_mm";
+    case Param::sensor_tilt_x: return "sensor.tilt_x_deg";
+    case Param::sensor_tilt_y: return "sensor.tilt_y_deg";
+    default: return "source";  // the source's position is never a calibration parameter
+  }
+}
+
+namespace {
+// The one home of which field a parameter is.
+template <class System> auto& field(System& s, const CalibrationParameter& p) {
+  switch (p.param) {
+    case Param::lens_x: return s.lenslets[size_t(p.lens)].x_mm;
+    case Param::lens_y: return s.lenslets[size_t(p.lens)].y_mm;
+    case Param::lens_focal: return s.lenslets[size_t(p.lens)].focal_mm;
+    case Param::lens_tilt_x: return s.lenslets[size_t(p.lens)].tilt_x_deg;
+    case Param::lens_tilt_y: return s.lenslets[size_t(p.lens)].tilt_y_deg;
+    case Param::lens_to_sensor: return s.lens_to_sensor_mm;
+    case Param::working_distance: return s.working_distance_mm;
+    case Param::sensor_offset_x: return s.sensor_pose.offset_x_mm;
+    case Param::sensor_offset_y: return s.sensor_pose.offset_y_mm;
+    case Param::sensor_tilt_x: return s.sensor_pose.tilt_x_deg;
+    case Param::sensor_tilt_y: return s.sensor_pose.tilt_y_deg;
+    default: throw std::logic_error("calibration: the source's position is not a scene parameter");
+  }
+}
+}  // namespace
+
+double CalibrationParameter::get(const OpticalSystem& s) const { return field(s, *this); }
+void CalibrationParameter::set(OpticalSystem& s, double value) const { field(s, *this) = value; }
+
+std::pair<double, double> CalibrationParameter::bounds(const OpticalSystem& nominal) const {
+  const double v = get(nominal);
+  switch (param) {
+    case Param::lens_x:
+    case Param::lens_y:
+    case Param::sensor_offset_x:
+    case Param::sensor_offset_y: return {v - defaults::calibration_max_shift_mm, v + defaults::calibration_max_shift_mm};
+    case Param::lens_focal:
+      return {v * (1 - defaults::calibration_max_focal_change), v * (1 + defaults::calibration_max_focal_change)};
+    case Param::lens_tilt_x:
+    case Param::lens_tilt_y:
+    case Param::sensor_tilt_x:
+    case Param::sensor_tilt_y: return {-defaults::max_tilt_deg, defaults::max_tilt_deg};
+    default: return {v - defaults::calibration_max_distance_mm, v + defaults::calibration_max_distance_mm};
+  }
+}
+
+namespace {
+struct Group {
+  const char* name;
+  std::vector<Param> params;
+};
+const std::vector<Group>& groups() {
+  static const std::vector<Group> g{
+      {"lens_xy", {Param::lens_x, Param::lens_y}},
+      {"lens_focal", {Param::lens_focal}},
+      {"lens_tilt", {Param::lens_tilt_x, Param::lens_tilt_y}},
+      {"lens_to_sensor", {Param::lens_to_sensor}},
+      {"working_distance", {Param::working_distance}},
+      {"sensor_offset", {Param::sensor_offset_x, Param::sensor_offset_y}},
+      {"sensor_tilt", {Param::sensor_tilt_x, Param::sensor_tilt_y}},
+  };
+  return g;
+}
+}  // namespace
+
+std::vector<std::string> calibration_groups() {
+  std::vector<std::string> out;
+  for (const auto& g : groups()) out.push_back(g.name);
+  return out;
+}
+
+std::vector<CalibrationParameter> calibration_parameters(const OpticalSystem& s, const std::vector<std::string>& names) {
+  std::vector<Param> chosen;
+  for (const auto& name : names) {
+    auto it = std::find_if(groups().begin(), groups().end(), [&](const Group& g) { return name == g.name; });
+    if (it == groups().end()) {
+      std::string all;
+      for (const auto& g : groups()) all += (all.empty() ? "" : ", ") + std::string(g.name);
+      throw std::invalid_argument("calibration: no parameter group '" + name + "'; the groups are " + all);
+    }
+    for (Param p : it->params)
+      if (std::find(chosen.begin(), chosen.end(), p) == chosen.end()) chosen.push_back(p);
+  }
+  std::sort(chosen.begin(), chosen.end());
+  std::vector<CalibrationParameter> out;
+  for (size_t l = 0; l < s.lenslets.size(); ++l)
+    for (Param p : chosen)
+      if (CalibrationParameter{p}.per_lens()) out.push_back({p, int(l)});
+  for (Param p : chosen)
+    if (!CalibrationParameter{p}.per_lens()) out.push_back({p, -1});
+  return out;
+}
+
+namespace {
+
+// A model pixel: b, the lenslet whose light there is the most, and db/dparam
+// for the free parameters that move it (sparse: a lenslet's own parameters
+// touch only its own pixels).
+struct Derivative {
+  uint32_t param;
+  double d;
+};
+struct ModelPixel {
+  double b = 0;
+  int lens = -1;
+  double lens_b = 0;
+  std::vector<Derivative> d;
+  void add(uint32_t param, double value) {
+    for (auto& e : d)
+      if (e.param == param) {
+        e.d += value;
+        return;
+      }
+    d.push_back({param, value});
+  }
+};
+using Model = std::unordered_map<int64_t, ModelPixel>;
+
+// PSF theta's model under `sys`: the whole image at once when no derivative
+// is wanted, else lenslet by lenslet with each one's own parameters and the
+// global ones as tangents, three a pass.
+Model render(const OpticalSystem& sys, const TraceSettings& t, const glm::dvec3& theta,
+             const std::vector<CalibrationParameter>& free, bool derivatives) {
+  Model model;
+  if (!derivatives) {
+    const ref::SparseImage img = ref::psf(sys, t, theta);
+    model.reserve(img.pixels.size());
+    for (const auto& [key, px] : img.pixels) model[key].b = px[0];
+    return model;
+  }
+  for (size_t l = 0; l < sys.lenslets.size(); ++l) {
+    std::vector<uint32_t> slots;
+    for (uint32_t j = 0; j < free.size(); ++j)
+      if (!free[j].per_lens() || size_t(free[j].lens) == l) slots.push_back(j);
+    const size_t passes = std::max<size_t>(1, (slots.size() + 2) / 3);
+    for (size_t pass = 0; pass < passes; ++pass) {
+      ref::Tangents tangents = ref::source_tangents;  // slots left over: ignored
+      const size_t first = 3 * pass, n = std::min<size_t>(3, slots.size() - std::min(slots.size(), first));
+      for (size_t k = 0; k < n; ++k) tangents[k] = {free[slots[first + k]].param, free[slots[first + k]].lens};
+      const ref::SparseImage img = ref::psf(sys, t, theta, tangents, int(l));
+      for (const auto& [key, px] : img.pixels) {
+        ModelPixel& m = model[key];
+        const auto v = img.value(key);  // b and the mean of the two halves' gradients
+        if (pass == 0) {
+          m.b += v[0];
+          if (v[0] > m.lens_b) m.lens_b = v[0], m.lens = int(l);
+        }
+        for (size_t k = 0; k < n; ++k)
+          if (v[1 + k] != 0) m.add(slots[first + k], v[1 + k]);
+      }
+    }
+  }
+  return model;
+}
+
+// What one PSF adds to the fit at the rendered parameters.
+struct PsfTerms {
+  PsfFit fit;
+  std::vector<double> lens_chi2;
+  std::vector<size_t> lens_pixels;
+};
+
+// The sums of all PSFs: chi2 and, with derivatives, the profiled gradient of
+// chi2 / 2 and its Gauss-Newton matrix (P x P, row-major).
+struct Evaluation {
+  bool ok = false;  // false when the parameters make a system the model cannot trace
+  double chi2 = std::numeric_limits<double>::infinity();
+  size_t pixels = 0;
+  std::vector<double> grad, gn, meat;
+  std::vector<PsfFit> psfs;
+  std::vector<LensFit> lenses;
+};
+
+// What the fit knows of a measured PSF's noise: its weight floor, and the
+// value below which its pixels are left out (unknown). The HDR merge stores 0
+// for a pixel too faint to measure, and near its threshold it keeps a pixel
+// only when noise pushed it up: fitted as they are, the faint pixels biased
+// the images' faint edges (an f = 4.5 mm lenslet, its big near-face disc
+// mostly below the threshold, fitted 2 degrees tilted against a true -0.3,
+// both when the rejected pixels counted as 0 and as at most the faintest
+// kept value). Pixels fainter than defaults::calibration_reliable_over_faintest
+// times the faintest value kept are left out.
+struct Noise {
+  double floor = 0;     // weight floor (calibrate.h)
+  double reliable = 0;  // the faintest value fitted
+};
+Noise noise_of(const MeasuredPsf& psf, double weight_floor) {
+  float peak = 0, faintest = std::numeric_limits<float>::infinity();
+  for (float v : psf.p)
+    if (v > 0) peak = std::max(peak, v), faintest = std::min(faintest, v);
+  if (!(peak > 0)) throw std::invalid_argument("calibration: PSF " + psf.name + " has no light");
+  return {weight_floor * double(peak), defaults::calibration_reliable_over_faintest * double(faintest)};
+}
+
+// A pixel's weight: the inverse of its variance's shape (calibrate.h).
+double weight(double p, const Noise& n) { return 1.0 / (std::max(p, 0.0) + n.floor); }
+
+// Whether pixel i is fitted: measured above the reliable value (at a coarse
+// level: every sub-pixel was, MeasuredPsf::unknown).
+bool known(const MeasuredPsf& psf, size_t i, const Noise& n) {
+  return psf.unknown.empty() ? psf.p[i] >= n.reliable : psf.unknown[i] == 0;
+}
+
+// The PSF's photon scale that minimises chi2 over its measured pixels under
+// `model`: s = sum w p b / sum w b^2; also returns sum w b^2 (the scale's
+// information).
+std::pair<double, double> best_scale(const MeasuredPsf& psf, const Model& model, const Noise& n) {
+  double wpb = 0, wbb = 0;
+  for (const auto& [key, m] : model) {
+    const double p = psf.p[size_t(key)], w = weight(p, n);
+    if (!known(psf, size_t(key), n)) continue;
+    wpb += w * p * m.b;
+    wbb += w * m.b * m.b;
+  }
+  return {wbb > 0 ? wpb / wbb : 0.0, wbb};
+}
+
+// The sums over pixels that derivatives give: the gradient of chi2 / 2, its
+// Gauss-Newton matrix, and the sandwich's middle, sum (w r)^2 J J^T, each
+// with the scales profiled out (P and P x P, row-major).
+struct Sums {
+  std::vector<double> grad, gn, meat;
+  explicit Sums(size_t P) : grad(P, 0.0), gn(P * P, 0.0), meat(P * P, 0.0) {}
+  void add(const Sums& o) {
+    for (size_t i = 0; i < grad.size(); ++i) grad[i] += o.grad[i];
+    for (size_t i = 0; i < gn.size(); ++i) gn[i] += o.gn[i], meat[i] += o.meat[i];
+  }
+};
+
+// Adds PSF `psf`'s terms under `model` to `sums` (when non-null).
+PsfTerms psf_terms(const MeasuredPsf& psf, const Model& model, double weight_floor, size_t lenses, size_t P,
+                   Sums* sums) {
+  const Noise noise = noise_of(psf, weight_floor);
+  const auto [s, wbb] = best_scale(psf, model, noise);
+  PsfTerms out;
+  out.lens_chi2.assign(lenses, 0.0);
+  out.lens_pixels.assign(lenses, 0);
+  out.fit.scale = s;
+  // With J = s db: u = sum w J b (the scale's coupling to the parameters),
+  // v = sum (w r)^2 J b and q = sum (w r)^2 b^2 (the same in the sandwich).
+  std::vector<double> u(sums ? P : 0, 0.0), v(sums ? P : 0, 0.0);
+  double q = 0;
+  for (const auto& [key, m] : model) {
+    if (!known(psf, size_t(key), noise)) continue;
+    const double p = psf.p[size_t(key)], w = weight(p, noise), r = p - s * m.b;
+    out.fit.chi2 += w * r * r;
+    ++out.fit.pixels;
+    if (m.lens >= 0) out.lens_chi2[size_t(m.lens)] += w * r * r, ++out.lens_pixels[size_t(m.lens)];
+    if (!sums) continue;
+    const double wr2 = (w * r) * (w * r);
+    q += wr2 * m.b * m.b;
+    for (const auto& a : m.d) {
+      sums->grad[a.param] -= w * r * s * a.d;
+      u[a.param] += w * s * a.d * m.b;
+      v[a.param] += wr2 * s * a.d * m.b;
+      for (const auto& c : m.d) {
+        sums->gn[size_t(a.param) * P + c.param] += w * s * s * a.d * c.d;
+        sums->meat[size_t(a.param) * P + c.param] += wr2 * s * s * a.d * c.d;
+      }
+    }
+  }
+  // Lit pixels the model leaves dark: the whole value is residual.
+  for (size_t i = 0; i < psf.p.size(); ++i) {
+    const double p = psf.p[i];
+    if (!(p > 0) || !known(psf, i, noise) || model.count(int64_t(i))) continue;
+    out.fit.chi2 += weight(p, noise) * p * p;
+    ++out.fit.pixels;
+  }
+  // The scale profiled out: J becomes J - b u / wbb (its part along the
+  // scale's direction removed).
+  if (sums && wbb > 0)
+    for (size_t a = 0; a < P; ++a)
+      for (size_t c = 0; c < P; ++c) {
+        const double ca = u[a] / wbb, cc = u[c] / wbb;
+        sums->gn[a * P + c] -= u[a] * cc;
+        sums->meat[a * P + c] += -ca * v[c] - v[a] * cc + q * ca * cc;
+      }
+  return out;
+}
+
+class Fitter {
+ public:
+  Fitter(const OpticalSystem& start, const std::vector<MeasuredPsf>& psfs, const std::vector<CalibrationParameter>& free,
+         const CalibrationOptions& o)
+      : start_(start), psfs_(psfs), free_(free), o_(o) {}
+
+  OpticalSystem system(const std::vector<double>& x) const {
+    OpticalSystem s = start_;
+    for (size_t j = 0; j < free_.size(); ++j) free_[j].set(s, x[j]);
+    return s;
+  }
+
+  Evaluation evaluate(const std::vector<double>& x, bool derivatives) const {
+    Evaluation e;
+    const OpticalSystem sys = system(x);
+    try {
+      validate(sys);
+    } catch (const std::invalid_argument&) {
+      return e;  // a trial beyond what the model can trace: rejected
+    }
+    const size_t P = free_.size(), L = sys.lenslets.size();
+    e.psfs.resize(psfs_.size());
+    std::vector<PsfTerms> terms(psfs_.size());
+    std::atomic<size_t> next{0};
+    std::mutex sum;
+    std::exception_ptr failure;
+    Sums total(derivatives ? P : 0);
+    auto work = [&] {
+      Sums mine(derivatives ? P : 0);
+      try {
+        for (size_t k; (k = next++) < psfs_.size();) {
+          const Model model = render(sys, o_.settings, psfs_[k].theta_mm, free_, derivatives);
+          terms[k] = psf_terms(psfs_[k], model, o_.weight_floor, L, P, derivatives ? &mine : nullptr);
+        }
+      } catch (...) {
+        std::lock_guard lock(sum);
+        failure = std::current_exception();
+        next = psfs_.size();
+        return;
+      }
+      std::lock_guard lock(sum);
+      total.add(mine);
+    };
+    std::vector<std::thread> threads;
+    for (unsigned i = 1; i < std::max(1u, o_.threads); ++i) threads.emplace_back(work);
+    work();
+    for (auto& t : threads) t.join();
+    if (failure) std::rethrow_exception(failure);
+    e.grad = std::move(total.grad), e.gn = std::move(total.gn), e.meat = std::move(total.meat);
+    e.ok = true;
+    e.chi2 = 0;
+    e.lenses.resize(L);
+    for (size_t k = 0; k < psfs_.size(); ++k) {
+      e.psfs[k] = terms[k].fit;
+      e.chi2 += terms[k].fit.chi2;
+      e.pixels += terms[k].fit.pixels;
+      for (size_t l = 0; l < L; ++l)
+        e.lenses[l].chi2 += terms[k].lens_chi2[l], e.lenses[l].pixels += terms[k].lens_pixels[l];
+    }
+    return e;
+  }
+
+ private:
+  const OpticalSystem& start_;
+  const std::vector<MeasuredPsf>& psfs_;
+  const std::vector<CalibrationParameter>& free_;
+  const CalibrationOptions& o_;
+};
+
+void check_inputs(const OpticalSystem& start, const std::vector<MeasuredPsf>& psfs,
+                  const std::vector<CalibrationParameter>& free, const CalibrationOptions& o) {
+  if (psfs.empty()) throw std::invalid_argument("calibration: no PSF to fit");
+  if (free.empty()) throw std::invalid_argument("calibration: no parameter to fit (--fit names none)");
+  if (!(o.weight_floor > 0)) throw std::invalid_argument("calibration: the weight floor must be > 0");
+  const AnalysisGrid grid = AnalysisGrid::of(start, o.settings.binning);
+  for (const auto& p : psfs)
+    if (p.p.size() != size_t(grid.width) * size_t(grid.height))
+      throw std::invalid_argument("calibration: PSF " + p.name + " has " + std::to_string(p.p.size()) +
+                                  " pixels; the model's grid at binning " + std::to_string(o.settings.binning) +
+                                  " has " + std::to_string(grid.width) + " x " + std::to_string(grid.height));
+  for (const auto& f : free)
+    if (f.per_lens() && (f.lens < 0 || size_t(f.lens) >= start.lenslets.size()))
+      throw std::invalid_argument("calibration: " + f.name() + ": the scene has " +
+                                  std::to_string(start.lenslets.size()) + " lenslets");
+}
+
+}  // namespace
+
+namespace {
+
+// Levenberg-Marquardt on the profiled chi2 / 2 from x, the damping on the
+// diagonal (scale-free across mm and degrees); parameters on a bound that the
+// gradient pushes outward are held. `cur` enters and leaves evaluated with
+// derivatives at x. Returns the steps accepted; `converged` when the last
+// step gained less than 1e-3 of chi2 / dof (nothing next to the noise: an
+// uncertainty is where chi2 rises by chi2 / dof), or no step could gain.
+int levenberg_marquardt(const Fitter& fitter, std::vector<double>& x, const std::vector<double>& lo,
+                        const std::vector<double>& hi, const std::vector<bool>& hold, size_t scales,
+                        const CalibrationOptions& o, int first_step, double t0, Evaluation& cur, bool& converged) {
+  const size_t P = x.size();
+  auto dof_of = [&](const Evaluation& e) { return e.pixels > P + scales ? e.pixels - P - scales : size_t(1); };
+  double mu = 1e-3;
+  constexpr double kRejectedMu = 0.1, kMaxMu = 1e6;
+  int steps = 0;
+  converged = false;
+  while (steps < o.max_steps && !converged) {
+    std::vector<size_t> act;
+    for (size_t j = 0; j < P; ++j) {
+      const bool held = hold[j] || (x[j] <= lo[j] && cur.grad[j] > 0) || (x[j] >= hi[j] && cur.grad[j] < 0);
+      if (!held && cur.gn[j * P + j] > 0) act.push_back(j);
+    }
+    const size_t m = act.size();
+    bool accepted = false;
+    while (m && !accepted && mu <= kMaxMu) {
+      std::vector<double> A(m * m), step(m);
+      for (size_t a = 0; a < m; ++a) {
+        for (size_t b = 0; b < m; ++b) A[a * m + b] = cur.gn[act[a] * P + act[b]];
+        A[a * m + a] *= 1.0 + mu;
+        step[a] = -cur.grad[act[a]];
+      }
+      if (!solve_spd(A, step, m)) {
+        mu = std::max(mu * 4, kRejectedMu);
+        continue;
+      }
+      std::vector<double> xt = x;
+      bool moved = false;
+      for (size_t a = 0; a < m; ++a) {
+        const size_t j = act[a];
+        xt[j] = std::clamp(x[j] + step[a], lo[j], hi[j]);
+        moved = moved || xt[j] != x[j];
+      }
+      if (!moved) break;
+      const Evaluation trial = fitter.evaluate(xt, false);
+      if (!(trial.chi2 < cur.chi2)) {
+        mu = std::max(mu * 4, kRejectedMu);
+        continue;
+      }
+      const double gain = cur.chi2 - trial.chi2;
+      x = xt;
+      cur = fitter.evaluate(x, true);
+      mu = std::max(mu / 4, 1e-7);
+      ++steps;
+      accepted = true;
+      if (o.progress)
+        o.progress({first_step + steps, cur.chi2, mu,
+                    std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count() - t0});
+      if (gain < 1e-3 * cur.chi2 / double(dof_of(cur))) converged = true;
+    }
+    if (!accepted) converged = true;  // no step of any damping gains: an optimum, to the model's precision
+  }
+  return steps;
+}
+
+// The PSFs binned by 2^k (each a sum over 2^k x 2^k pixels, as the
+// dictionary's levels are); a pixel with an unknown sub-pixel is unknown.
+std::vector<MeasuredPsf> binned(const std::vector<MeasuredPsf>& psfs, const AnalysisGrid& grid, int k,
+                                double weight_floor) {
+  std::vector<MeasuredPsf> out;
+  for (const auto& p : psfs) {
+    const Noise n = noise_of(p, weight_floor);
+    PsfLevel sl{0, grid.width, grid.height, std::vector<float>(p.p.size())};
+    for (size_t i = 0; i < p.p.size(); ++i) sl.p[i] = known(p, i, n) ? 0.0f : 1.0f;
+    PsfLevel l = bin_level(PsfLevel{0, grid.width, grid.height, p.p}, k);
+    out.push_back({p.theta_mm, std::move(l.p), p.name, bin_level(sl, k).p});
+  }
+  return out;
+}
+
+}  // namespace
+
+CalibrationResult calibrate(const OpticalSystem& start, const std::vector<MeasuredPsf>& psfs,
+                            const std::vector<CalibrationParameter>& free, const CalibrationOptions& options) {
+  check_inputs(start, psfs, free, options);
+  const double t0 = std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count();
+  const size_t P = free.size();
+  std::vector<double> x(P), lo(P), hi(P);
+  for (size_t j = 0; j < P; ++j) {
+    x[j] = free[j].get(start);
+    std::tie(lo[j], hi[j]) = free[j].bounds(start);
+  }
+  validate(start);  // throws naming the field
+  CalibrationResult r;
+  // Coarse to fine: the images' disc edges make chi2 a staircase at the
+  // pixels' scale, far from quadratic once an edge is a pixel off; on pixels
+  // 2^k times larger the start lies within the basin, and each finer level
+  // starts from the coarser one's optimum.
+  const AnalysisGrid grid = AnalysisGrid::of(start, options.settings.binning);
+  r.chi2_start = Fitter(start, psfs, free, options).evaluate(x, false).chi2;
+  Evaluation cur;
+  for (int k = std::max(0, options.coarse_levels); k >= 0; --k) {
+    const std::vector<MeasuredPsf> level = k ? binned(psfs, grid, k, options.weight_floor) : std::vector<MeasuredPsf>{};
+    CalibrationOptions at = options;
+    at.settings.binning = options.settings.binning << k;
+    const Fitter fitter(start, k ? level : psfs, free, at);
+    // A lenslet's tilt moves its image much as its position does, and
+    // changes its shape only at second order: on coarse pixels the two are
+    // nearly one direction, along which the fit wandered (to a 10 degree
+    // tilt of an f = 3 mm lens, balanced by 0.2 mm of position). Tilts are
+    // held until the finest level.
+    std::vector<bool> hold(P, false);
+    for (size_t j = 0; j < P; ++j)
+      hold[j] = k > 0 && (free[j].param == Param::lens_tilt_x || free[j].param == Param::lens_tilt_y);
+    cur = fitter.evaluate(x, true);
+    r.steps += levenberg_marquardt(fitter, x, lo, hi, hold, psfs.size(), at, r.steps, t0, cur, r.converged);
+    if (k == 0) r.fitted = fitter.system(x);
+  }
+  r.chi2 = cur.chi2;
+  r.pixels = cur.pixels;
+  r.dof = cur.pixels > P + psfs.size() ? cur.pixels - P - psfs.size() : 1;
+  r.psfs = cur.psfs;
+  r.lenses = cur.lenses;
+  // Uncertainties: the sandwich H^-1 M H^-1 (H the Gauss-Newton matrix, M =
+  // sum (w r)^2 J J^T) over the parameters some PSF constrains; the others
+  // are reported as unconstrained. With weights of the right shape it equals
+  // H^-1 chi2 / dof; where the weights' shape is wrong (an HDR pixel's
+  // variance is only roughly a + b p) it stays right, which H^-1 chi2 / dof
+  // did not: on the synthetic HDR test that put 7 of 31 parameters 3-9 of
+  // their reported sigmas from the truth even with the model's own rays.
+  std::vector<size_t> act;
+  for (size_t j = 0; j < P; ++j)
+    if (cur.gn[j * P + j] > 0) act.push_back(j);
+  std::vector<double> sigma(P, std::numeric_limits<double>::infinity());
+  const size_t m = act.size();
+  std::vector<double> A(m * m), inv(m * m);  // H over act, and its inverse (column by column)
+  for (size_t a = 0; a < m; ++a)
+    for (size_t b = 0; b < m; ++b) A[a * m + b] = cur.gn[act[a] * P + act[b]];
+  bool invertible = true;
+  for (size_t a = 0; a < m && invertible; ++a) {
+    std::vector<double> e(m, 0.0);
+    e[a] = 1;
+    invertible = solve_spd(A, e, m);
+    for (size_t b = 0; b < m; ++b) inv[b * m + a] = e[b];
+  }
+  if (invertible)
+    for (size_t a = 0; a < m; ++a) {
+      double var = 0;  // (inv M inv)_aa
+      for (size_t b = 0; b < m; ++b)
+        for (size_t c = 0; c < m; ++c) var += inv[a * m + b] * cur.meat[act[b] * P + act[c]] * inv[c * m + a];
+      if (var > 0) sigma[act[a]] = std::sqrt(var);
+    }
+  for (size_t j = 0; j < P; ++j) r.estimates.push_back({free[j], free[j].get(start), x[j], sigma[j]});
+  r.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count() - t0;
+  return r;
+}
+
+std::vector<float> calibration_residual(const OpticalSystem& sys, const MeasuredPsf& psf,
+                                        const CalibrationOptions& options) {
+  const Model model = render(sys, options.settings, psf.theta_mm, {}, false);
+  const Noise noise = noise_of(psf, options.weight_floor);
+  const double s = best_scale(psf, model, noise).first;
+  std::vector<float> out(psf.p.size());
+  for (size_t i = 0; i < out.size(); ++i) {
+    const double p = psf.p[i];
+    auto it = model.find(int64_t(i));
+    const double b = it == model.end() ? 0.0 : it->second.b;
+    out[i] = known(psf, i, noise) ? float((p - s * b) * std::sqrt(weight(p, noise))) : 0.0f;
+  }
+  return out;
+}
+
+}  // namespace prism

@@ -1,0 +1,137 @@
+// Calibration (issue 18): the as-built optics fitted to a measured PSF
+// dictionary. The paper reconstructs with its measured PSFs alone because the
+// built system is not its design; the continuous refinement needs a
+// continuous model, and for a measured dictionary the honest one is the
+// forward model with the scene's parameters fitted to those PSFs.
+//
+// The fit. PSF k, measured at the known source position theta_k, is a level
+// of the dictionary: p_k, summing to ~1 over the sensor. Its model is
+// s_k b_k(params), b_k the forward model's expected photons (footprint
+// splat) and s_k a photon scale per PSF (emitted photons, detection
+// efficiency and the merge's normalisation together). Weighted least squares:
+//   chi2 = sum_k sum_i w_ki (p_ki - s_k b_ki)^2,  w_ki = 1 / (p_ki + floor_k),
+// floor_k = defaults::calibration_weight_floor times the PSF's brightest
+// pixel: an HDR pixel's variance grows with its signal (shot noise) above a
+// floor. Each s_k has its optimum in closed form and is profiled out; the
+// geometric parameters are found by Levenberg-Marquardt on the profiled chi2
+// with its Gauss-Newton matrix (the Fisher information of the weighted fit,
+// the scales' share removed by their Schur complement).
+//
+// Uncertainty: the inverse of that matrix times chi2 / dof, so the noise
+// level is the one the residuals show (the weights fix only its shape): a
+// model that cannot explain the PSFs reports larger uncertainties, not
+// smaller. chi2 / dof itself is the goodness of fit, per PSF and per
+// lenslet in the result.
+//
+// Derivatives: forward mode with respect to the scene's parameters
+// (ref::Tangents), each lenslet's image rendered alone so that its own
+// parameters touch only its own pixels. This version renders with the
+// double-precision CPU reference (engine/ref); the device kernels carry
+// derivatives with respect to the source only so far.
+#pragma once
+#include <functional>
+#include <string>
+#include <vector>
+
+#include <glm/glm.hpp>
+
+#include "engine/optical_system.h"
+#include "engine/ref/forward_ref.h"
+
+namespace prism {
+
+// One free parameter: a scene parameter of ref::Param (not the source's), of
+// one lenslet for the per-lenslet ones. Units: mm, degrees for tilts.
+struct CalibrationParameter {
+  ref::Param param;
+  int lens = -1;  // per-lenslet parameters: which lenslet; -1 for global ones
+  bool per_lens() const;
+  std::string name() const;  // as in the scene file: "lenslets[3].x_mm", "lens_to_sensor_mm", "sensor.tilt_x_deg"
+  double get(const OpticalSystem& s) const;
+  void set(OpticalSystem& s, double value) const;
+  // The range the fit may move it in around `nominal` (defaults.h).
+  std::pair<double, double> bounds(const OpticalSystem& nominal) const;
+};
+
+// The groups `prism calibrate --fit` names, each a set of parameters:
+// lens_xy, lens_focal, lens_tilt (every lenslet's own), lens_to_sensor,
+// working_distance, sensor_offset, sensor_tilt.
+std::vector<std::string> calibration_groups();
+// The parameters of `groups` for system `s`, in a fixed order (per-lenslet
+// ones lenslet by lenslet, then the global ones). Throws
+// std::invalid_argument naming an unknown group and the choices.
+std::vector<CalibrationParameter> calibration_parameters(const OpticalSystem& s, const std::vector<std::string>& groups);
+
+// One measured PSF: where its source was and its image on the model's grid
+// (settings.binning), row-major, summing to ~1 over the sensor.
+// A pixel of value 0 is one the HDR merge rejected as too faint; the fit
+// leaves out those and the faint ones near them (calibrate.cpp, Noise).
+struct MeasuredPsf {
+  glm::dvec3 theta_mm{0.0};  // x, y, depth
+  std::vector<float> p;
+  std::string name;  // for messages: its file
+  // Binned PSFs (calibrate's coarse levels): per pixel, nonzero where a
+  // sub-pixel is left out; empty: decided from p.
+  std::vector<float> unknown;
+};
+
+// One accepted (or final rejected) step, for progress.
+struct CalibrationStep {
+  int step = 0;          // steps accepted so far
+  double chi2 = 0;       // at the current parameters
+  double damping = 0;    // Levenberg-Marquardt's mu
+  double seconds = 0;    // since the start
+};
+
+struct CalibrationOptions {
+  TraceSettings settings;  // the model: splat, cells per lenslet, binning of the measured grid
+  int max_steps = defaults::calibration_max_steps;  // per level
+  int coarse_levels = defaults::calibration_coarse_levels;  // fitted first on pixels 2^k larger, k = this .. 1
+  double weight_floor = defaults::calibration_weight_floor;  // relative to each PSF's brightest pixel; > 0
+  unsigned threads = 2;                                      // PSFs rendered at once
+  std::function<void(const CalibrationStep&)> progress;      // after each accepted step
+};
+
+struct ParameterEstimate {
+  CalibrationParameter parameter;
+  double start = 0, value = 0;
+  double sigma = 0;  // one standard deviation; infinite when no PSF constrains it
+};
+
+struct PsfFit {
+  double scale = 0;   // s_k
+  double chi2 = 0;    // its share of chi2
+  size_t pixels = 0;  // pixels it weighs (lit in the PSF or the model)
+};
+
+struct LensFit {
+  double chi2 = 0;    // chi2 of the pixels where this lenslet's light is the most
+  size_t pixels = 0;
+};
+
+struct CalibrationResult {
+  OpticalSystem fitted;
+  std::vector<ParameterEstimate> estimates;
+  std::vector<PsfFit> psfs;
+  std::vector<LensFit> lenses;
+  double chi2_start = 0;  // at the start
+  double chi2 = 0;        // at the fit
+  size_t pixels = 0;      // weighed, all PSFs
+  size_t dof = 0;         // pixels - parameters - scales
+  int steps = 0;          // accepted, all levels
+  bool converged = false; // at the finest level: the last step gained less than 1e-3 of chi2 / dof, or no step could
+  double seconds = 0;
+  double reduced_chi2() const { return dof ? chi2 / double(dof) : 0.0; }
+};
+
+// Fits `free` of `start` to `psfs`. Throws std::invalid_argument when there
+// is nothing to fit or a PSF's image is not of the model's grid.
+CalibrationResult calibrate(const OpticalSystem& start, const std::vector<MeasuredPsf>& psfs,
+                            const std::vector<CalibrationParameter>& free, const CalibrationOptions& options);
+
+// The normalised residual (p - s b) sqrt(w) of one PSF under `sys` with its
+// best scale, row-major on the model's grid (residual maps).
+std::vector<float> calibration_residual(const OpticalSystem& sys, const MeasuredPsf& psf,
+                                        const CalibrationOptions& options);
+
+}  // namespace prism

@@ -1,0 +1,214 @@
+// prism calibrate: the scene's as-built parameters fitted to a measured PSF
+// dictionary (host/calibrate/calibrate.h says how and what it assumes).
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <thread>
+
+#include "host/calibrate/calibrate.h"
+#include "host/cmd/commands.h"
+#include "host/cmd/options.h"
+#include "host/dictionary/store.h"
+#include "host/scene/scene.h"
+#include "host/util/format.h"
+#include "host/util/image_io.h"
+#include "host/util/output_file.h"
+#include "host/util/plot.h"
+
+namespace fs = std::filesystem;
+
+namespace prism::cmd {
+
+namespace {
+
+struct CalibrateArgs {
+  std::string dictionary;
+  std::string scene;  // empty: the dictionary's own
+  std::string out;
+  std::string fit = "lens_xy,lens_focal,lens_tilt,lens_to_sensor,working_distance,sensor_offset,sensor_tilt";
+  int level = -1;
+  unsigned rays = 0;
+  unsigned every = 1;
+  int max_steps = defaults::calibration_max_steps;
+  double weight_floor = defaults::calibration_weight_floor;
+  unsigned threads = std::max(1u, std::thread::hardware_concurrency());
+  std::string csv;
+  std::string residuals;
+};
+
+std::vector<std::string> split_commas(const std::string& text) {
+  std::vector<std::string> out;
+  size_t start = 0;
+  while (start <= text.size()) {
+    const size_t end = std::min(text.find(',', start), text.size());
+    if (end > start) out.push_back(text.substr(start, end - start));
+    start = end + 1;
+  }
+  return out;
+}
+
+// The finest level whose pixels are at least defaults::calibration_pixel_um.
+int default_level(const DictionaryManifest& m) {
+  for (int k = 0; k < m.levels; ++k)
+    if (m.pixel_mm(k) * 1e3 >= defaults::calibration_pixel_um * (1 - 1e-9)) return k;
+  return m.levels - 1;
+}
+
+void write_text(const std::string& path, const std::string& text) {
+  write_atomically(path, [&](const std::string& tmp) {
+    std::ofstream out(tmp);
+    out << text;
+    if (!out) throw std::runtime_error("cannot write " + path);
+  });
+}
+
+void run(const CalibrateArgs& a) {
+  check_writable(a.out);
+  const std::initializer_list<NamedInput> inputs{{"--dictionary", a.dictionary}, {"--scene", a.scene}};
+  check_not_input(a.out, "--out", inputs);
+  if (!a.csv.empty()) check_writable(a.csv), check_not_input(a.csv, "--csv", inputs);
+  if (!a.residuals.empty()) check_not_input(a.residuals, "--residuals", inputs);
+  DictionaryReader reader(a.dictionary);
+  const DictionaryManifest& m = reader.manifest();
+  Scene scene = a.scene.empty() ? m.scene : load_scene(a.scene);
+  const int level = a.level < 0 ? default_level(m) : a.level;
+  if (level >= m.levels)
+    throw std::invalid_argument("--level: " + std::to_string(level) + " is beyond the dictionary's levels 0.." +
+                                std::to_string(m.levels - 1) + " (" + a.dictionary + "/manifest.json)");
+  CalibrationOptions o;
+  o.settings = TraceSettings::defaults_for(Splat::footprint);
+  o.settings.rays_per_lenslet = a.rays ? a.rays : defaults::calibration_rays_per_lenslet;
+  o.settings.binning = unsigned(m.base_binning) << level;
+  o.settings.photons_emitted = scene.photons_emitted;
+  o.max_steps = a.max_steps;
+  o.weight_floor = a.weight_floor;
+  o.threads = a.threads;
+  const AnalysisGrid grid = AnalysisGrid::of(scene.optics, o.settings.binning);
+  if (grid.width != m.level_width(level) || grid.height != m.level_height(level))
+    throw std::invalid_argument("the dictionary's level " + std::to_string(level) + " is " +
+                                std::to_string(m.level_width(level)) + " x " + std::to_string(m.level_height(level)) +
+                                " px (" + a.dictionary + "/manifest.json); the scene's sensor at binning " +
+                                std::to_string(o.settings.binning) + " is " + std::to_string(grid.width) + " x " +
+                                std::to_string(grid.height) + ": give the scene of this sensor (--scene)");
+  const auto free = calibration_parameters(scene.optics, split_commas(a.fit));
+
+  std::vector<MeasuredPsf> psfs;
+  size_t taken = 0;
+  for (size_t i = 0; i < m.grid.size(); ++i) {
+    if (!reader.has(i)) continue;
+    if (taken++ % a.every) continue;
+    PsfLevel l = reader.read_level(i, level);
+    psfs.push_back({m.grid.position(i), std::move(l.p), reader.path_of(i)});
+  }
+  std::fprintf(stderr,
+               "prism calibrate: %zu of %zu PSFs (every %u of the %zu present) at level %d (%.1f um pixels), "
+               "%zu parameters, footprint at %u cells per lenslet, on the CPU reference with %u threads\n",
+               psfs.size(), m.grid.size(), a.every, taken, level, grid.pixel_mm * 1e3, free.size(),
+               o.settings.rays(), o.threads);
+  o.progress = [](const CalibrationStep& s) {
+    std::fprintf(stderr, "prism calibrate: step %d: chi2 %.6g (damping %.3g), %.1f s\n", s.step, s.chi2, s.damping,
+                 s.seconds);
+  };
+  const CalibrationResult r = calibrate(scene.optics, psfs, free, o);
+
+  Scene fitted = scene;
+  fitted.optics = r.fitted;
+  fitted.name = scene.name + "-calibrated";
+  write_text(a.out, to_json(fitted).dump(2) + "\n");
+
+  std::string table = "parameter,start,fitted,sigma,change_over_sigma\n";
+  for (const auto& e : r.estimates)
+    table += e.parameter.name() + "," + format_number(e.start, 12) + "," + format_number(e.value, 12) + "," +
+             format_number(e.sigma) + "," + format_number((e.value - e.start) / e.sigma) + "\n";
+  if (!a.csv.empty()) write_text(a.csv, table);
+
+  if (!a.residuals.empty()) {
+    fs::create_directories(a.residuals);
+    // Per PSF: its scale and chi2, and its map of (p - s b) / sigma; per
+    // lenslet: the chi2 of the pixels its light dominates.
+    const double sigma = std::sqrt(r.reduced_chi2());
+    std::string per_psf = "psf,x_mm,y_mm,depth_mm,scale,chi2,pixels,chi2_per_pixel\n";
+    for (size_t k = 0; k < psfs.size(); ++k) {
+      const auto& f = r.psfs[k];
+      per_psf += csv_field(psfs[k].name) + "," + format_number(psfs[k].theta_mm.x) + "," +
+                 format_number(psfs[k].theta_mm.y) + "," + format_number(psfs[k].theta_mm.z) + "," +
+                 format_number(f.scale) + "," + format_number(f.chi2) + "," + std::to_string(f.pixels) + "," +
+                 format_number(f.pixels ? f.chi2 / double(f.pixels) : 0.0) + "\n";
+      const auto map = calibration_residual(r.fitted, psfs[k], o);
+      char name[64];
+      std::snprintf(name, sizeof name, "residual-%04zu.png", k);
+      write_png_signed((fs::path(a.residuals) / name).string(), grid.width, grid.height, map.data(), 3 * sigma);
+    }
+    write_text((fs::path(a.residuals) / "psfs.csv").string(), per_psf);
+    std::string per_lens = "lenslet,x_mm,y_mm,focal_mm,chi2,pixels,chi2_per_pixel\n";
+    Series lens_series{"chi2 per pixel", {}, {}, false, true};
+    for (size_t l = 0; l < r.lenses.size(); ++l) {
+      const auto& f = r.lenses[l];
+      const double per_pixel = f.pixels ? f.chi2 / double(f.pixels) : 0.0;
+      per_lens += std::to_string(l) + "," + format_number(r.fitted.lenslets[l].x_mm) + "," +
+                  format_number(r.fitted.lenslets[l].y_mm) + "," + format_number(r.fitted.lenslets[l].focal_mm) + "," +
+                  format_number(f.chi2) + "," + std::to_string(f.pixels) + "," + format_number(per_pixel) + "\n";
+      if (f.pixels) lens_series.x.push_back(double(l)), lens_series.y.push_back(per_pixel);
+    }
+    write_text((fs::path(a.residuals) / "lenslets.csv").string(), per_lens);
+    plot_lines((fs::path(a.residuals) / "lenslets.png").string(),
+               {"calibration residual per lenslet (chi2 / dof " + format_number(r.reduced_chi2()) + " overall)",
+                "lenslet", "chi2 per pixel", true, false},
+               {lens_series});
+  }
+
+  std::printf("%-28s %14s %14s %12s %10s\n", "parameter", "start", "fitted", "sigma", "change/sd");
+  for (const auto& e : r.estimates)
+    std::printf("%-28s %14.6f %14.6f %12.3g %10.2f\n", e.parameter.name().c_str(), e.start, e.value, e.sigma,
+                (e.value - e.start) / e.sigma);
+  std::printf("chi2 %.6g -> %.6g over %zu pixels of %zu PSFs, chi2 / dof %.4g, %d steps%s, %.1f s\n", r.chi2_start,
+              r.chi2, r.pixels, psfs.size(), r.reduced_chi2(), r.steps,
+              r.converged ? " (converged)" : " (step limit reached)", r.seconds);
+}
+
+}  // namespace
+
+void add_calibrate(CLI::App& app) {
+  auto a = std::make_shared<CalibrateArgs>();
+  CLI::App* c = app.add_subcommand(
+      "calibrate",
+      "fit the scene's as-built parameters (lenslet positions, focal lengths and tilts; lens-to-sensor and working "
+      "distances; the sensor's offset and tilt) and a photon scale per PSF to a measured dictionary, by weighted least "
+      "squares; writes the fitted scene, which every command accepts");
+  c->add_option("--dictionary", a->dictionary, "the measured (or synthesised) PSF dictionary's folder")->required();
+  c->add_option("--scene", a->scene, "the nominal scene the fit starts from (built-in name or JSON file; default: the "
+                                     "dictionary's own)");
+  c->add_option("--out", a->out, "the fitted scene (JSON)")->required();
+  c->add_option("--fit", a->fit,
+                "comma-separated parameter groups to free: " + join(calibration_groups(), ", ") + " (per lenslet: "
+                "lens_xy, lens_focal, lens_tilt)")
+      ->capture_default_str();
+  c->add_option("--level", a->level,
+                "the dictionary level to fit (default: the finest with pixels of at least " +
+                    format_number(defaults::calibration_pixel_um) + " um)")
+      ->check(CLI::Range(0, 30));
+  c->add_option("--rays", a->rays,
+                "the model's footprint cells per lenslet (default " + std::to_string(defaults::calibration_rays_per_lenslet) +
+                    "), " + rays_rounding);
+  c->add_option("--every", a->every, "fit every N-th PSF present (the model's time grows with the PSFs)")
+      ->check(CLI::Range(1u, 1000000u))
+      ->capture_default_str();
+  c->add_option("--max-steps", a->max_steps, "Levenberg-Marquardt steps accepted at most")
+      ->check(CLI::Range(1, 10000))
+      ->capture_default_str();
+  c->add_option("--weight-floor", a->weight_floor,
+                "pixel weights are 1 / (value + floor), the floor this fraction of each PSF's brightest pixel")
+      ->check(positive_number)
+      ->capture_default_str();
+  c->add_option("--threads", a->threads, "PSFs rendered at once (default: the CPU's cores)")
+      ->check(CLI::Range(1u, 1024u));
+  c->add_option("--csv", a->csv, "the parameters' table: start, fitted, sigma, change / sigma");
+  c->add_option("--residuals", a->residuals,
+                "a folder for the residual maps (residual-NNNN.png: (p - s b) / sigma per PSF, red above the model, "
+                "blue below, full at 3 sigma), psfs.csv, lenslets.csv and lenslets.png");
+  c->callback([a] { run(*a); });
+}
+
+}  // namespace prism::cmd

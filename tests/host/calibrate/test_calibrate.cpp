@@ -1,0 +1,214 @@
+// Calibration (host/calibrate/calibrate.h, issue 18): a synthetic as-built
+// array, its PSFs rendered apart from the model that fits them (4x the cells,
+// another stratification) and passed through the HDR merge from simulated
+// exposure stacks as `capture-hdr` would record them; the fit starts from the
+// nominal scene and must find the as-built one within 3 of its own
+// uncertainties.
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <string>
+
+#include "engine/ref/hdr_merge_ref.h"
+#include "host/calibrate/calibrate.h"
+#include "host/dictionary/hdr_stack.h"
+#include "host/dictionary/store.h"
+#include "support.h"
+
+namespace {
+
+using prism::ref::Param;
+
+// Lenslets 2..6 of the prototype's central row (real lenses, f = 4.5 .. 12
+// mm). Its f = 3 mm lenslet, a near hemisphere, is left out: with the truth
+// at 4096 cells the model's 1024 cells put it 3-7 sigma off (README
+// "Calibration"); with the model's own cells it is found within 3.
+prism::OpticalSystem nominal_row(size_t first = 2) {
+  prism::OpticalSystem s = prism::test::small_system(prism::LensModel::real);
+  s.lenslets.erase(s.lenslets.begin(), s.lenslets.begin() + std::ptrdiff_t(first));
+  return s;
+}
+
+// As built: every lens moved by tens of um, its focal length off by up to
+// 2%, tilted by up to half a degree; the sensor 0.15 mm farther, moved and
+// tilted; the scintillator face 0.1 mm nearer.
+prism::OpticalSystem as_built(const prism::OpticalSystem& nominal) {
+  prism::OpticalSystem s = nominal;
+  for (size_t i = 0; i < s.lenslets.size(); ++i) {
+    const double k = double(i) + 1;
+    auto& l = s.lenslets[i];
+    l.x_mm += 0.04 * std::sin(1.7 * k);
+    l.y_mm += 0.03 * std::cos(2.3 * k);
+    l.focal_mm *= 1 + 0.02 * std::sin(0.9 * k + 0.4);
+    l.tilt_x_deg = 0.5 * std::sin(1.3 * k + 1);
+    l.tilt_y_deg = -0.4 * std::cos(0.7 * k);
+  }
+  s.lens_to_sensor_mm += 0.15;
+  s.working_distance_mm -= 0.1;
+  s.sensor_pose = {0.03, -0.02, 0.3, -0.2};
+  return s;
+}
+
+// The model: footprint, 1024 cells per lenslet (256 under the sanitizers),
+// 110 um pixels.
+prism::TraceSettings model_settings() {
+  prism::TraceSettings t = prism::TraceSettings::defaults_for(prism::Splat::footprint);
+  t.rays_per_lenslet = prism::test::under_sanitizer ? 256 : 1024;
+  t.binning = 16;
+  return t;
+}
+
+// PSF theta of `truth`: footprint at 4x the model's cells, stratification 1,
+// made into 7 exposures and 3 darks of a 12-bit sensor (peak 2e6 DN/s,
+// 20 us .. 0.2 s) and merged as `prism dictionary merge-hdr` does.
+prism::MeasuredPsf measured(const prism::OpticalSystem& truth, const glm::dvec3& theta, uint64_t seed) {
+  prism::TraceSettings t = model_settings();
+  t.rays_per_lenslet *= 4;
+  t.stratification = 1;
+  const auto grid = prism::AnalysisGrid::of(truth, t.binning);
+  const auto img = prism::ref::psf(truth, t, theta);
+  std::vector<double> b(size_t(grid.width) * size_t(grid.height), 0.0);
+  double peak = 0;
+  for (const auto& [key, px] : img.pixels) b[size_t(key)] = px[0], peak = std::max(peak, px[0]);
+  REQUIRE(peak > 0);
+  for (double& v : b) v *= 2e6 / peak;
+  const auto frames = prism::simulate_hdr_frames(b, grid.width, grid.height, prism::log_spaced_times(20e-6, 0.2, 7),
+                                                 {0.2, 0.2, 0.2}, prism::SyntheticSensor{}, seed);
+  const auto merged = prism::ref::hdr_merge(frames, prism::HdrOptions{});
+  return {theta, merged.psf, "synthetic (" + std::to_string(theta.x) + ", " + std::to_string(theta.y) + ", " +
+                                 std::to_string(theta.z) + ")"};
+}
+
+// Sources over the field and the depths: near the face, where the images
+// are large, and deep, where they are small.
+std::vector<glm::dvec3> positions(bool few) {
+  std::vector<glm::dvec3> out;
+  for (double depth : few ? std::vector<double>{6, 30} : std::vector<double>{6, 15, 30, 45})
+    for (glm::dvec2 xy : {glm::dvec2(-6, -3), glm::dvec2(2, 3), glm::dvec2(8, -2)}) out.push_back({xy.x, xy.y, depth});
+  return out;
+}
+
+}  // namespace
+
+TEST_CASE("calibration recovers an as-built array from HDR-merged PSFs within 3 of its uncertainties") {
+  const prism::OpticalSystem nominal = nominal_row();
+  const prism::OpticalSystem truth = as_built(nominal);
+  std::vector<prism::MeasuredPsf> psfs;
+  uint64_t seed = 1;
+  for (const auto& theta : positions(prism::test::under_sanitizer)) psfs.push_back(measured(truth, theta, seed++));
+
+  prism::CalibrationOptions o;
+  o.settings = model_settings();
+  const auto free = prism::calibration_parameters(nominal, prism::calibration_groups());
+  REQUIRE(free.size() == 5 * 5 + 6);
+  const auto r = prism::calibrate(nominal, psfs, free, o);
+  MESSAGE("chi2 " << r.chi2_start << " -> " << r.chi2 << ", chi2/dof " << r.reduced_chi2() << ", " << r.steps
+                  << " steps, " << r.seconds << " s");
+  CHECK(r.chi2 < 0.05 * r.chi2_start);
+  if (prism::test::under_sanitizer) return;  // a smaller problem, for memory errors: the numbers at full size
+  CHECK(r.converged);
+
+  size_t far_at_start = 0;
+  for (const auto& e : r.estimates) {
+    const double want = e.parameter.get(truth);
+    CAPTURE(e.parameter.name());
+    CAPTURE(e.start);
+    CAPTURE(e.value);
+    CAPTURE(want);
+    CAPTURE(e.sigma);
+    REQUIRE(std::isfinite(e.sigma));
+    CHECK(std::abs(e.value - want) <= 3 * e.sigma);
+    far_at_start += std::abs(e.start - want) > 3 * e.sigma;
+    // Small enough to matter: lens positions to better than 10 um.
+    if (e.parameter.param == Param::lens_x || e.parameter.param == Param::lens_y) CHECK(e.sigma < 0.010);
+  }
+  // The nominal scene is not already the answer: most parameters start
+  // many sigmas away.
+  CHECK(far_at_start >= r.estimates.size() * 3 / 4);
+}
+
+TEST_CASE("calibration: parameter groups, names and errors") {
+  const prism::OpticalSystem s = prism::test::small_system(prism::LensModel::real);
+  const auto p = prism::calibration_parameters(s, {"lens_focal", "sensor_tilt", "lens_focal"});
+  REQUIRE(p.size() == 7 + 2);
+  CHECK(p[0].name() == "lenslets[0].focal_mm");
+  CHECK(p[7].name() == "sensor.tilt_x_deg");
+  CHECK_THROWS_WITH_AS(prism::calibration_parameters(s, {"lens_zoom"}),
+                       doctest::Contains("no parameter group 'lens_zoom'; the groups are lens_xy"),
+                       std::invalid_argument);
+  prism::CalibrationOptions o;
+  o.settings = model_settings();
+  prism::MeasuredPsf wrong{{0, 0, 20}, std::vector<float>(10, 1.0f), "wrong.exr", {}};
+  CHECK_THROWS_WITH_AS(prism::calibrate(s, {wrong}, p, o), doctest::Contains("PSF wrong.exr has 10 pixels"),
+                       std::invalid_argument);
+  CHECK_THROWS_WITH_AS(prism::calibrate(s, {wrong}, {}, o), doctest::Contains("no parameter to fit"),
+                       std::invalid_argument);
+}
+
+TEST_CASE("prism calibrate: a dictionary of HDR-merged PSFs in, a scene every command accepts out") {
+  namespace fs = std::filesystem;
+  const fs::path dir = prism::test::scratch_dir() / "calibrate";
+  fs::remove_all(dir);
+  // Three lenslets (f = 6, 7.5, 9 mm); the dictionary's scene is the nominal one.
+  prism::Scene nominal{"row", nominal_row(3), {}, prism::defaults::photons_emitted};
+  nominal.optics.lenslets.resize(3);
+  const prism::OpticalSystem truth = as_built(nominal.optics);
+  prism::DictionaryManifest m;
+  m.scene = nominal;
+  m.grid = {{-6, 6}, {0}, {8, 20, 35}};
+  m.base_binning = 16;
+  const auto grid = prism::AnalysisGrid::of(nominal.optics, 16);
+  m.width = grid.width, m.height = grid.height;
+  m.levels = prism::DictionaryManifest::mip_levels(m.width, m.height);
+  m.source = "calibrated";
+  fs::create_directories(dir / "dict");
+  {
+    std::ofstream out(dir / "dict" / "manifest.json");
+    out << m.to_json().dump(2) << '\n';
+  }
+  for (size_t i = 0; i < m.grid.size(); ++i) {
+    const auto psf = measured(truth, m.grid.position(i), 10 + i);
+    prism::write_psf_file((dir / "dict" / m.file_of(i)).string(), m, i, {0, m.width, m.height, psf.p}, 0.0);
+  }
+  const std::string out = (dir / "fitted.json").string(), csv = (dir / "params.csv").string();
+  auto run = prism::test::run_prism("calibrate --dictionary " + (dir / "dict").string() + " --out " + out + " --csv " +
+                                    csv + " --residuals " + (dir / "residuals").string() + " --threads 2");
+  INFO(run.output);
+  REQUIRE(run.status == 0);
+  CHECK(run.output.find("6 of 6 PSFs") != std::string::npos);
+  const prism::Scene fitted = prism::load_scene(out);
+  CHECK(fitted.name == "row-calibrated");
+  // Every parameter (the default --fit frees them all) within 3 sigma of the
+  // truth, in the table and in the scene written.
+  std::ifstream table(csv);
+  std::string line;
+  std::getline(table, line);
+  CHECK(line == "parameter,start,fitted,sigma,change_over_sigma");
+  size_t rows = 0;
+  for (const auto& p : prism::calibration_parameters(truth, prism::calibration_groups())) {
+    REQUIRE(std::getline(table, line));
+    CAPTURE(line);
+    REQUIRE(line.rfind(p.name() + ",", 0) == 0);
+    double start, value, sigma;
+    REQUIRE(std::sscanf(line.c_str() + p.name().size(), ",%lf,%lf,%lf", &start, &value, &sigma) == 3);
+    CHECK(std::abs(value - p.get(truth)) <= 3 * sigma);
+    CHECK(p.get(fitted.optics) == doctest::Approx(value).epsilon(1e-9));
+    ++rows;
+  }
+  CHECK(rows == 3 * 5 + 6);
+  for (const char* file : {"residual-0000.png", "residual-0005.png", "psfs.csv", "lenslets.csv", "lenslets.png"})
+    CHECK_MESSAGE(fs::exists(dir / "residuals" / file), file);
+
+  // Errors name what is wrong.
+  auto bad = prism::test::run_prism("calibrate --dictionary " + (dir / "dict").string() + " --out " + out +
+                                    " --fit lens_zoom");
+  CHECK(bad.status != 0);
+  CHECK(bad.output.find("no parameter group 'lens_zoom'") != std::string::npos);
+  bad = prism::test::run_prism("calibrate --dictionary " + (dir / "dict").string() + " --out " + out + " --level 20");
+  CHECK(bad.status != 0);
+  CHECK(bad.output.find("--level: 20 is beyond the dictionary's levels 0..") != std::string::npos);
+  bad = prism::test::run_prism("calibrate --dictionary " + (dir / "dict").string() + " --out " +
+                               (dir / "dict" / "x.json").string());
+  CHECK(bad.status != 0);
+  CHECK(bad.output.find("--out") != std::string::npos);
+}
