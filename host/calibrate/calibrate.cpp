@@ -4,7 +4,10 @@
 #include <atomic>
 #include <chrono>
 #include <cmath>
+#include <bit>
 #include <exception>
+#include <filesystem>
+#include <fstream>
 #include <limits>
 #include <mutex>
 #include <stdexcept>
@@ -12,6 +15,8 @@
 #include <unordered_map>
 
 #include "host/dictionary/store.h"                  // bin_level
+#include "host/util/image_io.h"
+#include "host/util/json_file.h"
 #include "host/reconstruct/levenberg_marquardt.h"  // solve_spd
 
 namespace prism {
@@ -568,6 +573,52 @@ std::vector<float> calibration_residual(const OpticalSystem& sys, const Measured
     auto it = model.find(int64_t(i));
     const double b = it == model.end() ? 0.0 : it->second.b;
     out[i] = known(psf, i, noise) ? float((p - s * b) * std::sqrt(weight(p, noise))) : 0.0f;
+  }
+  return out;
+}
+
+unsigned calibration_binning(double pixel_um) {
+  unsigned b = 1;
+  while (pixel_um * b < defaults::calibration_pixel_um * (1 - 1e-9) && b < (1u << 20)) b *= 2;
+  return b;
+}
+
+std::vector<MeasuredPsf> read_merged_psfs(const std::string& dir, const OpticalSystem& sensor, unsigned binning) {
+  namespace fs = std::filesystem;
+  if (!std::has_single_bit(binning)) throw std::invalid_argument("calibration: binning " + std::to_string(binning) +
+                                                                  " is not a power of two");
+  std::vector<fs::path> sidecars;
+  std::error_code ec;
+  for (const auto& e : fs::directory_iterator(dir, ec))
+    if (e.path().extension() == ".json") sidecars.push_back(e.path());
+  if (ec) throw std::runtime_error("cannot read " + dir + ": " + ec.message());
+  std::sort(sidecars.begin(), sidecars.end());
+  if (sidecars.empty())
+    throw std::runtime_error(dir + ": no merged PSF (<name>.json beside <name>.exr, as prism dictionary merge-hdr "
+                             "writes them)");
+  std::vector<MeasuredPsf> out;
+  for (const auto& json : sidecars) {
+    const std::string name = json.string();
+    nlohmann::json j;
+    try {
+      std::ifstream in(json);
+      j = parse_json_file(in);
+      const auto& src = j.at("source");
+      MeasuredPsf m;
+      m.theta_mm = {src.at("x_mm").get<double>(), src.at("y_mm").get<double>(), src.at("depth_mm").get<double>()};
+      const fs::path exr = fs::path(json).replace_extension(".exr");
+      int w = 0, h = 0;
+      std::vector<float> y = read_exr_channel(exr.string(), "Y", w, h);
+      if (w != sensor.sensor_width_px || h != sensor.sensor_height_px)
+        throw std::runtime_error(exr.string() + " is " + std::to_string(w) + " x " + std::to_string(h) +
+                                 " px; the scene's sensor is " + std::to_string(sensor.sensor_width_px) + " x " +
+                                 std::to_string(sensor.sensor_height_px) + ": give the scene of this camera (--scene)");
+      m.p = bin_level(PsfLevel{0, w, h, std::move(y)}, std::countr_zero(binning)).p;
+      m.name = exr.string();
+      out.push_back(std::move(m));
+    } catch (const nlohmann::json::exception& e) {
+      throw std::runtime_error(name + ": no source position (source.x_mm, y_mm, depth_mm): " + e.what());
+    }
   }
   return out;
 }

@@ -75,6 +75,18 @@ struct MeasuredPsf {
   std::vector<float> unknown;
 };
 
+// The PSFs `prism dictionary merge-hdr` wrote into `dir` (each <name>.json
+// beside its <name>.exr; the JSON gives the source position), binned by
+// `binning` (a power of two) from the sensor's pixels, sorted by name.
+// Throws naming the file: a frame not of `sensor`'s size, a sidecar
+// without its PSF or position, no PSF at all.
+std::vector<MeasuredPsf> read_merged_psfs(const std::string& dir, const OpticalSystem& sensor, unsigned binning);
+
+// The binning the fit uses by default on a sensor of `pixel_um` pixels:
+// the smallest power of two that makes them defaults::calibration_pixel_um
+// or more.
+unsigned calibration_binning(double pixel_um);
+
 // One accepted (or final rejected) step, for progress.
 struct CalibrationStep {
   int step = 0;          // steps accepted so far

@@ -25,6 +25,7 @@ namespace {
 
 struct CalibrateArgs {
   std::string dictionary;
+  std::string merged;
   std::string scene;  // empty: the dictionary's own
   std::string out;
   std::string fit = "lens_xy,lens_focal,lens_tilt,lens_to_sensor,working_distance,sensor_offset,sensor_tilt";
@@ -64,49 +65,85 @@ void write_text(const std::string& path, const std::string& text) {
   });
 }
 
-void run(const CalibrateArgs& a) {
-  check_writable(a.out);
-  const std::initializer_list<NamedInput> inputs{{"--dictionary", a.dictionary}, {"--scene", a.scene}};
-  check_not_input(a.out, "--out", inputs);
-  if (!a.csv.empty()) check_writable(a.csv), check_not_input(a.csv, "--csv", inputs);
-  if (!a.residuals.empty()) check_not_input(a.residuals, "--residuals", inputs);
+// The measured PSFs, the scene they are fitted with and the model's binning.
+struct Inputs {
+  Scene scene;
+  std::vector<MeasuredPsf> psfs;
+  unsigned binning = 1;
+  std::string what;  // for the first line: where the PSFs came from
+};
+
+Inputs from_dictionary(const CalibrateArgs& a) {
   DictionaryReader reader(a.dictionary);
   const DictionaryManifest& m = reader.manifest();
-  Scene scene = a.scene.empty() ? m.scene : load_scene(a.scene);
+  Inputs in;
+  in.scene = a.scene.empty() ? m.scene : load_scene(a.scene);
   const int level = a.level < 0 ? default_level(m) : a.level;
   if (level >= m.levels)
     throw std::invalid_argument("--level: " + std::to_string(level) + " is beyond the dictionary's levels 0.." +
                                 std::to_string(m.levels - 1) + " (" + a.dictionary + "/manifest.json)");
-  CalibrationOptions o;
-  o.settings = TraceSettings::defaults_for(Splat::footprint);
-  o.settings.rays_per_lenslet = a.rays ? a.rays : defaults::calibration_rays_per_lenslet;
-  o.settings.binning = unsigned(m.base_binning) << level;
-  o.settings.photons_emitted = scene.photons_emitted;
-  o.max_steps = a.max_steps;
-  o.weight_floor = a.weight_floor;
-  o.threads = a.threads;
-  const AnalysisGrid grid = AnalysisGrid::of(scene.optics, o.settings.binning);
+  in.binning = unsigned(m.base_binning) << level;
+  const AnalysisGrid grid = AnalysisGrid::of(in.scene.optics, in.binning);
   if (grid.width != m.level_width(level) || grid.height != m.level_height(level))
     throw std::invalid_argument("the dictionary's level " + std::to_string(level) + " is " +
                                 std::to_string(m.level_width(level)) + " x " + std::to_string(m.level_height(level)) +
                                 " px (" + a.dictionary + "/manifest.json); the scene's sensor at binning " +
-                                std::to_string(o.settings.binning) + " is " + std::to_string(grid.width) + " x " +
+                                std::to_string(in.binning) + " is " + std::to_string(grid.width) + " x " +
                                 std::to_string(grid.height) + ": give the scene of this sensor (--scene)");
-  const auto free = calibration_parameters(scene.optics, split_commas(a.fit));
-
-  std::vector<MeasuredPsf> psfs;
   size_t taken = 0;
   for (size_t i = 0; i < m.grid.size(); ++i) {
     if (!reader.has(i)) continue;
     if (taken++ % a.every) continue;
     PsfLevel l = reader.read_level(i, level);
-    psfs.push_back({m.grid.position(i), std::move(l.p), reader.path_of(i)});
+    in.psfs.push_back({m.grid.position(i), std::move(l.p), reader.path_of(i), {}});
   }
+  in.what = std::to_string(in.psfs.size()) + " of " + std::to_string(taken) + " PSFs present (every " +
+            std::to_string(a.every) + ") at level " + std::to_string(level);
+  return in;
+}
+
+Inputs from_merged(const CalibrateArgs& a) {
+  if (a.scene.empty())
+    throw std::invalid_argument("--merged: give --scene, the nominal scene of the camera (merged PSFs name none)");
+  if (a.level >= 0) throw std::invalid_argument("--level: only with --dictionary (merged PSFs have one level)");
+  Inputs in;
+  in.scene = load_scene(a.scene);
+  in.binning = calibration_binning(in.scene.optics.pixel_um);
+  std::vector<MeasuredPsf> all = read_merged_psfs(a.merged, in.scene.optics, in.binning);
+  for (size_t i = 0; i < all.size(); i += a.every) in.psfs.push_back(std::move(all[i]));
+  in.what = std::to_string(in.psfs.size()) + " of " + std::to_string(all.size()) + " merged PSFs (every " +
+            std::to_string(a.every) + ") binned " + std::to_string(in.binning) + " x " + std::to_string(in.binning);
+  return in;
+}
+
+void run(const CalibrateArgs& a) {
+  if (a.dictionary.empty() == a.merged.empty())
+    throw std::invalid_argument("give the measured PSFs as --dictionary DIR or as --merged DIR (merge-hdr's output), "
+                                "one of them");
+  check_writable(a.out);
+  const std::initializer_list<NamedInput> inputs{
+      {"--dictionary", a.dictionary}, {"--merged", a.merged}, {"--scene", a.scene}};
+  check_not_input(a.out, "--out", inputs);
+  if (!a.csv.empty()) check_writable(a.csv), check_not_input(a.csv, "--csv", inputs);
+  if (!a.residuals.empty()) check_not_input(a.residuals, "--residuals", inputs);
+  Inputs in = a.dictionary.empty() ? from_merged(a) : from_dictionary(a);
+  const Scene& scene = in.scene;
+  std::vector<MeasuredPsf>& psfs = in.psfs;
+  CalibrationOptions o;
+  o.settings = TraceSettings::defaults_for(Splat::footprint);
+  o.settings.rays_per_lenslet = a.rays ? a.rays : defaults::calibration_rays_per_lenslet;
+  o.settings.binning = in.binning;
+  o.settings.photons_emitted = scene.photons_emitted;
+  o.max_steps = a.max_steps;
+  o.weight_floor = a.weight_floor;
+  o.threads = a.threads;
+  const AnalysisGrid grid = AnalysisGrid::of(scene.optics, o.settings.binning);
+  const auto free = calibration_parameters(scene.optics, split_commas(a.fit));
+
   std::fprintf(stderr,
-               "prism calibrate: %zu of %zu PSFs (every %u of the %zu present) at level %d (%.1f um pixels), "
-               "%zu parameters, footprint at %u cells per lenslet, on the CPU reference with %u threads\n",
-               psfs.size(), m.grid.size(), a.every, taken, level, grid.pixel_mm * 1e3, free.size(),
-               o.settings.rays(), o.threads);
+               "prism calibrate: %s (%.1f um pixels), %zu parameters, footprint at %u cells per lenslet, on the CPU "
+               "reference with %u threads\n",
+               in.what.c_str(), grid.pixel_mm * 1e3, free.size(), o.settings.rays(), o.threads);
   o.progress = [](const CalibrationStep& s) {
     std::fprintf(stderr, "prism calibrate: step %d: chi2 %.6g (damping %.3g), %.1f s\n", s.step, s.chi2, s.damping,
                  s.seconds);
@@ -177,7 +214,10 @@ void add_calibrate(CLI::App& app) {
       "fit the scene's as-built parameters (lenslet positions, focal lengths and tilts; lens-to-sensor and working "
       "distances; the sensor's offset and tilt) and a photon scale per PSF to a measured dictionary, by weighted least "
       "squares; writes the fitted scene, which every command accepts");
-  c->add_option("--dictionary", a->dictionary, "the measured (or synthesised) PSF dictionary's folder")->required();
+  c->add_option("--dictionary", a->dictionary, "the measured (or synthesised) PSF dictionary's folder");
+  c->add_option("--merged", a->merged,
+                "instead of --dictionary: the folder of PSFs prism dictionary merge-hdr wrote (<name>.exr and "
+                "<name>.json, the source position), at the camera's pixels; needs --scene");
   c->add_option("--scene", a->scene, "the nominal scene the fit starts from (built-in name or JSON file; default: the "
                                      "dictionary's own)");
   c->add_option("--out", a->out, "the fitted scene (JSON)")->required();

@@ -58,25 +58,61 @@ prism::TraceSettings model_settings() {
   return t;
 }
 
-// PSF theta of `truth`: footprint at 4x the model's cells, stratification 1,
-// made into 7 exposures and 3 darks of a 12-bit sensor (peak 2e6 DN/s,
-// 20 us .. 0.2 s) and merged as `prism dictionary merge-hdr` does.
-prism::MeasuredPsf measured(const prism::OpticalSystem& truth, const glm::dvec3& theta, uint64_t seed) {
+// The truth's rendering: footprint at 4x the model's cells, stratification 1.
+prism::TraceSettings truth_settings(unsigned binning) {
   prism::TraceSettings t = model_settings();
   t.rays_per_lenslet *= 4;
   t.stratification = 1;
-  const auto grid = prism::AnalysisGrid::of(truth, t.binning);
-  const auto img = prism::ref::psf(truth, t, theta);
+  t.binning = binning;
+  return t;
+}
+
+// PSF theta of `truth` as `prism camera capture-hdr` would record it: 7
+// exposures and 3 darks of a 12-bit sensor (peak 2e6 DN/s, 20 us .. 0.2 s).
+prism::HdrFrames exposures(const prism::OpticalSystem& truth, unsigned binning, const glm::dvec3& theta,
+                           uint64_t seed) {
+  const auto grid = prism::AnalysisGrid::of(truth, binning);
   std::vector<double> b(size_t(grid.width) * size_t(grid.height), 0.0);
   double peak = 0;
-  for (const auto& [key, px] : img.pixels) b[size_t(key)] = px[0], peak = std::max(peak, px[0]);
+  for (const auto& [key, px] : prism::ref::psf(truth, truth_settings(binning), theta).pixels)
+    b[size_t(key)] = px[0], peak = std::max(peak, px[0]);
   REQUIRE(peak > 0);
   for (double& v : b) v *= 2e6 / peak;
-  const auto frames = prism::simulate_hdr_frames(b, grid.width, grid.height, prism::log_spaced_times(20e-6, 0.2, 7),
-                                                 {0.2, 0.2, 0.2}, prism::SyntheticSensor{}, seed);
-  const auto merged = prism::ref::hdr_merge(frames, prism::HdrOptions{});
+  return prism::simulate_hdr_frames(b, grid.width, grid.height, prism::log_spaced_times(20e-6, 0.2, 7),
+                                    {0.2, 0.2, 0.2}, prism::SyntheticSensor{}, seed);
+}
+
+// ... merged as `prism dictionary merge-hdr` does.
+prism::MeasuredPsf measured(const prism::OpticalSystem& truth, const glm::dvec3& theta, uint64_t seed) {
+  const auto merged = prism::ref::hdr_merge(exposures(truth, model_settings().binning, theta, seed), {});
   return {theta, merged.psf, "synthetic (" + std::to_string(theta.x) + ", " + std::to_string(theta.y) + ", " +
                                  std::to_string(theta.z) + ")"};
+}
+
+// `prism calibrate --csv`'s table: every parameter of the default --fit in
+// order, within 3 sigma of the truth, and as the fitted scene has it.
+void check_table(const std::string& csv, const prism::OpticalSystem& truth, const prism::OpticalSystem& fitted) {
+  std::ifstream table(csv);
+  std::string line;
+  std::getline(table, line);
+  CHECK(line == "parameter,start,fitted,sigma,change_over_sigma");
+  for (const auto& p : prism::calibration_parameters(truth, prism::calibration_groups())) {
+    REQUIRE(std::getline(table, line));
+    CAPTURE(line);
+    REQUIRE(line.rfind(p.name() + ",", 0) == 0);
+    double start, value, sigma;
+    REQUIRE(std::sscanf(line.c_str() + p.name().size(), ",%lf,%lf,%lf", &start, &value, &sigma) == 3);
+    CHECK(std::abs(value - p.get(truth)) <= 3 * sigma);
+    CHECK(p.get(fitted) == doctest::Approx(value).epsilon(1e-9));
+  }
+  CHECK(!std::getline(table, line));
+}
+
+// Three lenslets of the row (f = 6, 7.5, 9 mm), for the command's tests.
+prism::Scene three_lenses(const std::string& name) {
+  prism::Scene s{name, nominal_row(3), {}, prism::defaults::photons_emitted};
+  s.optics.lenslets.resize(3);
+  return s;
 }
 
 // Sources over the field and the depths: near the face, where the images
@@ -148,10 +184,8 @@ TEST_CASE("calibration: parameter groups, names and errors") {
 TEST_CASE("prism calibrate: a dictionary of HDR-merged PSFs in, a scene every command accepts out") {
   namespace fs = std::filesystem;
   const fs::path dir = prism::test::scratch_dir() / "calibrate";
-  fs::remove_all(dir);
-  // Three lenslets (f = 6, 7.5, 9 mm); the dictionary's scene is the nominal one.
-  prism::Scene nominal{"row", nominal_row(3), {}, prism::defaults::photons_emitted};
-  nominal.optics.lenslets.resize(3);
+  // The dictionary's scene is the nominal one.
+  const prism::Scene nominal = three_lenses("row");
   const prism::OpticalSystem truth = as_built(nominal.optics);
   prism::DictionaryManifest m;
   m.scene = nominal;
@@ -180,22 +214,7 @@ TEST_CASE("prism calibrate: a dictionary of HDR-merged PSFs in, a scene every co
   CHECK(fitted.name == "row-calibrated");
   // Every parameter (the default --fit frees them all) within 3 sigma of the
   // truth, in the table and in the scene written.
-  std::ifstream table(csv);
-  std::string line;
-  std::getline(table, line);
-  CHECK(line == "parameter,start,fitted,sigma,change_over_sigma");
-  size_t rows = 0;
-  for (const auto& p : prism::calibration_parameters(truth, prism::calibration_groups())) {
-    REQUIRE(std::getline(table, line));
-    CAPTURE(line);
-    REQUIRE(line.rfind(p.name() + ",", 0) == 0);
-    double start, value, sigma;
-    REQUIRE(std::sscanf(line.c_str() + p.name().size(), ",%lf,%lf,%lf", &start, &value, &sigma) == 3);
-    CHECK(std::abs(value - p.get(truth)) <= 3 * sigma);
-    CHECK(p.get(fitted.optics) == doctest::Approx(value).epsilon(1e-9));
-    ++rows;
-  }
-  CHECK(rows == 3 * 5 + 6);
+  check_table(csv, truth, fitted.optics);
   for (const char* file : {"residual-0000.png", "residual-0005.png", "psfs.csv", "lenslets.csv", "lenslets.png"})
     CHECK_MESSAGE(fs::exists(dir / "residuals" / file), file);
 
@@ -211,4 +230,50 @@ TEST_CASE("prism calibrate: a dictionary of HDR-merged PSFs in, a scene every co
                                (dir / "dict" / "x.json").string());
   CHECK(bad.status != 0);
   CHECK(bad.output.find("--out") != std::string::npos);
+}
+
+TEST_CASE("prism calibrate --merged: capture-hdr stacks through merge-hdr to the fitted scene") {
+  namespace fs = std::filesystem;
+  const fs::path dir = prism::test::scratch_dir() / "calibrate-merged";
+  // A camera whose pixels are 110.4 um (the prototype's sensor binned 16 x
+  // 16 in the camera), so that its stacks stay small.
+  prism::Scene nominal = three_lenses("camera");
+  nominal.optics.sensor_width_px = 419, nominal.optics.sensor_height_px = 298;
+  nominal.optics.pixel_um = 6.9 * 16;
+  const std::string scene = (dir / "camera.json").string();
+  fs::create_directories(dir);
+  {
+    std::ofstream out(scene);
+    out << prism::to_json(nominal).dump(2) << '\n';
+  }
+  const prism::OpticalSystem truth = as_built(nominal.optics);
+  uint64_t seed = 30;
+  for (const glm::dvec3 theta : {glm::dvec3(-6, 0, 8), glm::dvec3(6, 0, 8), glm::dvec3(-6, 0, 20), glm::dvec3(6, 0, 20),
+                                 glm::dvec3(-6, 0, 35), glm::dvec3(6, 0, 35)}) {
+    prism::HdrStack stack;
+    stack.source_mm = theta;
+    stack.frames = exposures(truth, 1, theta, seed);
+    prism::write_hdr_stack((dir / "stacks" / ("p" + std::to_string(seed++))).string(), stack);
+  }
+  auto merge = prism::test::run_prism("dictionary merge-hdr --stacks " + (dir / "stacks").string() + " --out " +
+                                      (dir / "merged").string() + " --backend cpu");
+  INFO(merge.output);
+  REQUIRE(merge.status == 0);
+  const std::string out = (dir / "fitted.json").string(), csv = (dir / "params.csv").string();
+  auto run = prism::test::run_prism("calibrate --merged " + (dir / "merged").string() + " --scene " + scene + " --out " +
+                                    out + " --csv " + csv + " --threads 2");
+  INFO(run.output);
+  REQUIRE(run.status == 0);
+  CHECK(run.output.find("6 of 6 merged PSFs (every 1) binned 1 x 1") != std::string::npos);
+  check_table(csv, truth, prism::load_scene(out).optics);
+  // Merged PSFs name no scene, and have one level.
+  auto bad = prism::test::run_prism("calibrate --merged " + (dir / "merged").string() + " --out " + out);
+  CHECK(bad.status != 0);
+  CHECK(bad.output.find("--merged: give --scene") != std::string::npos);
+  bad = prism::test::run_prism("calibrate --merged " + (dir / "merged").string() + " --scene prototype --out " + out);
+  CHECK(bad.status != 0);
+  CHECK(bad.output.find("px; the scene's sensor is 6696 x 4764: give the scene of this camera") != std::string::npos);
+  bad = prism::test::run_prism("calibrate --out " + out);
+  CHECK(bad.status != 0);
+  CHECK(bad.output.find("--dictionary DIR or as --merged DIR") != std::string::npos);
 }
