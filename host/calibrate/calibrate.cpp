@@ -199,8 +199,7 @@ struct PsfTerms {
   std::vector<size_t> lens_pixels;
 };
 
-// The sums of all PSFs: chi2 and, with derivatives, the profiled gradient of
-// chi2 / 2 and its Gauss-Newton matrix (P x P, row-major).
+// The sums of all PSFs: chi2 and, with derivatives, Sums' three (below).
 struct Evaluation {
   bool ok = false;  // false when the parameters make a system the model cannot trace
   double chi2 = std::numeric_limits<double>::infinity();
