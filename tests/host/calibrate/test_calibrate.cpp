@@ -58,10 +58,11 @@ prism::TraceSettings model_settings() {
   return t;
 }
 
-// The truth's rendering: footprint at 4x the model's cells, stratification 1.
+// The truth's rendering: footprint at 4096 cells (4x the model's and the
+// command's 1024), stratification 1, in the sanitizer build too.
 prism::TraceSettings truth_settings(unsigned binning) {
   prism::TraceSettings t = model_settings();
-  t.rays_per_lenslet *= 4;
+  t.rays_per_lenslet = 4 * prism::defaults::calibration_rays_per_lenslet;
   t.stratification = 1;
   t.binning = binning;
   return t;
