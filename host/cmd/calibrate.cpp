@@ -110,6 +110,7 @@ Inputs from_merged(const CalibrateArgs& a) {
   in.scene = load_scene(a.scene);
   in.binning = calibration_binning(in.scene.optics.pixel_um);
   std::vector<MeasuredPsf> all = read_merged_psfs(a.merged, in.scene.optics, in.binning);
+  for (const auto& p : all) require_in_front(in.scene, p.theta_mm.z, p.name + "'s source");
   for (size_t i = 0; i < all.size(); i += a.every) in.psfs.push_back(std::move(all[i]));
   in.what = std::to_string(in.psfs.size()) + " of " + std::to_string(all.size()) + " merged PSFs (every " +
             std::to_string(a.every) + ") binned " + std::to_string(in.binning) + " x " + std::to_string(in.binning);

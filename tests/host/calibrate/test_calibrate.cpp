@@ -274,6 +274,17 @@ TEST_CASE("prism calibrate --merged: capture-hdr stacks through merge-hdr to the
   bad = prism::test::run_prism("calibrate --merged " + (dir / "merged").string() + " --scene prototype --out " + out);
   CHECK(bad.status != 0);
   CHECK(bad.output.find("px; the scene's sensor is 6696 x 4764: give the scene of this camera") != std::string::npos);
+  {  // a source behind the lenses
+    const fs::path sidecar = dir / "merged" / "p30.json";
+    std::ifstream in(sidecar);
+    nlohmann::json j = nlohmann::json::parse(in);
+    in.close();
+    j["source"]["depth_mm"] = -7.0;
+    std::ofstream(sidecar) << j.dump(2);
+  }
+  bad = prism::test::run_prism("calibrate --merged " + (dir / "merged").string() + " --scene " + scene + " --out " + out);
+  CHECK(bad.status != 0);
+  CHECK(bad.output.find("p30.exr's source: depth -7 mm is not in front of") != std::string::npos);
   bad = prism::test::run_prism("calibrate --out " + out);
   CHECK(bad.status != 0);
   CHECK(bad.output.find("--dictionary DIR or as --merged DIR") != std::string::npos);
