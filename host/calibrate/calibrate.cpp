@@ -15,6 +15,7 @@
 #include <unordered_map>
 
 #include "host/dictionary/store.h"                  // bin_level
+#include "host/util/format.h"
 #include "host/util/image_io.h"
 #include "host/util/json_file.h"
 #include "host/reconstruct/levenberg_marquardt.h"  // solve_spd
@@ -112,11 +113,9 @@ std::vector<CalibrationParameter> calibration_parameters(const OpticalSystem& s,
   std::vector<Param> chosen;
   for (const auto& name : names) {
     auto it = std::find_if(groups().begin(), groups().end(), [&](const Group& g) { return name == g.name; });
-    if (it == groups().end()) {
-      std::string all;
-      for (const auto& g : groups()) all += (all.empty() ? "" : ", ") + std::string(g.name);
-      throw std::invalid_argument("calibration: no parameter group '" + name + "'; the groups are " + all);
-    }
+    if (it == groups().end())
+      throw std::invalid_argument("calibration: no parameter group '" + name + "'; the groups are " +
+                                  join(calibration_groups()));
     for (Param p : it->params)
       if (std::find(chosen.begin(), chosen.end(), p) == chosen.end()) chosen.push_back(p);
   }

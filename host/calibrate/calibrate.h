@@ -12,16 +12,21 @@
 //   chi2 = sum_k sum_i w_ki (p_ki - s_k b_ki)^2,  w_ki = 1 / (p_ki + floor_k),
 // floor_k = defaults::calibration_weight_floor times the PSF's brightest
 // pixel: an HDR pixel's variance grows with its signal (shot noise) above a
-// floor. Each s_k has its optimum in closed form and is profiled out; the
-// geometric parameters are found by Levenberg-Marquardt on the profiled chi2
-// with its Gauss-Newton matrix (the Fisher information of the weighted fit,
-// the scales' share removed by their Schur complement).
+// floor. Pixels fainter than defaults::calibration_reliable_over_faintest
+// times the faintest value the HDR merge kept are left out (near its
+// threshold it keeps only upward fluctuations). Each s_k has its optimum in
+// closed form and is profiled out; the geometric parameters are found by
+// Levenberg-Marquardt on the profiled chi2 with its Gauss-Newton matrix H
+// (the scales' share removed by their Schur complement), first on pixels
+// 4x and 2x larger with the lens tilts held, then on the model's.
 //
-// Uncertainty: the inverse of that matrix times chi2 / dof, so the noise
-// level is the one the residuals show (the weights fix only its shape): a
-// model that cannot explain the PSFs reports larger uncertainties, not
-// smaller. chi2 / dof itself is the goodness of fit, per PSF and per
-// lenslet in the result.
+// Uncertainty: the sandwich H^-1 M H^-1, M = sum over pixels of (w r)^2 J J^T,
+// right whatever the variance's true shape (the weights fix only a guess of
+// it): a model that cannot explain the PSFs reports larger uncertainties,
+// not smaller. It takes pixels as independent; with few PSFs, where the
+// model's own errors run alike along an image's edges, it comes out about a
+// third small (README "Calibration"). chi2 / dof is the goodness of fit, per
+// PSF and per lenslet in the result.
 //
 // Derivatives: forward mode with respect to the scene's parameters
 // (ref::Tangents), each lenslet's image rendered alone so that its own
