@@ -10,12 +10,16 @@
 #include "spv/landing_points.spv.h"
 #include "spv/psf_footprint.spv.h"
 #include "spv/psf_footprint_as_built.spv.h"
+#include "spv/psf_footprint_calibrate.spv.h"
 #include "spv/psf_footprint_cut.spv.h"
 #include "spv/psf_footprint_cut_as_built.spv.h"
+#include "spv/psf_footprint_cut_calibrate.spv.h"
 #include "spv/psf_footprint_split.spv.h"
 #include "spv/psf_footprint_split_as_built.spv.h"
+#include "spv/psf_footprint_split_calibrate.spv.h"
 #include "spv/psf_splat.spv.h"
 #include "spv/psf_splat_as_built.spv.h"
+#include "spv/psf_splat_calibrate.spv.h"
 
 namespace prism {
 
@@ -25,6 +29,7 @@ constexpr uint32_t kSplatGroup = 64;
 constexpr uint32_t kReduceChunk = 256 * 16;  // pixels per reduce workgroup (fisher_reduce.comp)
 constexpr uint32_t kPartialFloats = 16;
 constexpr uint64_t kPixelBytes = 32;  // b, grad b from ray half A, from half B, unused (psf_splat.comp)
+constexpr uint64_t kKeptImageBytes = 16ull << 20;  // a single source's image kept between renders up to this size
 
 template <size_t N> std::span<const uint32_t> spirv(const uint32_t (&code)[N]) { return {code, N}; }
 
@@ -48,6 +53,7 @@ std::vector<shared::Lenslet> device_lenslets(const OpticalSystem& sys, const Tra
     d.first_ray = uint32_t(first);
     d.tilt_x_rad = float(l.tilt_x_deg * M_PI / 180.0);
     d.tilt_y_rad = float(l.tilt_y_deg * M_PI / 180.0);
+    d.index = uint32_t(i);
     first += uint64_t(d.strata) * d.strata;
     if (first > 0xffffffffull) throw std::invalid_argument("more than 2^32 rays per source: lower --rays");
   }
@@ -60,12 +66,20 @@ double PixelImage::photons() const {
   return s;
 }
 
-// The splat kernel of the settings (both take the same buffers and
-// constants), in its as-built variant (shaders/CMakeLists.txt) when a design
-// traced is as built.
-std::span<const uint32_t> splat_spirv(const TraceSettings& t, bool as_built) {
-  if (t.splat == Splat::footprint) return as_built ? spirv(spv_psf_footprint_as_built) : spirv(spv_psf_footprint);
-  return as_built ? spirv(spv_psf_splat_as_built) : spirv(spv_psf_splat);
+// Which variant of the splat kernels a forward model runs
+// (shaders/CMakeLists.txt): the plain one, the as-built one when a design
+// traced is as built, the calibrate one for derivatives by scene parameters.
+enum class Variant { plain, as_built, calibrate };
+template <size_t A, size_t B, size_t C>
+std::span<const uint32_t> pick_variant(Variant v, const uint32_t (&plain)[A], const uint32_t (&as_built)[B],
+                                  const uint32_t (&calibrate)[C]) {
+  return v == Variant::calibrate ? spirv(calibrate) : v == Variant::as_built ? spirv(as_built) : spirv(plain);
+}
+// The splat kernel of the settings (both take the same buffers and constants).
+std::span<const uint32_t> splat_spirv(const TraceSettings& t, Variant v) {
+  if (t.splat == Splat::footprint)
+    return pick_variant(v, spv_psf_footprint, spv_psf_footprint_as_built, spv_psf_footprint_calibrate);
+  return pick_variant(v, spv_psf_splat, spv_psf_splat_as_built, spv_psf_splat_calibrate);
 }
 uint32_t splat_buffers(const TraceSettings& t) { return t.splat == Splat::footprint ? 7 : 5; }
 std::string kernel_name(const TraceSettings& t, bool values_only) {
@@ -81,6 +95,18 @@ std::vector<uint32_t> specialisation(const OpticalSystem& s, bool derivatives) {
 
 bool any_as_built(const std::vector<OpticalSystem>& designs) {
   return std::any_of(designs.begin(), designs.end(), [](const OpticalSystem& s) { return s.as_built(); });
+}
+
+// The trace constants that come from the scene's geometry (set_scene may
+// change them).
+void set_scene_params(shared::TraceParams& p, const OpticalSystem& s) {
+  p.lens_to_sensor_mm = float(s.lens_to_sensor_mm);
+  p.working_distance_mm = float(s.working_distance_mm);
+  p.sensor_offset_x_mm = float(s.sensor_pose.offset_x_mm);
+  p.sensor_offset_y_mm = float(s.sensor_pose.offset_y_mm);
+  p.sensor_tilt_x_rad = float(s.sensor_pose.tilt_x_deg * M_PI / 180.0);
+  p.sensor_tilt_y_rad = float(s.sensor_pose.tilt_y_deg * M_PI / 180.0);
+  p.airy_half_side_mm_times_diameter = float(s.airy_half_side_mm_times_diameter());
 }
 
 // The lenslets of every design, one after the other, and each design's range.
@@ -133,7 +159,7 @@ void check_batchable(const std::vector<OpticalSystem>& designs) {
 struct ForwardVulkan::Impl {
   vk::Context& ctx;
   OpticalSystem sys;
-  bool as_built;  // any design traced: the kernels' as-built variants
+  Variant variant;  // plain; as built when any design traced is; calibrate
   TraceSettings settings;
   shared::TraceParams params{};
   DesignBuffers layout;
@@ -169,19 +195,18 @@ struct ForwardVulkan::Impl {
     vk::Kernel split, split_values, cut, cut_values;
     List splits, cuts;
     uint32_t chunks = 1;  // the first pass over the cells in this many chunks (record_splat)
-    static std::span<const uint32_t> split_spirv(bool as_built) {
-      return as_built ? spirv(spv_psf_footprint_split_as_built) : spirv(spv_psf_footprint_split);
+    static std::span<const uint32_t> split_spirv(Variant v) {
+      return pick_variant(v, spv_psf_footprint_split, spv_psf_footprint_split_as_built, spv_psf_footprint_split_calibrate);
     }
-    static std::span<const uint32_t> cut_spirv(bool as_built) {
-      return as_built ? spirv(spv_psf_footprint_cut_as_built) : spirv(spv_psf_footprint_cut);
+    static std::span<const uint32_t> cut_spirv(Variant v) {
+      return pick_variant(v, spv_psf_footprint_cut, spv_psf_footprint_cut_as_built, spv_psf_footprint_cut_calibrate);
     }
-    Footprint(vk::Context& c, const OpticalSystem& sys, bool as_built, uint32_t first_capacity)
-        : split(c, "psf_footprint_split", split_spirv(as_built), 7, sizeof(shared::TraceParams),
-                specialisation(sys, true)),
-          split_values(c, "psf_footprint_split (values)", split_spirv(as_built), 7, sizeof(shared::TraceParams),
+    Footprint(vk::Context& c, const OpticalSystem& sys, Variant v, uint32_t first_capacity)
+        : split(c, "psf_footprint_split", split_spirv(v), 7, sizeof(shared::TraceParams), specialisation(sys, true)),
+          split_values(c, "psf_footprint_split (values)", split_spirv(v), 7, sizeof(shared::TraceParams),
                        specialisation(sys, false)),
-          cut(c, "psf_footprint_cut", cut_spirv(as_built), 7, sizeof(shared::TraceParams), specialisation(sys, true)),
-          cut_values(c, "psf_footprint_cut (values)", cut_spirv(as_built), 7, sizeof(shared::TraceParams),
+          cut(c, "psf_footprint_cut", cut_spirv(v), 7, sizeof(shared::TraceParams), specialisation(sys, true)),
+          cut_values(c, "psf_footprint_cut (values)", cut_spirv(v), 7, sizeof(shared::TraceParams),
                      specialisation(sys, false)) {
       splits.grow(c, first_capacity);
       cuts.grow(c, first_capacity);
@@ -189,23 +214,34 @@ struct ForwardVulkan::Impl {
   };
   std::unique_ptr<Footprint> footprint;
 
-  Impl(vk::Context& c, const std::vector<OpticalSystem>& all, const TraceSettings& t, const AnalysisGrid& grid,
-       uint64_t budget)
-      : Impl(c, all, t, grid, budget, design_buffers(all, t)) {}
+  // A single source's render (render_bands), kept between calls: its source,
+  // image buffer, stream and host copy; [0] values only, [1] with
+  // derivatives. Calibration renders hundreds of small images per PSF, and
+  // making these again each time cost about as much as its kernels.
+  struct Scratch {
+    std::unique_ptr<vk::Buffer> source, images;
+    std::unique_ptr<vk::Stream> stream;
+    std::vector<float> pixels;
+  };
+  Scratch scratch[2];
 
   Impl(vk::Context& c, const std::vector<OpticalSystem>& all, const TraceSettings& t, const AnalysisGrid& grid,
-       uint64_t budget, DesignBuffers b)
+       uint64_t budget, Variant v)
+      : Impl(c, all, t, grid, budget, v, design_buffers(all, t)) {}
+
+  Impl(vk::Context& c, const std::vector<OpticalSystem>& all, const TraceSettings& t, const AnalysisGrid& grid,
+       uint64_t budget, Variant v, DesignBuffers b)
       : ctx(c),
         sys(all.front()),
-        as_built(any_as_built(all)),
+        variant(v),
         settings(t),
         layout(std::move(b)),
         lenses(c, layout.lenses.size() * sizeof(shared::Lenslet)),
         designs(c, layout.ranges.size() * sizeof(shared::DesignRange)),
         design_zero(c, sizeof(uint32_t)),
-        splat(c, kernel_name(t, false), splat_spirv(t, as_built), splat_buffers(t), sizeof(shared::TraceParams),
+        splat(c, kernel_name(t, false), splat_spirv(t, variant), splat_buffers(t), sizeof(shared::TraceParams),
               specialisation(sys, true)),
-        splat_values(c, kernel_name(t, true), splat_spirv(t, as_built), splat_buffers(t), sizeof(shared::TraceParams),
+        splat_values(c, kernel_name(t, true), splat_spirv(t, variant), splat_buffers(t), sizeof(shared::TraceParams),
                      specialisation(sys, false)),
         reduce(c, "fisher_reduce", spirv(spv_fisher_reduce), 2, 3 * sizeof(uint32_t),
                {uint32_t(t.estimator == FisherEstimator::split ? shared::FISHER_SPLIT : shared::FISHER_NAIVE)}) {
@@ -218,24 +254,19 @@ struct ForwardVulkan::Impl {
     params.cell_first = 0;
     params.cell_count = layout.max_rays;
 
+    set_scene_params(params, s);
+    shared::set_tangents(params, source_tangents);
     params.pixel_mm = float(grid.pixel_mm);
     params.sensor_half_w_mm = float(0.5 * s.sensor_width_mm());
     params.sensor_half_h_mm = float(0.5 * s.sensor_height_mm());
-    params.lens_to_sensor_mm = float(s.lens_to_sensor_mm);
-    params.working_distance_mm = float(s.working_distance_mm);
     params.photons_per_sr = float(t.photons_emitted * s.effects.detection_efficiency / (4.0 * M_PI));
     params.scint_index = float(s.effects.scintillator_index);
     params.holder_bore_mm = float(s.effects.holder_bore_mm);
     params.source_sigma_mm = float(s.effects.source_sigma_mm);
     params.stratification = t.stratification;
-    params.airy_half_side_mm_times_diameter = float(s.airy_half_side_mm_times_diameter());
     params.grid_w = grid.width;
     params.grid_h = grid.height;
     params.lens_count = uint32_t(layout.lenses.size());
-    params.sensor_offset_x_mm = float(s.sensor_pose.offset_x_mm);
-    params.sensor_offset_y_mm = float(s.sensor_pose.offset_y_mm);
-    params.sensor_tilt_x_rad = float(s.sensor_pose.tilt_x_deg * M_PI / 180.0);
-    params.sensor_tilt_y_rad = float(s.sensor_pose.tilt_y_deg * M_PI / 180.0);
 
     // One image buffer of at most maxStorageBufferRange and the budget: bands
     // of rows when one image is larger, batches of sources when it is smaller.
@@ -247,11 +278,12 @@ struct ForwardVulkan::Impl {
     sources_per_batch = uint32_t(std::clamp<uint64_t>(cap / image_bytes, 1, 65535));
     list_limit_bytes = std::max<uint64_t>(cap, 64u << 10);
     if (t.splat == Splat::footprint)
-      footprint = std::make_unique<Footprint>(c, sys, as_built, uint32_t(std::min<uint64_t>(1u << 14, max_list_entries())));
+      footprint = std::make_unique<Footprint>(c, sys, variant, uint32_t(std::min<uint64_t>(1u << 14, max_list_entries())));
   }
 
   // Record the splat of the dispatch's sources (p.source_offset, count) into
-  // `images` (zeroed), band p; leaves every pixel's value there, ready for
+  // `images` (zeroed), band p, of the rays (cells) [p.cell_first,
+  // p.cell_first + p.cell_count); leaves every pixel's value there, ready for
   // what the caller records next. The footprint splat needs the counts of its
   // lists on the host between its passes: it submits, and returns the kernel
   // milliseconds submitted so far.
@@ -275,15 +307,16 @@ struct ForwardVulkan::Impl {
     // chunks, each with lists that fit. An overflow grows the lists (or, at
     // the limit, doubles the chunks) and starts again from a zeroed image.
     const uint64_t max_entries = max_list_entries();
+    const uint32_t begin = p.cell_first, end = p.cell_first + std::min(p.cell_count, params.total_rays - p.cell_first);
     double ms = 0;
     for (;;) {
-      const uint32_t per_chunk = uint32_t((uint64_t(params.total_rays) + f.chunks - 1) / f.chunks);
+      const uint32_t per_chunk = uint32_t((uint64_t(end - begin) + f.chunks - 1) / f.chunks);
       uint64_t need = 0;  // entries a list needed and did not have
-      for (uint32_t first = 0; first < params.total_rays && need == 0; first += per_chunk) {
+      for (uint32_t first = begin; first < end && need == 0; first += per_chunk) {
         shared::TraceParams q = p;
         q.cell_first = first;
-        q.cell_count = std::min(per_chunk, params.total_rays - first);
-        if (first > 0) ms += stream.submit();  // the previous chunk's cut pass before the lists are reset
+        q.cell_count = std::min(per_chunk, end - first);
+        if (first > begin) ms += stream.submit();  // the previous chunk's cut pass before the lists are reset
         stream.fill_zero(*f.splits.buffer, 0, 4);
         stream.fill_zero(*f.cuts.buffer, 0, 4);
         stream.barrier();
@@ -323,7 +356,7 @@ struct ForwardVulkan::Impl {
         f.splits.grow(ctx, uint32_t(max_entries));
         f.cuts.grow(ctx, uint32_t(max_entries));
         f.chunks *= 2;
-        if (f.chunks > params.total_rays)
+        if (f.chunks > end - begin)
           throw vk::Error("footprint splat: one cell's triangles overflow a storage buffer; lower the sources per batch");
       }
       stream.fill_zero(images);
@@ -348,15 +381,54 @@ uint64_t ForwardVulkan::device_bytes_at_most(const AnalysisGrid& grid, Splat spl
 }
 
 ForwardVulkan::ForwardVulkan(vk::Context& ctx, const OpticalSystem& sys, const TraceSettings& settings,
-                             uint64_t image_budget_bytes)
-    : ForwardVulkan(ctx, std::vector<OpticalSystem>{sys}, settings, image_budget_bytes) {}
+                             uint64_t image_budget_bytes, Derivatives derivatives) {
+  validate(sys);
+  grid_ = AnalysisGrid::of(sys, settings.binning);
+  const Variant v = derivatives == Derivatives::scene ? Variant::calibrate
+                    : sys.as_built()                  ? Variant::as_built
+                                                      : Variant::plain;
+  impl_ = std::make_unique<Impl>(ctx, std::vector<OpticalSystem>{sys}, settings, grid_, image_budget_bytes, v);
+}
 
 ForwardVulkan::ForwardVulkan(vk::Context& ctx, const std::vector<OpticalSystem>& designs,
                              const TraceSettings& settings, uint64_t image_budget_bytes) {
   check_batchable(designs);
   for (const auto& d : designs) validate(d);
   grid_ = AnalysisGrid::of(designs.front(), settings.binning);
-  impl_ = std::make_unique<Impl>(ctx, designs, settings, grid_, image_budget_bytes);
+  impl_ = std::make_unique<Impl>(ctx, designs, settings, grid_, image_budget_bytes,
+                                 any_as_built(designs) ? Variant::as_built : Variant::plain);
+}
+
+void ForwardVulkan::set_scene(const OpticalSystem& sys) {
+  Impl& m = *impl_;
+  if (m.layout.ranges.size() != 1) throw std::logic_error("set_scene: a forward model of several designs");
+  const OpticalSystem& was = m.sys;
+  const Effects &a = was.effects, &b = sys.effects;
+  const char* what = nullptr;
+  if (sys.lenslets.size() != was.lenslets.size())
+    what = "the number of lenslets";
+  else if (!std::equal(sys.lenslets.begin(), sys.lenslets.end(), was.lenslets.begin(),
+                       [](const LensletGeometry& x, const LensletGeometry& y) { return x.diameter_mm == y.diameter_mm; }))
+    what = "a lenslet's diameter";
+  else if (sys.sensor_width_px != was.sensor_width_px || sys.sensor_height_px != was.sensor_height_px ||
+           sys.pixel_um != was.pixel_um)
+    what = "the sensor";
+  else if (sys.lens_model != was.lens_model || sys.curved_toward_sensor != was.curved_toward_sensor ||
+           sys.glass_index != was.glass_index || sys.edge_thickness_mm != was.edge_thickness_mm)
+    what = "the lens model";
+  else if (a.scintillator_refraction != b.scintillator_refraction || a.holder_vignetting != b.holder_vignetting ||
+           a.source_extent != b.source_extent || a.diffraction != b.diffraction ||
+           a.scintillator_index != b.scintillator_index || a.holder_bore_mm != b.holder_bore_mm ||
+           a.source_sigma_mm != b.source_sigma_mm || a.detection_efficiency != b.detection_efficiency)
+    what = "the effects";
+  else if (sys.as_built() && m.variant == Variant::plain)
+    what = "being as built (the forward model was made for a nominal scene)";
+  if (what) throw std::invalid_argument(std::string("set_scene: the new scene differs in ") + what);
+  validate(sys);
+  m.sys = sys;
+  m.layout = design_buffers({sys}, m.settings);
+  m.lenses.upload(std::span<const shared::Lenslet>(m.layout.lenses));
+  set_scene_params(m.params, sys);
 }
 
 ForwardVulkan::~ForwardVulkan() = default;
@@ -427,23 +499,34 @@ std::vector<FisherResult> ForwardVulkan::fisher(std::span<const glm::dvec3> thet
 }
 
 // Render one source band by band with `kernel` (pixel_floats floats per
-// pixel); hand each band's pixels to consume(first_row, rows, pixels).
+// pixel), from constants `base` (its tangents and cells); hand each band's
+// pixels to consume(first_row, rows, pixels).
 template <class Consume>
 double render_bands(ForwardVulkan::Impl& m, const AnalysisGrid& grid, bool derivatives, const glm::dvec3& theta,
-                    Consume&& consume) {
+                    const shared::TraceParams& base, Consume&& consume) {
   const uint32_t pixel_floats = derivatives ? 8 : 1;
-  glm::vec4 src(glm::vec3(theta), 0.0f);
-  vk::Buffer sources(m.ctx, sizeof(glm::vec4));
-  sources.upload(&src, sizeof(src));
   // Bands as tall as one buffer allows at this pixel size.
   const uint64_t band_bytes = uint64_t(m.band_rows) * grid.width * kPixelBytes;
   const uint32_t rows = uint32_t(std::min<uint64_t>(grid.height, band_bytes / (uint64_t(grid.width) * pixel_floats * 4)));
-  vk::Buffer images(m.ctx, uint64_t(grid.width) * rows * pixel_floats * sizeof(float));
-  std::vector<float> pixels(size_t(grid.width) * rows * pixel_floats);
-  vk::Stream stream(m.ctx);
+  const uint64_t image_bytes = uint64_t(grid.width) * rows * pixel_floats * sizeof(float);
+  // Large images (full-resolution dictionaries) are not kept: the memory
+  // estimates count one image buffer (device_bytes_at_most).
+  ForwardVulkan::Impl::Scratch temporary;
+  ForwardVulkan::Impl::Scratch& s = image_bytes <= kKeptImageBytes ? m.scratch[derivatives ? 1 : 0] : temporary;
+  if (!s.images) {
+    s.source = std::make_unique<vk::Buffer>(m.ctx, sizeof(glm::vec4));
+    s.images = std::make_unique<vk::Buffer>(m.ctx, image_bytes);
+    s.stream = std::make_unique<vk::Stream>(m.ctx);
+    s.pixels.resize(size_t(grid.width) * rows * pixel_floats);
+  }
+  const glm::vec4 src(glm::vec3(theta), 0.0f);
+  s.source->upload(&src, sizeof(src));
+  vk::Buffer &sources = *s.source, &images = *s.images;
+  vk::Stream& stream = *s.stream;
+  std::vector<float>& pixels = s.pixels;
   double ms = 0;
   for (uint32_t row0 = 0; row0 < uint32_t(grid.height); row0 += rows) {
-    shared::TraceParams p = m.params;
+    shared::TraceParams p = base;
     p.band_row0 = int(row0);
     p.band_rows = int(std::min<uint32_t>(rows, uint32_t(grid.height) - row0));
     p.source_offset = 0;
@@ -458,9 +541,25 @@ double render_bands(ForwardVulkan::Impl& m, const AnalysisGrid& grid, bool deriv
   return ms;
 }
 
-PixelImage ForwardVulkan::psf(const glm::dvec3& theta) {
+PixelImage ForwardVulkan::psf(const glm::dvec3& theta) { return psf(theta, source_tangents, -1); }
+
+PixelImage ForwardVulkan::psf(const glm::dvec3& theta, const Tangents& tangents, int only_lens) {
+  Impl& m = *impl_;
+  shared::TraceParams base = m.params;
+  if (tangents != source_tangents || only_lens >= 0) {
+    if (m.variant != Variant::calibrate)
+      throw std::logic_error("ForwardVulkan::psf: derivatives by scene parameters need Derivatives::scene");
+    shared::set_tangents(base, tangents);
+  }
+  if (only_lens >= 0) {
+    if (size_t(only_lens) >= m.layout.lenses.size())
+      throw std::invalid_argument("ForwardVulkan::psf: no lenslet " + std::to_string(only_lens));
+    const shared::Lenslet& l = m.layout.lenses[size_t(only_lens)];
+    base.cell_first = l.first_ray;
+    base.cell_count = l.strata * l.strata;
+  }
   PixelImage img{grid_.width, grid_.height, grid_.pixel_mm, std::vector<float>(size_t(grid_.width) * grid_.height * 4)};
-  last_kernel_ms_ = render_bands(*impl_, grid_, true, theta, [&](uint32_t row0, uint32_t rows, const float* q) {
+  last_kernel_ms_ = render_bands(m, grid_, true, theta, base, [&](uint32_t row0, uint32_t rows, const float* q) {
     // Keep b and the mean of the two half-ray gradient estimates.
     float* out = &img.data[size_t(row0) * grid_.width * 4];
     for (size_t i = 0; i < size_t(rows) * grid_.width; ++i, q += 8) {
@@ -473,7 +572,7 @@ PixelImage ForwardVulkan::psf(const glm::dvec3& theta) {
 
 std::vector<float> ForwardVulkan::psf_values(const glm::dvec3& theta) {
   std::vector<float> out(size_t(grid_.width) * grid_.height);
-  last_kernel_ms_ = render_bands(*impl_, grid_, false, theta, [&](uint32_t row0, uint32_t rows, const float* q) {
+  last_kernel_ms_ = render_bands(*impl_, grid_, false, theta, impl_->params, [&](uint32_t row0, uint32_t rows, const float* q) {
     std::copy_n(q, size_t(rows) * grid_.width, &out[size_t(row0) * grid_.width]);
   });
   return out;

@@ -31,8 +31,12 @@ struct PixelImage {
 class ForwardVulkan {
  public:
   static constexpr uint64_t default_image_budget_bytes = 256ull << 20;
+  // What the kernels' derivatives can be taken with respect to: the source's
+  // position, or any three scene parameters a call names (calibration: the
+  // kernels' calibrate variants, which also trace the as-built path).
+  enum class Derivatives { source, scene };
   ForwardVulkan(vk::Context& ctx, const OpticalSystem& sys, const TraceSettings& settings,
-                uint64_t image_budget_bytes = default_image_budget_bytes);
+                uint64_t image_budget_bytes = default_image_budget_bytes, Derivatives derivatives = Derivatives::source);
   // Several designs traced in the same dispatches (design sweeps). They must
   // share the sensor, distances, lens model and effects; only the lenslets
   // differ. Each design traces the very rays it would trace alone.
@@ -50,6 +54,15 @@ class ForwardVulkan {
   // Source i through design design_of[i].
   std::vector<FisherResult> fisher(std::span<const glm::dvec3> theta, std::span<const uint32_t> design_of);
   PixelImage psf(const glm::dvec3& theta);
+  // b and d b/d(tangents) (the mean of the two halves' estimates), of
+  // lenslet `only_lens` alone (its very rays; -1: every lenslet). Other than
+  // the source's tangents of every lenslet, it needs Derivatives::scene.
+  PixelImage psf(const glm::dvec3& theta, const Tangents& tangents, int only_lens = -1);
+  // Trace another scene with the same kernels: the same lenslets (count,
+  // diameters), lens model, effects and sensor, with other positions, focal
+  // lengths, tilts, distances and sensor pose (calibration's steps; a tilted
+  // scene needs the as-built kernels that Derivatives::scene always has).
+  void set_scene(const OpticalSystem& sys);
   // Expected photons per pixel only, row-major: 4 bytes per pixel on the
   // device instead of 32 (no derivatives); for dictionaries and events.
   std::vector<float> psf_values(const glm::dvec3& theta);

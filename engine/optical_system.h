@@ -2,6 +2,7 @@
 // sensor, distances and the effects to simulate. Scenes (host/scene/scene.h) are
 // parsed into this; the engine never reads files.
 #pragma once
+#include <array>
 #include <string>
 #include <vector>
 
@@ -113,6 +114,25 @@ const char* to_string(FisherEstimator e);
 enum class Splat { point, footprint };
 const char* to_string(Splat s);
 Splat splat_from_string(const std::string& s);  // throws naming the choices
+
+// What the three derivatives of a forward model are taken with respect to:
+// the source position (the default), or parameters of the scene
+// (calibration, issue 18). Units: mm for positions and distances, degrees
+// for tilts. A lens parameter names its lenslet; lens = -1 takes every
+// lenslet's own (the image's derivative is then the sum of each lenslet's).
+// The kernels' PARAM_* (shaders/common/optics.glsl) follow this order.
+enum class SceneParam {
+  source_x, source_y, source_depth,
+  lens_x, lens_y, lens_focal, lens_tilt_x, lens_tilt_y,
+  lens_to_sensor, working_distance, sensor_offset_x, sensor_offset_y, sensor_tilt_x, sensor_tilt_y
+};
+struct Tangent {
+  SceneParam param;
+  int lens = -1;
+  bool operator==(const Tangent&) const = default;
+};
+using Tangents = std::array<Tangent, 3>;
+inline constexpr Tangents source_tangents{{{SceneParam::source_x}, {SceneParam::source_y}, {SceneParam::source_depth}}};
 
 // Analysis settings of one forward-model run.
 struct TraceSettings {

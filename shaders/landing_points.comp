@@ -21,7 +21,8 @@ void main() {
   uint i = gl_GlobalInvocationID.x;
   if (i >= ray_count) return;
   Ray ray = Ray(dv_const(rays[2u * i].xyz), dv_const(rays[2u * i + 1u].xyz), d_const(1.0f));
-  Hit hit = (LENS_MODEL == LENS_REAL) ? trace_real(ray, lens, 0.0f, lens_to_sensor_mm, true)
-                                      : trace_thin(ray, lens, 0.0f, lens_to_sensor_mm, true);
+  LensShape g = lens_shape(lens, vec3(0.0f), vec3(0.0f), vec3(0.0f));
+  Dual to_sensor = d_const(lens_to_sensor_mm);
+  Hit hit = (LENS_MODEL == LENS_REAL) ? trace_real(ray, g, 0.0f, to_sensor, true) : trace_thin(ray, g, 0.0f, to_sensor, true);
   hits[i] = vec4(hit.x_mm.v, hit.y_mm.v, hit.ok ? 1.0f : 0.0f, 0.0f);
 }

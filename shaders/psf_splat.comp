@@ -21,7 +21,9 @@ void main() {
   vec3 theta = sources[P.source_offset + s].xyz;
   uint image_base = s * uint(P.grid_w) * uint(P.band_rows) * PIXEL_FLOATS;
   uint stride = gl_NumWorkGroups.x * gl_WorkGroupSize.x;
-  for (uint r = gl_GlobalInvocationID.x; r < total; r += stride) {
+  // This pass's rays (the host takes one lenslet's alone for calibration).
+  uint end = min(total, P.cell_first + P.cell_count);
+  for (uint r = P.cell_first + gl_GlobalInvocationID.x; r < end; r += stride) {
     uint lens_index = lens_of(design, r);
     uint sample_index = r - lenses[lens_index].first_ray;
     // Hash by the lens's index within its design: a design traces the same

@@ -18,22 +18,12 @@
 
 namespace prism::ref {
 
-// What the three derivatives of a reference trace are taken with respect to:
-// the source position (the default), or parameters of the scene
-// (calibration, issue 18). Units: mm for positions and distances, degrees
-// for tilts. A lens parameter names its lenslet; lens = -1 takes every
-// lenslet's own (the image's derivative is then the sum of each lenslet's).
-enum class Param {
-  source_x, source_y, source_depth,
-  lens_x, lens_y, lens_focal, lens_tilt_x, lens_tilt_y,
-  lens_to_sensor, working_distance, sensor_offset_x, sensor_offset_y, sensor_tilt_x, sensor_tilt_y
-};
-struct Tangent {
-  Param param;
-  int lens = -1;
-};
-using Tangents = std::array<Tangent, 3>;
-inline constexpr Tangents source_tangents{{{Param::source_x}, {Param::source_y}, {Param::source_depth}}};
+// What the three derivatives of a reference trace are taken with respect to
+// (engine/optical_system.h).
+using Param = SceneParam;
+using prism::source_tangents;
+using prism::Tangent;
+using prism::Tangents;
 
 // Per touched pixel, keyed by row * grid_width + col: expected photons b, and
 // d b/d(x, y, depth) (or the tangents') estimated from each half of the rays (checkerboard of

@@ -1,14 +1,15 @@
 // Forward-mode dual numbers: a value and its gradient with respect to the
-// source position theta = (x, y, depth). Written in the GLSL subset that also
-// compiles as C++ with GLM (no operator overloading, no swizzles, float
-// literals with an f suffix, structs returned by value), so the CPU side can
-// run the very same functions (see engine/shared_math.h).
+// source position theta = (x, y, depth), or with respect to three scene
+// parameters in the calibrate kernels (optics.glsl). Written in the GLSL
+// subset that also compiles as C++ with GLM (no operator overloading, no
+// swizzles, float literals with an f suffix, structs returned by value), so
+// the CPU side can run the very same functions (see engine/shared_math.h).
 #ifndef PRISM_DUAL_GLSL
 #define PRISM_DUAL_GLSL
 
 struct Dual {
   float v;  // value
-  vec3 d;   // d(value)/d(x, y, depth)
+  vec3 d;   // d(value)/d(x, y, depth), or d/d(the three scene parameters)
 };
 
 PRISM_FN Dual d_const(float v) { return Dual(v, vec3(0.0f)); }
@@ -28,6 +29,8 @@ PRISM_FN Dual d_sqrt(Dual a) {
   // of quantities bounded away from zero (lengths, cosines of refracted rays).
   return Dual(s, a.d * (0.5f / s));
 }
+PRISM_FN Dual d_sin(Dual a) { return Dual(sin(a.v), a.d * cos(a.v)); }
+PRISM_FN Dual d_cos(Dual a) { return Dual(cos(a.v), a.d * -sin(a.v)); }
 
 // A point or direction whose components are duals.
 struct DVec3 {

@@ -5,7 +5,8 @@
 // Coordinates (millimetres): z along the optical axis; the lens plane is z = 0,
 // the sensor is at z = lens_to_sensor_mm, the scintillator face at
 // z = -working_distance_mm. A source theta = (x, y, depth) sits at
-// (x, y, -(depth + working_distance_mm)). Every dual carries d/d(x, y, depth).
+// (x, y, -(depth + working_distance_mm)). Every dual carries d/d(x, y, depth),
+// or in the calibrate kernels d/d(three scene parameters) (seed below).
 //
 // Same GLSL/C++ subset as dual.glsl. Layouts are std430 and checked by
 // static_assert on the C++ side (engine/shared_math.h).
@@ -20,6 +21,15 @@
 // nominal kernel, dead as it is there, it still cost lavapipe's JIT a third more.
 #ifndef PRISM_AS_BUILT
 #define PRISM_AS_BUILT 1
+#endif
+// Calibration (issue 18): the splat kernels' calibrate variants
+// (PRISM_CALIBRATE=1, always with the as-built path) take the duals' three
+// slots with respect to the scene parameters the push constants name
+// (TraceParams.tangent0..2) instead of the source position. Elsewhere the
+// scene's parameters enter as duals of constant zero gradient, which the
+// compiler folds away.
+#ifndef PRISM_CALIBRATE
+#define PRISM_CALIBRATE 0
 #endif
 
 const int LENS_THIN = 0;  // ideal thin lens: paraxial deflection by -h/f
@@ -39,7 +49,7 @@ struct Lenslet {
   uint first_ray;             // index of its first ray (or footprint cell) among its design's
   float tilt_x_rad;           // as built: turned about its centre, about x, then
   float tilt_y_rad;           //   about y (tilt_matrix; traced with AS_BUILT only)
-  uint pad_;                  // std430: the struct aligns to its vec2
+  uint index;                 // its index within its design (calibration's slots name lenslets by it)
 };
 
 // One optical design's lenslets within the lens buffer (std430, 16 bytes):
@@ -51,7 +61,7 @@ struct DesignRange {
   uint pad_;
 };
 
-// Per-dispatch constants (push constants, std430, 108 bytes).
+// Per-dispatch constants (push constants, std430, 120 bytes).
 struct TraceParams {
   float pixel_mm;             // analysis pixel pitch (sensor pixel x binning)
   float sensor_half_w_mm;     // half the physical sensor width (x)
@@ -80,7 +90,84 @@ struct TraceParams {
   float sensor_offset_y_mm;
   float sensor_tilt_x_rad;    //   and the sensor turned about it (tilt_matrix)
   float sensor_tilt_y_rad;
+  uint tangent0;              // calibrate variants: what each dual slot differentiates by,
+  uint tangent1;              //   PARAM_* | (lenslet index + 1) << 8, lenslet 0 for every
+  uint tangent2;              //   lenslet's own (tangent_code, engine/shared_math.h)
 };
+
+// What a dual slot can differentiate by: engine/optical_system.h's
+// SceneParam, in its order. Units: mm, and degrees for tilts.
+const uint PARAM_SOURCE_X = 0u;
+const uint PARAM_SOURCE_Y = 1u;
+const uint PARAM_SOURCE_DEPTH = 2u;
+const uint PARAM_LENS_X = 3u;
+const uint PARAM_LENS_Y = 4u;
+const uint PARAM_LENS_FOCAL = 5u;
+const uint PARAM_LENS_TILT_X = 6u;
+const uint PARAM_LENS_TILT_Y = 7u;
+const uint PARAM_LENS_TO_SENSOR = 8u;
+const uint PARAM_WORKING_DISTANCE = 9u;
+const uint PARAM_SENSOR_OFFSET_X = 10u;
+const uint PARAM_SENSOR_OFFSET_Y = 11u;
+const uint PARAM_SENSOR_TILT_X = 12u;
+const uint PARAM_SENSOR_TILT_Y = 13u;
+
+// 1 when slot code `slot` names parameter `param` of lenslet `lens` (a
+// lenslet's parameter: its own or every lenslet's; a global one: any).
+PRISM_FN float slot_seed(uint slot, uint param, uint lens) {
+  bool lens_param = param >= PARAM_LENS_X && param <= PARAM_LENS_TILT_Y;
+  uint named = slot >> 8u;
+  return ((slot & 255u) == param && (!lens_param || named == 0u || named == lens + 1u)) ? 1.0f : 0.0f;
+}
+
+// The gradient a parameter starts with in the three slots: the source's
+// position in the plain kernels (constant, so the rest folds away), the
+// push constants' choice in the calibrate ones.
+PRISM_FN vec3 seed(uint param, uint lens, TraceParams P) {
+#if PRISM_CALIBRATE
+  return vec3(slot_seed(P.tangent0, param, lens), slot_seed(P.tangent1, param, lens), slot_seed(P.tangent2, param, lens));
+#else
+  return vec3(param == PARAM_SOURCE_X ? 1.0f : 0.0f, param == PARAM_SOURCE_Y ? 1.0f : 0.0f,
+              param == PARAM_SOURCE_DEPTH ? 1.0f : 0.0f);
+#endif
+}
+
+const float RADIANS_PER_DEGREE = 0.0174532925199f;
+
+// A lenslet's place and shape as duals: its centre and focal length, and
+// what moves with the focal length (R = f (n - 1); the sag at the rim,
+// R - sqrt(R^2 - a^2); the centre thickness, sag + edge). Values are the
+// Lenslet's own.
+struct LensShape {
+  Dual cx;
+  Dual cy;
+  Dual focal;
+  Dual R;          // curvature radius of the curved face
+  Dual thickness;  // centre thickness
+  Dual sag;        // sag at the rim
+  float radius;    // clear aperture radius
+  float n;         // glass index
+  int curved_toward_sensor;
+};
+
+PRISM_FN LensShape lens_shape(Lenslet lens, vec3 d_cx, vec3 d_cy, vec3 d_focal) {
+  float R = lens.curvature_radius_mm;
+  vec3 dR = d_focal * (lens.glass_index - 1.0f);
+  vec3 dsag = dR * (1.0f - R / sqrt(max(R * R - lens.radius_mm * lens.radius_mm, 1e-12f)));
+  return LensShape(Dual(lens.center_mm.x, d_cx), Dual(lens.center_mm.y, d_cy), Dual(lens.focal_mm, d_focal),
+                   Dual(R, dR), Dual(lens.thickness_mm, dsag), Dual(lens.sag_mm, dsag), lens.radius_mm,
+                   lens.glass_index, lens.curved_toward_sensor);
+}
+// Lenslet `lens` with the slots' gradients of its position and focal length.
+PRISM_FN LensShape seeded_shape(Lenslet lens, TraceParams P) {
+  return lens_shape(lens, seed(PARAM_LENS_X, lens.index, P), seed(PARAM_LENS_Y, lens.index, P),
+                    seed(PARAM_LENS_FOCAL, lens.index, P));
+}
+PRISM_FN vec2 shape_centre(LensShape g) { return vec2(g.cx.v, g.cy.v); }
+// The lens's centre on the lens plane, the pivot of its tilt (as built: its
+// own frame is the lens as designed turned about it, local -> world as
+// c + m (p - c)).
+PRISM_FN DVec3 lens_pivot(LensShape g) { return DVec3(g.cx, g.cy, d_const(0.0f)); }
 
 // A ray on its way to the sensor, with the photons it carries.
 struct Ray {
@@ -166,22 +253,24 @@ PRISM_FN vec3 source_offset(uint lens, uint sample_index, float sigma_mm, uint s
   return sigma_mm * vec3(r1 * cos(two_pi * u2), r1 * sin(two_pi * u2), r3 * cos(two_pi * u4));
 }
 
-// The source theta = (x, y, depth) as a point with its identity Jacobian.
-PRISM_FN DVec3 source_point(vec3 theta, float working_distance_mm) {
-  return DVec3(Dual(theta.x, vec3(1.0f, 0.0f, 0.0f)), Dual(theta.y, vec3(0.0f, 1.0f, 0.0f)),
-               Dual(-(theta.z + working_distance_mm), vec3(0.0f, 0.0f, -1.0f)));
+// The source theta = (x, y, depth) as a point: (x, y, -(depth + wd)), its
+// coordinates seeded as the slots say (the identity Jacobian by default).
+PRISM_FN DVec3 source_point(vec3 theta, Dual working_distance_mm, uint lens, TraceParams P) {
+  return DVec3(Dual(theta.x, seed(PARAM_SOURCE_X, lens, P)), Dual(theta.y, seed(PARAM_SOURCE_Y, lens, P)),
+               d_neg(d_add(Dual(theta.z, seed(PARAM_SOURCE_DEPTH, lens, P)), working_distance_mm)));
 }
 
 // ---------------------------------------------------------------------------
 // Emission: join the source to a fixed point of the lenslet's entrance disk.
 // The disk does not move with theta, so the integration domain is fixed and the
-// weight is smooth in theta: photons = (emitted / 4 pi) * cos / r^2 * dA.
+// weight is smooth in theta: photons = (emitted / 4 pi) * cos / r^2 * dA. (The
+// point moves with its lens's parameters; its place on the disk does not.)
 // (Real lens: the disk is the rim plane z = sag, which every ray that meets the
 // spherical cap crosses; thin lens: the lens plane z = 0.)
 
 // Straight line from the source (no scintillator refraction).
-PRISM_FN Ray emit_direct(DVec3 src, vec3 p, float photons_per_sample) {
-  DVec3 dir = dv_sub(dv_const(p), src);
+PRISM_FN Ray emit_direct(DVec3 src, DVec3 p, float photons_per_sample) {
+  DVec3 dir = dv_sub(p, src);
   Dual r2 = dv_dot(dir, dir);
   Dual r = d_sqrt(r2);
   Dual w = d_scale(d_div(dir.z, d_mul(r2, r)), photons_per_sample);  // cos/r^2 = dz/r^3
@@ -196,20 +285,22 @@ PRISM_FN Ray emit_direct(DVec3 src, vec3 p, float photons_per_sample) {
 // increasing and convex, so Newton from the right converges monotonically; run
 // on duals it also converges the implicit derivative dk/dtheta. The weight is
 // emitted/(4 pi) * Fresnel T * cos_s/L^2 * dA_q/dA_p * dA_p.
-PRISM_FN Ray emit_through_face(DVec3 src, vec3 p, float photons_per_sample, float n, float face_z) {
+PRISM_FN Ray emit_through_face(DVec3 src, DVec3 p, float photons_per_sample, float n, Dual face_z) {
   // A source on the face itself is moved 1 um inside: the limit is smooth but
   // the Newton iteration divides by h.
-  Dual h = d_sub(d_const(face_z), src.z);
+  Dual h = d_sub(face_z, src.z);
   if (h.v < 1e-3f) h = Dual(1e-3f, h.d);
-  float w = p.z - face_z;
-  Dual px = d_sub(d_const(p.x), src.x);
-  Dual py = d_sub(d_const(p.y), src.y);
+  Dual w = d_sub(p.z, face_z);
+  Dual wn = d_scale(w, n);
+  Dual px = d_sub(p.x, src.x);
+  Dual py = d_sub(p.y, src.y);
   Dual u = d_add(d_mul(px, px), d_mul(py, py));
   float nn1 = n * n - 1.0f;
+  Dual wn_nn1 = d_scale(wn, nn1);
   Dual h2 = d_mul(h, h);
 
   // Start right of the root: the paraxial k, capped below the pole of F.
-  Dual k = d_div(h, d_addc(h, n * w));
+  Dual k = d_div(h, d_add(h, wn));
   if (u.v > 0.0f) {
     Dual k_pole = d_div(h, d_sqrt(d_scale(u, nn1)));
     if (k.v > 0.99f * k_pole.v) k = d_scale(k_pole, 0.99f);
@@ -217,10 +308,9 @@ PRISM_FN Ray emit_through_face(DVec3 src, vec3 p, float photons_per_sample, floa
   for (int it = 0; it < 12; ++it) {
     Dual g = d_sub(h2, d_scale(d_mul(d_mul(k, k), u), nn1));
     Dual inv_sqrt_g = d_div(d_const(1.0f), d_sqrt(g));
-    Dual f = d_addc(d_add(k, d_scale(d_mul(k, inv_sqrt_g), w * n)), -1.0f);
+    Dual f = d_addc(d_add(k, d_mul(d_mul(k, inv_sqrt_g), wn)), -1.0f);
     Dual inv_g32 = d_div(inv_sqrt_g, g);
-    Dual fk = d_add(d_addc(d_scale(inv_sqrt_g, w * n), 1.0f),
-                    d_scale(d_mul(d_mul(d_mul(k, k), u), inv_g32), w * n * nn1));
+    Dual fk = d_add(d_addc(d_mul(inv_sqrt_g, wn), 1.0f), d_mul(d_mul(d_mul(d_mul(k, k), u), inv_g32), wn_nn1));
     k = d_sub(k, d_div(f, fk));
   }
 
@@ -229,8 +319,8 @@ PRISM_FN Ray emit_through_face(DVec3 src, vec3 p, float photons_per_sample, floa
   Dual g = d_sub(h2, d_scale(d_mul(k2, u), nn1));
   Dual inv_sqrt_g = d_div(d_const(1.0f), d_sqrt(g));
   Dual inv_g32 = d_div(inv_sqrt_g, g);
-  Dual fk = d_add(d_addc(d_scale(inv_sqrt_g, w * n), 1.0f), d_scale(d_mul(d_mul(k2, u), inv_g32), w * n * nn1));
-  Dual fu = d_scale(d_mul(d_mul(k2, k), inv_g32), 0.5f * w * n * nn1);
+  Dual fk = d_add(d_addc(d_mul(inv_sqrt_g, wn), 1.0f), d_mul(d_mul(d_mul(k2, u), inv_g32), wn_nn1));
+  Dual fu = d_mul(d_mul(d_mul(k2, k), inv_g32), d_scale(wn_nn1, 0.5f));
   Dual area_ratio = d_mul(k, d_sub(k, d_div(d_scale(d_mul(u, fu), 2.0f), fk)));
 
   // Solid angle per face area inside the scintillator, and Fresnel transmission
@@ -247,8 +337,8 @@ PRISM_FN Ray emit_through_face(DVec3 src, vec3 p, float photons_per_sample, floa
   Dual transmit = d_sub(d_const(1.0f), d_scale(d_add(d_mul(rs, rs), d_mul(rp, rp)), 0.5f));
 
   Dual weight = d_mul(d_mul(transmit, d_div(h, d_mul(len2, len))), area_ratio);
-  DVec3 q = DVec3(d_add(src.x, d_mul(k, px)), d_add(src.y, d_mul(k, py)), d_const(face_z));
-  return Ray(q, dv_sub(dv_const(p), q), d_scale(weight, photons_per_sample));
+  DVec3 q = DVec3(d_add(src.x, d_mul(k, px)), d_add(src.y, d_mul(k, py)), face_z);
+  return Ray(q, dv_sub(p, q), d_scale(weight, photons_per_sample));
 }
 
 // ---------------------------------------------------------------------------
@@ -273,29 +363,29 @@ struct Exit {
 
 // Ideal thin lens in the plane z = 0: the slope turns by -h/f (paraxial).
 // The ray leaves the lens plane with direction (slope x, slope y, 1).
-PRISM_FN Exit thin_exit(Ray ray, Lenslet lens, float holder_bore_mm, bool test_entrance) {
+PRISM_FN Exit thin_exit(Ray ray, LensShape g, float holder_bore_mm, bool test_entrance) {
   // Cross the lens plane.
   Dual t = d_div(d_neg(ray.origin.z), ray.dir.z);
   Dual x0 = d_add(ray.origin.x, d_mul(ray.dir.x, t));
   Dual y0 = d_add(ray.origin.y, d_mul(ray.dir.y, t));
-  bool ok = !test_entrance || inside_aperture(x0, y0, lens.center_mm, lens.radius_mm);
+  bool ok = !test_entrance || inside_aperture(x0, y0, shape_centre(g), g.radius);
   // Deflect.
-  float inv_f = 1.0f / lens.focal_mm;
-  Dual sx = d_sub(d_div(ray.dir.x, ray.dir.z), d_scale(d_addc(x0, -lens.center_mm.x), inv_f));
-  Dual sy = d_sub(d_div(ray.dir.y, ray.dir.z), d_scale(d_addc(y0, -lens.center_mm.y), inv_f));
+  Dual inv_f = d_div(d_const(1.0f), g.focal);
+  Dual sx = d_sub(d_div(ray.dir.x, ray.dir.z), d_mul(d_sub(x0, g.cx), inv_f));
+  Dual sy = d_sub(d_div(ray.dir.y, ray.dir.z), d_mul(d_sub(y0, g.cy), inv_f));
   // Holder bore: the lens sits in a cylinder of its own radius that runs
   // holder_bore_mm toward the sensor; checking the far end suffices (convex).
   if (holder_bore_mm > 0.0f) {
     Dual bx = d_add(x0, d_scale(sx, holder_bore_mm));
     Dual by = d_add(y0, d_scale(sy, holder_bore_mm));
-    ok = ok && inside_aperture(bx, by, lens.center_mm, lens.radius_mm);
+    ok = ok && inside_aperture(bx, by, shape_centre(g), g.radius);
   }
   return Exit(DVec3(x0, y0, d_const(0.0f)), DVec3(sx, sy, d_const(1.0f)), ok);
 }
 
-PRISM_FN Hit trace_thin(Ray ray, Lenslet lens, float holder_bore_mm, float lens_to_sensor_mm, bool test_entrance) {
-  Exit e = thin_exit(ray, lens, holder_bore_mm, test_entrance);
-  return Hit(d_add(e.p.x, d_scale(e.d.x, lens_to_sensor_mm)), d_add(e.p.y, d_scale(e.d.y, lens_to_sensor_mm)),
+PRISM_FN Hit trace_thin(Ray ray, LensShape g, float holder_bore_mm, Dual lens_to_sensor_mm, bool test_entrance) {
+  Exit e = thin_exit(ray, g, holder_bore_mm, test_entrance);
+  return Hit(d_add(e.p.x, d_mul(e.d.x, lens_to_sensor_mm)), d_add(e.p.y, d_mul(e.d.y, lens_to_sensor_mm)),
              ray.weight, e.ok);
 }
 
@@ -314,33 +404,32 @@ PRISM_FN DVec3 refract_dual(DVec3 i, DVec3 n, float eta) {
 // r^2 - |oc - b d|^2 rather than b^2 - (|oc|^2 - r^2): the latter loses all
 // float digits when the origin is tens of millimetres away (|oc|^2 ~ 2000
 // against r^2 ~ 5). Returns a negative value on a miss.
-PRISM_FN Dual sphere_distance(DVec3 o, DVec3 d, DVec3 c, float r, bool far) {
+PRISM_FN Dual sphere_distance(DVec3 o, DVec3 d, DVec3 c, Dual r, bool far) {
   DVec3 oc = dv_sub(o, c);
   Dual b = dv_dot(oc, d);
   DVec3 perp = dv_sub(oc, dv_scale(d, b));
-  Dual disc = d_sub(d_const(r * r), dv_dot(perp, perp));
+  Dual disc = d_sub(d_mul(r, r), dv_dot(perp, perp));
   if (disc.v <= 0.0f) return d_const(-1.0f);
   return far ? d_add(d_neg(b), d_sqrt(disc)) : d_sub(d_neg(b), d_sqrt(disc));
 }
 
 // Curved face toward the source (the prototype): spherical front face with its
 // vertex at z = 0 and centre at z = R; flat back face at z = thickness.
-PRISM_FN Exit through_convex_first(Ray ray, Lenslet lens, DVec3 dir, bool test_entrance) {
+PRISM_FN Exit through_convex_first(Ray ray, LensShape g, DVec3 dir, bool test_entrance) {
   Exit e = Exit(ray.origin, dir, false);
-  float n = lens.glass_index;
-  float radius = lens.curvature_radius_mm;
-  DVec3 centre = dv_const(vec3(lens.center_mm.x, lens.center_mm.y, radius));
+  float n = g.n;
+  DVec3 centre = DVec3(g.cx, g.cy, g.R);
   // Intersect the spherical front face (the near cap).
-  Dual t1 = sphere_distance(ray.origin, dir, centre, radius, false);
+  Dual t1 = sphere_distance(ray.origin, dir, centre, g.R, false);
   if (t1.v < 0.0f) return e;
   DVec3 p1 = dv_add(ray.origin, dv_scale(dir, t1));
-  if (test_entrance && (!inside_aperture(p1.x, p1.y, lens.center_mm, lens.radius_mm) || p1.z.v > lens.sag_mm)) return e;
+  if (test_entrance && (!inside_aperture(p1.x, p1.y, shape_centre(g), g.radius) || p1.z.v > g.sag.v)) return e;
   // Refract into the glass; the outward normal faces the incoming ray.
-  DVec3 d1 = refract_dual(dir, dv_scalec(dv_sub(p1, centre), 1.0f / radius), 1.0f / n);
+  DVec3 d1 = refract_dual(dir, dv_scale(dv_sub(p1, centre), d_div(d_const(1.0f), g.R)), 1.0f / n);
   if (d1.z.v <= 0.0f) return e;
   // Cross the glass to the flat back face.
-  DVec3 p2 = dv_add(p1, dv_scale(d1, d_div(d_sub(d_const(lens.thickness_mm), p1.z), d1.z)));
-  if (!inside_aperture(p2.x, p2.y, lens.center_mm, lens.radius_mm)) return e;
+  DVec3 p2 = dv_add(p1, dv_scale(d1, d_div(d_sub(g.thickness, p1.z), d1.z)));
+  if (!inside_aperture(p2.x, p2.y, shape_centre(g), g.radius)) return e;
   // Refract out of the flat face: tangential components scale by n.
   Dual kz = d_sub(d_const(1.0f), d_scale(d_sub(d_const(1.0f), d_mul(d1.z, d1.z)), n * n));
   if (kz.v <= 0.0f) return e;  // total internal reflection
@@ -349,53 +438,51 @@ PRISM_FN Exit through_convex_first(Ray ray, Lenslet lens, DVec3 dir, bool test_e
 
 // Flipped: flat front face at z = 0, spherical back face with its vertex at
 // z = thickness and centre at z = thickness - R.
-PRISM_FN Exit through_flat_first(Ray ray, Lenslet lens, DVec3 dir, bool test_entrance) {
+PRISM_FN Exit through_flat_first(Ray ray, LensShape g, DVec3 dir, bool test_entrance) {
   Exit e = Exit(ray.origin, dir, false);
-  float n = lens.glass_index;
-  float radius = lens.curvature_radius_mm;
+  float n = g.n;
   // Cross the flat front face and refract into the glass.
   DVec3 p0 = dv_add(ray.origin, dv_scale(dir, d_div(d_neg(ray.origin.z), dir.z)));
-  if (test_entrance && !inside_aperture(p0.x, p0.y, lens.center_mm, lens.radius_mm)) return e;
+  if (test_entrance && !inside_aperture(p0.x, p0.y, shape_centre(g), g.radius)) return e;
   float eta = 1.0f / n;
   Dual kz = d_sub(d_const(1.0f), d_scale(d_sub(d_const(1.0f), d_mul(dir.z, dir.z)), eta * eta));
   DVec3 d1 = DVec3(d_scale(dir.x, eta), d_scale(dir.y, eta), d_sqrt(kz));
   // Leave the sphere from inside: the far root.
-  DVec3 centre = dv_const(vec3(lens.center_mm.x, lens.center_mm.y, lens.thickness_mm - radius));
-  Dual t1 = sphere_distance(p0, d1, centre, radius, true);
+  DVec3 centre = DVec3(g.cx, g.cy, d_sub(g.thickness, g.R));
+  Dual t1 = sphere_distance(p0, d1, centre, g.R, true);
   if (t1.v < 0.0f) return e;
   DVec3 p1 = dv_add(p0, dv_scale(d1, t1));
-  if (!inside_aperture(p1.x, p1.y, lens.center_mm, lens.radius_mm) || p1.z.v < lens.thickness_mm - lens.sag_mm)
-    return e;
+  if (!inside_aperture(p1.x, p1.y, shape_centre(g), g.radius) || p1.z.v < g.thickness.v - g.sag.v) return e;
   // Refract out; the inward normal faces the outgoing ray.
-  DVec3 d2 = refract_dual(d1, dv_scalec(dv_sub(centre, p1), 1.0f / radius), n);
+  DVec3 d2 = refract_dual(d1, dv_scale(dv_sub(centre, p1), d_div(d_const(1.0f), g.R)), n);
   if (d2.z.v <= 0.0f) return e;  // total internal reflection
   return Exit(p1, d2, true);
 }
 
 // Real plano-convex lens, either way round: where the ray leaves the glass.
-PRISM_FN Exit real_exit(Ray ray, Lenslet lens, bool test_entrance) {
+PRISM_FN Exit real_exit(Ray ray, LensShape g, bool test_entrance) {
   DVec3 dir = dv_normalize(ray.dir);
-  return (lens.curved_toward_sensor != 0) ? through_flat_first(ray, lens, dir, test_entrance)
-                                          : through_convex_first(ray, lens, dir, test_entrance);
+  return (g.curved_toward_sensor != 0) ? through_flat_first(ray, g, dir, test_entrance)
+                                       : through_convex_first(ray, g, dir, test_entrance);
 }
 
 // Holder bore beyond the glass (see thin_exit): whether the ray leaving the
 // glass passes it.
-PRISM_FN bool passes_bore(Exit e, Lenslet lens, float holder_bore_mm) {
+PRISM_FN bool passes_bore(Exit e, LensShape g, float holder_bore_mm) {
   if (!(holder_bore_mm > e.p.z.v)) return true;
   Dual tb = d_div(d_sub(d_const(holder_bore_mm), e.p.z), e.d.z);
-  return inside_aperture(d_add(e.p.x, d_mul(e.d.x, tb)), d_add(e.p.y, d_mul(e.d.y, tb)), lens.center_mm, lens.radius_mm);
+  return inside_aperture(d_add(e.p.x, d_mul(e.d.x, tb)), d_add(e.p.y, d_mul(e.d.y, tb)), shape_centre(g), g.radius);
 }
 
 // Real lens, holder, and transport to the sensor plane z = lens_to_sensor_mm.
 // A ray the holder stops keeps its landing point (not ok); one the glass
 // stops has none.
-PRISM_FN Hit trace_real(Ray ray, Lenslet lens, float holder_bore_mm, float lens_to_sensor_mm, bool test_entrance) {
+PRISM_FN Hit trace_real(Ray ray, LensShape g, float holder_bore_mm, Dual lens_to_sensor_mm, bool test_entrance) {
   Hit hit = Hit(d_const(0.0f), d_const(0.0f), ray.weight, false);
-  Exit e = real_exit(ray, lens, test_entrance);
+  Exit e = real_exit(ray, g, test_entrance);
   if (!e.ok) return hit;
-  bool ok = passes_bore(e, lens, holder_bore_mm);
-  Dual ts = d_div(d_sub(d_const(lens_to_sensor_mm), e.p.z), e.d.z);
+  bool ok = passes_bore(e, g, holder_bore_mm);
+  Dual ts = d_div(d_sub(lens_to_sensor_mm, e.p.z), e.d.z);
   hit.x_mm = d_add(e.p.x, d_mul(e.d.x, ts));
   hit.y_mm = d_add(e.p.y, d_mul(e.d.y, ts));
   hit.ok = ok;
@@ -407,57 +494,62 @@ PRISM_FN Hit trace_real(Ray ray, Lenslet lens, float holder_bore_mm, float lens_
 // As built: tilted lenslets and a sensor off its nominal pose (AS_BUILT)
 
 // The turn of a tilt: about the x axis by ax, then about the y axis by ay
-// (radians), v -> Ry(ay) Rx(ax) v. Columns: the turned unit vectors.
-PRISM_FN mat3 tilt_matrix(float ax, float ay) {
-  float cx = cos(ax);
-  float sx = sin(ax);
-  float cy = cos(ay);
-  float sy = sin(ay);
-  return mat3(vec3(cy, 0.0f, -sy), vec3(sy * sx, cx, cy * sx), vec3(sy * cx, -sx, cy * cx));
+// (radians, duals), v -> Ry(ay) Rx(ax) v. Its columns: the turned unit vectors.
+struct DMat3 {
+  DVec3 c0;
+  DVec3 c1;
+  DVec3 c2;
+};
+PRISM_FN DMat3 tilt_matrix(Dual ax, Dual ay) {
+  Dual cx = d_cos(ax);
+  Dual sx = d_sin(ax);
+  Dual cy = d_cos(ay);
+  Dual sy = d_sin(ay);
+  return DMat3(DVec3(cy, d_const(0.0f), d_neg(sy)), DVec3(d_mul(sy, sx), cx, d_mul(cy, sx)),
+               DVec3(d_mul(sy, cx), d_neg(sx), d_mul(cy, cx)));
+}
+// A tilt of (x_rad, y_rad) whose derivatives per degree are the slots' of
+// parameters (param_x, param_y).
+PRISM_FN DMat3 seeded_tilt(float x_rad, float y_rad, uint param_x, uint param_y, uint lens, TraceParams P) {
+  return tilt_matrix(Dual(x_rad, seed(param_x, lens, P) * RADIANS_PER_DEGREE),
+                     Dual(y_rad, seed(param_y, lens, P) * RADIANS_PER_DEGREE));
 }
 
-PRISM_FN DVec3 dv_turn(mat3 m, DVec3 v) {  // m v
-  return DVec3(d_add(d_add(d_scale(v.x, m[0][0]), d_scale(v.y, m[1][0])), d_scale(v.z, m[2][0])),
-               d_add(d_add(d_scale(v.x, m[0][1]), d_scale(v.y, m[1][1])), d_scale(v.z, m[2][1])),
-               d_add(d_add(d_scale(v.x, m[0][2]), d_scale(v.y, m[1][2])), d_scale(v.z, m[2][2])));
+PRISM_FN DVec3 dv_turn(DMat3 m, DVec3 v) {  // m v
+  return dv_add(dv_add(dv_scale(m.c0, v.x), dv_scale(m.c1, v.y)), dv_scale(m.c2, v.z));
 }
-PRISM_FN DVec3 dv_unturn(mat3 m, DVec3 v) {  // m^T v: m's inverse
-  return DVec3(dv_dot(dv_const(m[0]), v), dv_dot(dv_const(m[1]), v), dv_dot(dv_const(m[2]), v));
+PRISM_FN DVec3 dv_unturn(DMat3 m, DVec3 v) {  // m^T v: m's inverse
+  return DVec3(dv_dot(m.c0, v), dv_dot(m.c1, v), dv_dot(m.c2, v));
 }
-
-// A lenslet's own frame: the lens as designed, turned about its centre on the
-// lens plane. Points map local -> world as c + m (p - c).
-PRISM_FN vec3 lens_pivot(Lenslet lens) { return vec3(lens.center_mm.x, lens.center_mm.y, 0.0f); }
 
 // The world ray `ray` through a lenslet turned by m (tilt_matrix; traced in
 // its own frame) and onto the sensor as built: the plane through (offset_x,
 // offset_y, lens_to_sensor) turned by the sensor's tilt, the landing point in
 // the sensor's own axes from its centre.
-PRISM_FN Hit trace_as_built(Ray ray, Lenslet lens, mat3 m, int lens_model, float holder_bore_mm, TraceParams P,
-                            bool test_entrance) {
+PRISM_FN Hit trace_as_built(Ray ray, LensShape g, DMat3 m, int lens_model, float holder_bore_mm, TraceParams P,
+                            Dual lens_to_sensor_mm, bool test_entrance) {
   Hit hit = Hit(d_const(0.0f), d_const(0.0f), ray.weight, false);
-  vec3 c = lens_pivot(lens);
-  Ray local = Ray(dv_add(dv_const(c), dv_unturn(m, dv_sub(ray.origin, dv_const(c)))), dv_unturn(m, ray.dir),
-                  ray.weight);
+  DVec3 c = lens_pivot(g);
+  Ray local = Ray(dv_add(c, dv_unturn(m, dv_sub(ray.origin, c))), dv_unturn(m, ray.dir), ray.weight);
   Exit e;
   bool ok;
   if (lens_model == LENS_REAL) {
-    e = real_exit(local, lens, test_entrance);
+    e = real_exit(local, g, test_entrance);
     if (!e.ok) return hit;  // as trace_real
-    ok = passes_bore(e, lens, holder_bore_mm);
+    ok = passes_bore(e, g, holder_bore_mm);
   } else {
-    e = thin_exit(local, lens, holder_bore_mm, test_entrance);
+    e = thin_exit(local, g, holder_bore_mm, test_entrance);
     ok = e.ok;
   }
-  DVec3 p = dv_add(dv_const(c), dv_turn(m, dv_sub(e.p, dv_const(c))));
+  DVec3 p = dv_add(c, dv_turn(m, dv_sub(e.p, c)));
   DVec3 d = dv_turn(m, e.d);
-  mat3 s = tilt_matrix(P.sensor_tilt_x_rad, P.sensor_tilt_y_rad);
-  vec3 s0 = vec3(P.sensor_offset_x_mm, P.sensor_offset_y_mm, P.lens_to_sensor_mm);
-  DVec3 normal = dv_const(s[2]);
-  Dual t = d_div(dv_dot(dv_sub(dv_const(s0), p), normal), dv_dot(d, normal));
-  DVec3 on_sensor = dv_sub(dv_add(p, dv_scale(d, t)), dv_const(s0));
-  hit.x_mm = dv_dot(on_sensor, dv_const(s[0]));
-  hit.y_mm = dv_dot(on_sensor, dv_const(s[1]));
+  DMat3 s = seeded_tilt(P.sensor_tilt_x_rad, P.sensor_tilt_y_rad, PARAM_SENSOR_TILT_X, PARAM_SENSOR_TILT_Y, 0u, P);
+  DVec3 s0 = DVec3(Dual(P.sensor_offset_x_mm, seed(PARAM_SENSOR_OFFSET_X, 0u, P)),
+                   Dual(P.sensor_offset_y_mm, seed(PARAM_SENSOR_OFFSET_Y, 0u, P)), lens_to_sensor_mm);
+  Dual t = d_div(dv_dot(dv_sub(s0, p), s.c2), dv_dot(d, s.c2));
+  DVec3 on_sensor = dv_sub(dv_add(p, dv_scale(d, t)), s0);
+  hit.x_mm = dv_dot(on_sensor, s.c0);
+  hit.y_mm = dv_dot(on_sensor, s.c1);
   hit.ok = ok;
   return hit;
 }
@@ -470,32 +562,36 @@ PRISM_FN Hit trace_as_built(Ray ray, Lenslet lens, mat3 m, int lens_model, float
 // does not name is compiled out.
 PRISM_FN Hit trace_aperture_point(vec3 theta, Lenslet lens, vec2 unit, float area_mm2, TraceParams P, int lens_model,
                                   bool scint_refraction, bool holder, bool as_built) {
+  LensShape g = seeded_shape(lens, P);
   // The entrance disk: the rim plane of a front sphere, else the plane z = 0.
-  float aperture_z = (lens_model == LENS_REAL && lens.curved_toward_sensor == 0) ? lens.sag_mm : 0.0f;
-  vec3 p = vec3(lens.center_mm.x + lens.radius_mm * unit.x, lens.center_mm.y + lens.radius_mm * unit.y, aperture_z);
+  Dual aperture_z = (lens_model == LENS_REAL && lens.curved_toward_sensor == 0) ? g.sag : d_const(0.0f);
+  DVec3 on_disk = DVec3(d_const(lens.radius_mm * unit.x), d_const(lens.radius_mm * unit.y), aperture_z);
 #if PRISM_AS_BUILT
-  mat3 m = mat3(1.0f);
+  DMat3 m;
   if (as_built) {
     // The disk turns with its lens.
-    m = tilt_matrix(lens.tilt_x_rad, lens.tilt_y_rad);
-    p = lens_pivot(lens) + m * (p - lens_pivot(lens));
+    m = seeded_tilt(lens.tilt_x_rad, lens.tilt_y_rad, PARAM_LENS_TILT_X, PARAM_LENS_TILT_Y, lens.index, P);
+    on_disk = dv_turn(m, on_disk);
   }
 #endif
+  DVec3 p = dv_add(lens_pivot(g), on_disk);
   float photons = P.photons_per_sr * area_mm2;
-  DVec3 src = source_point(theta, P.working_distance_mm);
-  Ray ray = scint_refraction ? emit_through_face(src, p, photons, P.scint_index, -P.working_distance_mm)
+  Dual working_distance = Dual(P.working_distance_mm, seed(PARAM_WORKING_DISTANCE, lens.index, P));
+  DVec3 src = source_point(theta, working_distance, lens.index, P);
+  Ray ray = scint_refraction ? emit_through_face(src, p, photons, P.scint_index, d_neg(working_distance))
                              : emit_direct(src, p, photons);
   float bore = holder ? P.holder_bore_mm : 0.0f;
+  Dual lens_to_sensor = Dual(P.lens_to_sensor_mm, seed(PARAM_LENS_TO_SENSOR, lens.index, P));
 #if PRISM_AS_BUILT
   if (as_built) {
     // The emitters weigh the ray by the disk's area seen along z; a turned
     // disk is seen along its own normal: times (d . normal) / d.z.
-    ray.weight = d_mul(ray.weight, d_div(dv_dot(ray.dir, dv_const(m[2])), ray.dir.z));
-    return trace_as_built(ray, lens, m, lens_model, bore, P, false);
+    ray.weight = d_mul(ray.weight, d_div(dv_dot(ray.dir, m.c2), ray.dir.z));
+    return trace_as_built(ray, g, m, lens_model, bore, P, lens_to_sensor, false);
   }
 #endif
-  return (lens_model == LENS_REAL) ? trace_real(ray, lens, bore, P.lens_to_sensor_mm, false)
-                                   : trace_thin(ray, lens, bore, P.lens_to_sensor_mm, false);
+  return (lens_model == LENS_REAL) ? trace_real(ray, g, bore, lens_to_sensor, false)
+                                   : trace_thin(ray, g, bore, lens_to_sensor, false);
 }
 
 // Trace aperture sample `sample_index` of lenslet `lens_index` from source

@@ -4,12 +4,14 @@
 // against central differences of its own pixel values. Footprint splat, whose
 // pixel values are smooth in every parameter (exact areas of moving cells);
 // an as-built real-lens array with tilts and a moved, tilted sensor, so that
-// no parameter sits at a special value.
+// no parameter sits at a special value. Then the calibrate kernels (the same
+// derivatives on the device) against the reference.
 #include <cmath>
 #include <functional>
 #include <string>
 
 #include "compare.h"
+#include "engine/forward.h"
 #include "engine/ref/forward_ref.h"
 #include "support.h"
 
@@ -131,4 +133,78 @@ TEST_CASE("reference derivatives: the default tangents are the source's, and eve
   for (size_t i = 0; i < sum.size(); ++i) sum[i] = a[i] + b[i] + c[i];
   auto cmp = prism::test::compare(all, sum, {.abs = 1e-12 * prism::test::peak_abs(all)});
   CHECK_MESSAGE(cmp.ok(), cmp.report("d b / d every focal length vs the sum over lenslets"));
+}
+
+TEST_CASE("calibrate kernels: Vulkan derivatives by scene parameters equal the reference's, whole and lenslet by lenslet") {
+  const auto all = parameters();
+  auto point = settings();
+  point.splat = prism::Splat::point;
+  point.estimator = prism::FisherEstimator::split;
+  point.rays_per_lenslet = 400;
+  for (bool face : {false, true})
+    for (const auto& t : {settings(), point}) {
+      const std::string splat = prism::to_string(t.splat);
+      CAPTURE(face);
+      CAPTURE(splat);
+      const auto sys = as_built(face);
+      prism::ForwardVulkan fw(prism::test::gpu(), sys, t, prism::ForwardVulkan::default_image_budget_bytes,
+                              prism::ForwardVulkan::Derivatives::scene);
+      for (size_t first = 0; first < all.size(); first += 3) {
+        prism::Tangents tangents = prism::source_tangents;
+        const size_t n = std::min<size_t>(3, all.size() - first);
+        for (size_t k = 0; k < n; ++k) tangents[k] = all[first + k].tangent;
+        // The whole image, and lenslet 1's alone (calibration's passes).
+        for (int only : {-1, 1}) {
+          CAPTURE(only);
+          const auto want = prism::ref::psf(sys, t, theta, tangents, only);
+          const auto got = fw.psf(theta, tangents, only);
+          for (int c = 0; c <= int(n); ++c) {
+            const std::string what = c == 0 ? std::string("b") : "d b / d " + all[first + size_t(c) - 1].name;
+            const auto w = channel(want, c);
+            const double peak = prism::test::peak_abs(w);
+            if (c > 0 && only == 1 && all[first + size_t(c) - 1].tangent.lens == 1) REQUIRE(peak > 0);
+            // Float against double, as the as-built test (test_as_built.cpp) allows.
+            const double tol = c == 0 ? 1e-3 : 2e-3;
+            auto cmp = prism::test::compare(w, channel(got, c), {.abs = tol * std::max(peak, 1e-30)});
+            CHECK_MESSAGE(cmp.mismatches <= 8, cmp.report(what + " (Vulkan vs reference)"));
+          }
+        }
+      }
+    }
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("calibrate kernels: a forward model moved to another scene traces it as one made for it") {
+  const auto t = settings();
+  const auto built = as_built(false);
+  auto nominal = built;
+  for (auto& l : nominal.lenslets) l.tilt_x_deg = l.tilt_y_deg = 0;
+  nominal.sensor_pose = {};
+  nominal.lens_to_sensor_mm -= 0.2;
+  nominal.lenslets[0].focal_mm *= 1.02;
+  prism::ForwardVulkan moved(prism::test::gpu(), nominal, t, prism::ForwardVulkan::default_image_budget_bytes,
+                             prism::ForwardVulkan::Derivatives::scene);
+  (void)moved.psf(theta);
+  moved.set_scene(built);
+  prism::ForwardVulkan fresh(prism::test::gpu(), built, t, prism::ForwardVulkan::default_image_budget_bytes,
+                             prism::ForwardVulkan::Derivatives::scene);
+  const prism::Tangents tangents{{{Param::lens_focal, 0}, {Param::lens_to_sensor}, {Param::sensor_tilt_x}}};
+  const auto a = moved.psf(theta, tangents), b = fresh.psf(theta, tangents);
+  for (int c = 0; c < 4; ++c) {
+    // Equal but for the order of the kernels' atomic float sums.
+    auto cmp = prism::test::compare(channel(a, c), channel(b, c), {.abs = 1e-5 * prism::test::peak_abs(channel(b, c))});
+    CHECK_MESSAGE(cmp.ok(), cmp.report("channel " + std::to_string(c) + " (set_scene vs a fresh forward model)"));
+  }
+  // What set_scene cannot change is refused by name.
+  auto fewer = built;
+  fewer.lenslets.pop_back();
+  CHECK_THROWS_WITH_AS(moved.set_scene(fewer), doctest::Contains("number of lenslets"), std::invalid_argument);
+  auto face = built;
+  face.effects.scintillator_refraction = true;
+  CHECK_THROWS_WITH_AS(moved.set_scene(face), doctest::Contains("effects"), std::invalid_argument);
+  // A plain forward model refuses scene tangents and a tilted scene.
+  prism::ForwardVulkan plain(prism::test::gpu(), nominal, t);
+  CHECK_THROWS_AS(plain.psf(theta, tangents), std::logic_error);
+  CHECK_THROWS_WITH_AS(plain.set_scene(built), doctest::Contains("as built"), std::invalid_argument);
+  prism::test::check_validation_clean();
 }
