@@ -29,10 +29,10 @@
 // PSF and per lenslet in the result.
 //
 // Derivatives: forward mode with respect to the scene's parameters
-// (ref::Tangents), each lenslet's image rendered alone so that its own
-// parameters touch only its own pixels. This version renders with the
-// double-precision CPU reference (engine/ref); the device kernels carry
-// derivatives with respect to the source only so far.
+// (Tangents), each lenslet's image rendered alone so that its own
+// parameters touch only its own pixels: on a device with the splat kernels'
+// calibrate variants (CalibrationOptions::device), or with the
+// double-precision CPU reference (engine/ref), which checks them.
 #pragma once
 #include <functional>
 #include <string>
@@ -44,6 +44,9 @@
 #include "engine/ref/forward_ref.h"
 
 namespace prism {
+namespace vk {
+class Context;
+}
 
 // One free parameter: a scene parameter of ref::Param (not the source's), of
 // one lenslet for the per-lenslet ones. Units: mm, degrees for tilts.
@@ -105,7 +108,10 @@ struct CalibrationOptions {
   int max_steps = defaults::calibration_max_steps;  // per level
   int coarse_levels = defaults::calibration_coarse_levels;  // fitted first on pixels 2^k larger, k = this .. 1
   double weight_floor = defaults::calibration_weight_floor;  // relative to each PSF's brightest pixel; > 0
-  unsigned threads = 2;                                      // PSFs rendered at once
+  unsigned threads = 2;                                      // PSFs rendered at once (CPU reference)
+  // The calibrate kernels on this device (engine/forward.h,
+  // Derivatives::scene); null: the double-precision CPU reference.
+  vk::Context* device = nullptr;
   std::function<void(const CalibrationStep&)> progress;      // after each accepted step
 };
 
@@ -146,9 +152,11 @@ struct CalibrationResult {
 CalibrationResult calibrate(const OpticalSystem& start, const std::vector<MeasuredPsf>& psfs,
                             const std::vector<CalibrationParameter>& free, const CalibrationOptions& options);
 
-// The normalised residual (p - s b) sqrt(w) of one PSF under `sys` with its
-// best scale, row-major on the model's grid (residual maps).
-std::vector<float> calibration_residual(const OpticalSystem& sys, const MeasuredPsf& psf,
-                                        const CalibrationOptions& options);
+// The normalised residual (p - s b) sqrt(w) of each PSF under `sys` with its
+// best scale, row-major on the model's grid (residual maps): each(k, map)
+// for PSF k in turn.
+void calibration_residuals(const OpticalSystem& sys, const std::vector<MeasuredPsf>& psfs,
+                           const CalibrationOptions& options,
+                           const std::function<void(size_t, const std::vector<float>&)>& each);
 
 }  // namespace prism

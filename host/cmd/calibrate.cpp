@@ -5,8 +5,10 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <memory>
 #include <thread>
 
+#include "engine/vk/error.h"
 #include "host/calibrate/calibrate.h"
 #include "host/cmd/commands.h"
 #include "host/cmd/options.h"
@@ -35,6 +37,8 @@ struct CalibrateArgs {
   int max_steps = defaults::calibration_max_steps;
   double weight_floor = defaults::calibration_weight_floor;
   unsigned threads = std::max(1u, std::thread::hardware_concurrency());
+  std::string backend = "auto";
+  std::string device;
   std::string csv;
   std::string residuals;
 };
@@ -138,13 +142,32 @@ void run(const CalibrateArgs& a) {
   o.max_steps = a.max_steps;
   o.weight_floor = a.weight_floor;
   o.threads = a.threads;
+  // auto: the calibrate kernels on a GPU; on a CPU device (lavapipe) the
+  // reference on --threads cores is as fast (bench_calibrate, README).
+  std::unique_ptr<vk::Context> ctx;
+  std::string on = "the CPU reference with " + std::to_string(o.threads) + " threads";
+  if (a.backend == "auto" && a.device.empty()) {
+    try {  // no Vulkan at all: the reference, as the first line says
+      ctx = std::make_unique<vk::Context>(vk::ContextOptions{a.device});
+    } catch (const vk::Error& e) {
+      on += " (auto: no Vulkan device: " + std::string(e.what()) + ")";
+    }
+  } else if (a.backend != "cpu") {
+    ctx = std::make_unique<vk::Context>(vk::ContextOptions{a.device});
+  }
+  if (ctx) {
+    if (a.backend == "vulkan" || !ctx->is_cpu()) {
+      o.device = ctx.get();
+      on = ctx->describe();
+    } else {
+      on += " (auto: the Vulkan device " + ctx->describe() + " is a CPU)";
+    }
+  }
   const AnalysisGrid grid = AnalysisGrid::of(scene.optics, o.settings.binning);
   const auto free = calibration_parameters(scene.optics, split_commas(a.fit));
 
-  std::fprintf(stderr,
-               "prism calibrate: %s (%.1f um pixels), %zu parameters, footprint at %u cells per lenslet, on the CPU "
-               "reference with %u threads\n",
-               in.what.c_str(), grid.pixel_mm * 1e3, free.size(), o.settings.rays(), o.threads);
+  std::fprintf(stderr, "prism calibrate: %s (%.1f um pixels), %zu parameters, footprint at %u cells per lenslet, on %s\n",
+               in.what.c_str(), grid.pixel_mm * 1e3, free.size(), o.settings.rays(), on.c_str());
   o.progress = [](const CalibrationStep& s) {
     std::fprintf(stderr, "prism calibrate: step %d: chi2 %.6g (damping %.3g), %.1f s\n", s.step, s.chi2, s.damping,
                  s.seconds);
@@ -174,11 +197,12 @@ void run(const CalibrateArgs& a) {
                  format_number(psfs[k].theta_mm.y) + "," + format_number(psfs[k].theta_mm.z) + "," +
                  format_number(f.scale) + "," + format_number(f.chi2) + "," + std::to_string(f.pixels) + "," +
                  format_number(f.pixels ? f.chi2 / double(f.pixels) : 0.0) + "\n";
-      const auto map = calibration_residual(r.fitted, psfs[k], o);
+    }
+    calibration_residuals(r.fitted, psfs, o, [&](size_t k, const std::vector<float>& map) {
       char name[64];
       std::snprintf(name, sizeof name, "residual-%04zu.png", k);
       write_png_signed((fs::path(a.residuals) / name).string(), grid.width, grid.height, map.data(), 3 * sigma);
-    }
+    });
     write_text((fs::path(a.residuals) / "psfs.csv").string(), per_psf);
     std::string per_lens = "lenslet,x_mm,y_mm,focal_mm,chi2,pixels,chi2_per_pixel\n";
     Series lens_series{"chi2 per pixel", {}, {}, false, true};
@@ -244,15 +268,24 @@ void add_calibrate(CLI::App& app) {
                 "pixel weights are 1 / (value + floor), the floor this fraction of each PSF's brightest pixel")
       ->check(positive_number)
       ->capture_default_str();
-  c->add_option("--threads", a->threads, "PSFs rendered at once (default: the CPU's cores)")
+  c->add_option("--backend", a->backend,
+                "vulkan (the splat kernels' calibrate variants on the device), cpu (the double-precision reference "
+                "on --threads cores) or auto: vulkan on a GPU, cpu where the Vulkan device is a CPU (lavapipe, where "
+                "the reference is as fast)")
+      ->check(CLI::IsMember({"auto", "vulkan", "cpu"}))
+      ->capture_default_str();
+  c->add_option("--device", a->device, "Vulkan device: auto (GPU if present), gpu, cpu (lavapipe), an index or part of a name; "
+                                       "default $PRISM_DEVICE or auto");
+  c->add_option("--threads", a->threads, "CPU reference: PSFs rendered at once (default: the CPU's cores)")
       ->check(CLI::Range(1u, 1024u));
   c->add_option("--csv", a->csv, "the parameters' table: start, fitted, sigma, change / sigma");
   c->add_option("--residuals", a->residuals,
                 "a folder for the residual maps (residual-NNNN.png: (p - s b) / sigma per PSF, red above the model, "
                 "blue below, full at 3 sigma), psfs.csv, lenslets.csv and lenslets.png");
   c->footer(
-      "The model's derivatives come from the double-precision CPU reference (README \"Calibration\"): for the 42-lens "
-      "prototype at 110 um about 3.5 s per PSF and step on 2 cores; --every N fits a sample of the PSFs.");
+      "The model's derivatives by the scene's parameters come from the splat kernels' calibrate variants, or with "
+      "--backend cpu from the double-precision reference (README \"Calibration\" gives the time per PSF and step); "
+      "--every N fits a sample of the PSFs.");
   c->callback([a] { run(*a); });
 }
 

@@ -1,16 +1,18 @@
 // Calibration (host/calibrate/calibrate.h, issue 18): a synthetic as-built
-// array, its PSFs rendered apart from the model that fits them (4x the cells,
-// another stratification) and passed through the HDR merge from simulated
-// exposure stacks as `capture-hdr` would record them; the fit starts from the
-// nominal scene and must find the as-built one within 3 of its own
-// uncertainties.
+// array (host/calibrate/synthetic.h), its PSFs rendered apart from the model
+// that fits them (4x the cells, another stratification) and passed through
+// the HDR merge from simulated exposure stacks as `capture-hdr` would record
+// them; the fit starts from the nominal scene and must find the as-built one
+// within 3 of its own uncertainties. The fit's derivatives come from the CPU
+// reference, and in the dictionary command's test from the calibrate kernels
+// on lavapipe (bench_calibrate: the same parameters and sigmas either way).
 #include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <string>
 
-#include "engine/ref/hdr_merge_ref.h"
 #include "host/calibrate/calibrate.h"
+#include "host/calibrate/synthetic.h"
 #include "host/dictionary/hdr_stack.h"
 #include "host/dictionary/store.h"
 #include "support.h"
@@ -26,26 +28,6 @@ using prism::ref::Param;
 prism::OpticalSystem nominal_row(size_t first = 2) {
   prism::OpticalSystem s = prism::test::small_system(prism::LensModel::real);
   s.lenslets.erase(s.lenslets.begin(), s.lenslets.begin() + std::ptrdiff_t(first));
-  return s;
-}
-
-// As built: every lens moved by tens of um, its focal length off by up to
-// 2%, tilted by up to half a degree; the sensor 0.15 mm farther, moved and
-// tilted; the scintillator face 0.1 mm nearer.
-prism::OpticalSystem as_built(const prism::OpticalSystem& nominal) {
-  prism::OpticalSystem s = nominal;
-  for (size_t i = 0; i < s.lenslets.size(); ++i) {
-    const double k = double(i) + 1;
-    auto& l = s.lenslets[i];
-    l.x_mm += 0.04 * std::sin(1.7 * k);
-    l.y_mm += 0.03 * std::cos(2.3 * k);
-    l.focal_mm *= 1 + 0.02 * std::sin(0.9 * k + 0.4);
-    l.tilt_x_deg = 0.5 * std::sin(1.3 * k + 1);
-    l.tilt_y_deg = -0.4 * std::cos(0.7 * k);
-  }
-  s.lens_to_sensor_mm += 0.15;
-  s.working_distance_mm -= 0.1;
-  s.sensor_pose = {0.03, -0.02, 0.3, -0.2};
   return s;
 }
 
@@ -68,26 +50,9 @@ prism::TraceSettings truth_settings(unsigned binning) {
   return t;
 }
 
-// PSF theta of `truth` as `prism camera capture-hdr` would record it: 7
-// exposures and 3 darks of a 12-bit sensor (peak 2e6 DN/s, 20 us .. 0.2 s).
-prism::HdrFrames exposures(const prism::OpticalSystem& truth, unsigned binning, const glm::dvec3& theta,
-                           uint64_t seed) {
-  const auto grid = prism::AnalysisGrid::of(truth, binning);
-  std::vector<double> b(size_t(grid.width) * size_t(grid.height), 0.0);
-  double peak = 0;
-  for (const auto& [key, px] : prism::ref::psf(truth, truth_settings(binning), theta).pixels)
-    b[size_t(key)] = px[0], peak = std::max(peak, px[0]);
-  REQUIRE(peak > 0);
-  for (double& v : b) v *= 2e6 / peak;
-  return prism::simulate_hdr_frames(b, grid.width, grid.height, prism::log_spaced_times(20e-6, 0.2, 7),
-                                    {0.2, 0.2, 0.2}, prism::SyntheticSensor{}, seed);
-}
-
-// ... merged as `prism dictionary merge-hdr` does.
+// PSF theta of `truth` as capture-hdr stacks merged by merge-hdr would give it.
 prism::MeasuredPsf measured(const prism::OpticalSystem& truth, const glm::dvec3& theta, uint64_t seed) {
-  const auto merged = prism::ref::hdr_merge(exposures(truth, model_settings().binning, theta, seed), {});
-  return {theta, merged.psf, "synthetic (" + std::to_string(theta.x) + ", " + std::to_string(theta.y) + ", " +
-                                 std::to_string(theta.z) + ")"};
+  return prism::synthetic_measured_psf(truth, truth_settings(model_settings().binning), theta, seed);
 }
 
 // `prism calibrate --csv`'s table: every parameter of the default --fit in
@@ -129,13 +94,14 @@ std::vector<glm::dvec3> positions(bool few) {
 
 TEST_CASE("calibration recovers an as-built array from HDR-merged PSFs within 3 of its uncertainties") {
   const prism::OpticalSystem nominal = nominal_row();
-  const prism::OpticalSystem truth = as_built(nominal);
+  const prism::OpticalSystem truth = prism::synthetic_as_built(nominal);
   std::vector<prism::MeasuredPsf> psfs;
   uint64_t seed = 1;
   for (const auto& theta : positions(prism::test::under_sanitizer)) psfs.push_back(measured(truth, theta, seed++));
 
   prism::CalibrationOptions o;
   o.settings = model_settings();
+  o.threads = 2;  // the CPU reference; the dictionary command's test below fits with the calibrate kernels
   const auto free = prism::calibration_parameters(nominal, prism::calibration_groups());
   REQUIRE(free.size() == 5 * 5 + 6);
   const auto r = prism::calibrate(nominal, psfs, free, o);
@@ -187,7 +153,7 @@ TEST_CASE("prism calibrate: a dictionary of HDR-merged PSFs in, a scene every co
   const fs::path dir = prism::test::scratch_dir() / "calibrate";
   // The dictionary's scene is the nominal one.
   const prism::Scene nominal = three_lenses("row");
-  const prism::OpticalSystem truth = as_built(nominal.optics);
+  const prism::OpticalSystem truth = prism::synthetic_as_built(nominal.optics);
   prism::DictionaryManifest m;
   m.scene = nominal;
   m.grid = {{-6, 6}, {0}, {8, 20, 35}};
@@ -207,10 +173,11 @@ TEST_CASE("prism calibrate: a dictionary of HDR-merged PSFs in, a scene every co
   }
   const std::string out = (dir / "fitted.json").string(), csv = (dir / "params.csv").string();
   auto run = prism::test::run_prism("calibrate --dictionary " + (dir / "dict").string() + " --out " + out + " --csv " +
-                                    csv + " --residuals " + (dir / "residuals").string() + " --threads 2");
+                                    csv + " --residuals " + (dir / "residuals").string() + " --backend vulkan");
   INFO(run.output);
   REQUIRE(run.status == 0);
   CHECK(run.output.find("6 of 6 PSFs") != std::string::npos);
+  CHECK(run.output.find("on llvmpipe") != std::string::npos);  // the calibrate kernels, on lavapipe here
   const prism::Scene fitted = prism::load_scene(out);
   CHECK(fitted.name == "row-calibrated");
   // Every parameter (the default --fit frees them all) within 3 sigma of the
@@ -247,13 +214,13 @@ TEST_CASE("prism calibrate --merged: capture-hdr stacks through merge-hdr to the
     std::ofstream out(scene);
     out << prism::to_json(nominal).dump(2) << '\n';
   }
-  const prism::OpticalSystem truth = as_built(nominal.optics);
+  const prism::OpticalSystem truth = prism::synthetic_as_built(nominal.optics);
   uint64_t seed = 30;
   for (const glm::dvec3 theta : {glm::dvec3(-6, 0, 8), glm::dvec3(6, 0, 8), glm::dvec3(-6, 0, 20), glm::dvec3(6, 0, 20),
                                  glm::dvec3(-6, 0, 35), glm::dvec3(6, 0, 35)}) {
     prism::HdrStack stack;
     stack.source_mm = theta;
-    stack.frames = exposures(truth, 1, theta, seed);
+    stack.frames = prism::synthetic_exposures(truth, truth_settings(1), theta, seed);
     prism::write_hdr_stack((dir / "stacks" / ("p" + std::to_string(seed++))).string(), stack);
   }
   auto merge = prism::test::run_prism("dictionary merge-hdr --stacks " + (dir / "stacks").string() + " --out " +
@@ -266,6 +233,8 @@ TEST_CASE("prism calibrate --merged: capture-hdr stacks through merge-hdr to the
   INFO(run.output);
   REQUIRE(run.status == 0);
   CHECK(run.output.find("6 of 6 merged PSFs (every 1) binned 1 x 1") != std::string::npos);
+  // --backend auto: the CPU reference, the Vulkan device being lavapipe.
+  CHECK(run.output.find("on the CPU reference with 2 threads (auto: the Vulkan device llvmpipe") != std::string::npos);
   check_table(csv, truth, prism::load_scene(out).optics);
   // Merged PSFs name no scene, and have one level.
   auto bad = prism::test::run_prism("calibrate --merged " + (dir / "merged").string() + " --out " + out);

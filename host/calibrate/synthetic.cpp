@@ -1,0 +1,49 @@
+#include "host/calibrate/synthetic.h"
+
+#include <algorithm>
+#include <cmath>
+#include <stdexcept>
+#include <string>
+
+#include "engine/ref/forward_ref.h"
+#include "engine/ref/hdr_merge_ref.h"
+
+namespace prism {
+
+OpticalSystem synthetic_as_built(const OpticalSystem& nominal) {
+  OpticalSystem s = nominal;
+  for (size_t i = 0; i < s.lenslets.size(); ++i) {
+    const double k = double(i) + 1;
+    auto& l = s.lenslets[i];
+    l.x_mm += 0.04 * std::sin(1.7 * k);
+    l.y_mm += 0.03 * std::cos(2.3 * k);
+    l.focal_mm *= 1 + 0.02 * std::sin(0.9 * k + 0.4);
+    l.tilt_x_deg = 0.5 * std::sin(1.3 * k + 1);
+    l.tilt_y_deg = -0.4 * std::cos(0.7 * k);
+  }
+  s.lens_to_sensor_mm += 0.15;
+  s.working_distance_mm -= 0.1;
+  s.sensor_pose = {0.03, -0.02, 0.3, -0.2};
+  return s;
+}
+
+HdrFrames synthetic_exposures(const OpticalSystem& truth, const TraceSettings& settings, const glm::dvec3& theta,
+                              uint64_t seed) {
+  const AnalysisGrid grid = AnalysisGrid::of(truth, settings.binning);
+  std::vector<double> b(size_t(grid.width) * size_t(grid.height), 0.0);
+  double peak = 0;
+  for (const auto& [key, px] : ref::psf(truth, settings, theta).pixels)
+    b[size_t(key)] = px[0], peak = std::max(peak, px[0]);
+  if (!(peak > 0)) throw std::invalid_argument("synthetic PSF: no light on the sensor from this source");
+  for (double& v : b) v *= 2e6 / peak;
+  return simulate_hdr_frames(b, grid.width, grid.height, log_spaced_times(20e-6, 0.2, 7), {0.2, 0.2, 0.2},
+                             SyntheticSensor{}, seed);
+}
+
+MeasuredPsf synthetic_measured_psf(const OpticalSystem& truth, const TraceSettings& settings, const glm::dvec3& theta,
+                                   uint64_t seed) {
+  return {theta, ref::hdr_merge(synthetic_exposures(truth, settings, theta, seed), {}).psf,
+          "synthetic (" + std::to_string(theta.x) + ", " + std::to_string(theta.y) + ", " + std::to_string(theta.z) + ")"};
+}
+
+}  // namespace prism
