@@ -216,8 +216,8 @@ struct ForwardVulkan::Impl {
 
   // A single source's render (render_bands), kept between calls: its source,
   // image buffer, stream and host copy; [0] values only, [1] with
-  // derivatives. Calibration renders hundreds of small images per PSF, and
-  // making these again each time cost about as much as its kernels.
+  // derivatives. Calibration renders hundreds of small images per PSF; these
+  // are made once rather than for each.
   struct Scratch {
     std::unique_ptr<vk::Buffer> source, images;
     std::unique_ptr<vk::Stream> stream;
