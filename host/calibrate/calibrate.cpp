@@ -25,7 +25,7 @@
 
 namespace prism {
 
-using ref::Param;
+using Param = SceneParam;
 
 bool CalibrationParameter::per_lens() const { return param >= Param::lens_x && param <= Param::lens_tilt_y; }
 
@@ -161,7 +161,7 @@ using Model = std::unordered_map<int64_t, ModelPixel>;
 // without derivatives by `tangents`; calls visit(key, {b, db/dslot 0..2})
 // for each pixel it touches.
 using PixelVisitor = std::function<void(int64_t, const std::array<double, 4>&)>;
-using RenderPass = std::function<void(const ref::Tangents&, int only_lens, bool derivatives, const PixelVisitor&)>;
+using RenderPass = std::function<void(const Tangents&, int only_lens, bool derivatives, const PixelVisitor&)>;
 
 // A PSF's model from `render`: the whole image at once when no derivative is
 // wanted, else lenslet by lenslet with each one's own parameters and the
@@ -169,7 +169,7 @@ using RenderPass = std::function<void(const ref::Tangents&, int only_lens, bool 
 Model assemble(size_t lenses, const std::vector<CalibrationParameter>& free, bool derivatives, const RenderPass& render) {
   Model model;
   if (!derivatives) {
-    render(ref::source_tangents, -1, false, [&](int64_t key, const std::array<double, 4>& v) { model[key].b = v[0]; });
+    render(source_tangents, -1, false, [&](int64_t key, const std::array<double, 4>& v) { model[key].b = v[0]; });
     return model;
   }
   for (size_t l = 0; l < lenses; ++l) {
@@ -178,7 +178,7 @@ Model assemble(size_t lenses, const std::vector<CalibrationParameter>& free, boo
       if (!free[j].per_lens() || size_t(free[j].lens) == l) slots.push_back(j);
     const size_t passes = std::max<size_t>(1, (slots.size() + 2) / 3);
     for (size_t pass = 0; pass < passes; ++pass) {
-      ref::Tangents tangents = ref::source_tangents;  // slots left over: ignored
+      Tangents tangents = source_tangents;  // slots left over: ignored
       const size_t first = 3 * pass, n = std::min<size_t>(3, slots.size() - std::min(slots.size(), first));
       for (size_t k = 0; k < n; ++k) tangents[k] = {free[slots[first + k]].param, free[slots[first + k]].lens};
       render(tangents, int(l), true, [&](int64_t key, const std::array<double, 4>& v) {
@@ -214,7 +214,7 @@ class Renderer {
   }
   Model operator()(const glm::dvec3& theta, const std::vector<CalibrationParameter>& free, bool derivatives) {
     return assemble(sys_.lenslets.size(), free, derivatives,
-                    [&](const ref::Tangents& tangents, int only, bool with_d, const PixelVisitor& visit) {
+                    [&](const Tangents& tangents, int only, bool with_d, const PixelVisitor& visit) {
                       if (fw_) return device_pass(theta, tangents, only, with_d, visit);
                       const ref::SparseImage img = with_d ? ref::psf(sys_, settings_, theta, tangents, only)
                                                           : ref::psf(sys_, settings_, theta);
@@ -224,7 +224,7 @@ class Renderer {
   }
 
  private:
-  void device_pass(const glm::dvec3& theta, const ref::Tangents& tangents, int only, bool with_d,
+  void device_pass(const glm::dvec3& theta, const Tangents& tangents, int only, bool with_d,
                    const PixelVisitor& visit) {
     if (!with_d) {
       const std::vector<float> b = fw_->psf_values(theta);

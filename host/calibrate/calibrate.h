@@ -48,10 +48,10 @@ namespace vk {
 class Context;
 }
 
-// One free parameter: a scene parameter of ref::Param (not the source's), of
+// One free parameter: a scene parameter (SceneParam, not the source's), of
 // one lenslet for the per-lenslet ones. Units: mm, degrees for tilts.
 struct CalibrationParameter {
-  ref::Param param;
+  SceneParam param;
   int lens = -1;  // per-lenslet parameters: which lenslet; -1 for global ones
   bool per_lens() const;
   std::string name() const;  // as in the scene file: "lenslets[3].x_mm", "lens_to_sensor_mm", "sensor.tilt_x_deg"

@@ -274,8 +274,7 @@ void add_calibrate(CLI::App& app) {
                 "the reference is as fast)")
       ->check(CLI::IsMember({"auto", "vulkan", "cpu"}))
       ->capture_default_str();
-  c->add_option("--device", a->device, "Vulkan device: auto (GPU if present), gpu, cpu (lavapipe), an index or part of a name; "
-                                       "default $PRISM_DEVICE or auto");
+  c->add_option("--device", a->device, device_help);
   c->add_option("--threads", a->threads, "CPU reference: PSFs rendered at once (default: the CPU's cores)")
       ->check(CLI::Range(1u, 1024u));
   c->add_option("--csv", a->csv, "the parameters' table: start, fitted, sigma, change / sigma");
@@ -283,8 +282,8 @@ void add_calibrate(CLI::App& app) {
                 "a folder for the residual maps (residual-NNNN.png: (p - s b) / sigma per PSF, red above the model, "
                 "blue below, full at 3 sigma), psfs.csv, lenslets.csv and lenslets.png");
   c->footer(
-      "The model's derivatives by the scene's parameters come from the splat kernels' calibrate variants, or with "
-      "--backend cpu from the double-precision reference (README \"Calibration\" gives the time per PSF and step); "
+      "The model's derivatives by the scene's parameters come from the splat kernels' calibrate variants or from the "
+      "double-precision reference, as --backend says (README \"Calibration\" gives the time per PSF and step); "
       "--every N fits a sample of the PSFs.");
   c->callback([a] { run(*a); });
 }

@@ -150,7 +150,7 @@ void add_dictionary_build(CLI::App& dictionary) {
       ->capture_default_str()->check(CLI::Range(1, 256));
   c->add_option("--rays", a->rays, std::string("rays per 3 mm lenslet for each PSF, ") + rays_rounding)->capture_default_str()->check(CLI::Range(4u, 1u << 24));
   a->splat.add_to(c);
-  c->add_option("--device", a->device, "Vulkan device (see prism devices)");
+  c->add_option("--device", a->device, device_help);
   c->callback([a] { run_build(*a); });
 }
 

@@ -150,7 +150,7 @@ void add_dictionary_merge_hdr(CLI::App& dictionary) {
   c->add_option("--backend", a->backend, "vulkan (the kernel) or cpu (the double-precision reference)")
       ->capture_default_str()
       ->check(CLI::IsMember({"vulkan", "cpu"}));
-  c->add_option("--device", a->device, "Vulkan device: auto, gpu, cpu, an index or part of a name (prism devices)");
+  c->add_option("--device", a->device, device_help);
   c->add_flag("--skip-existing", a->skip_existing, "skip stacks whose .exr and .json are already written (resume)");
   c->add_option("--min-valid", o.min_valid_exposures, "valid exposures a kept pixel needs (paper: 3)")
       ->capture_default_str()

@@ -12,9 +12,7 @@ namespace prism::cmd {
 
 void ForwardOptions::add_to(CLI::App* app, unsigned default_binning) {
   binning = default_binning;
-  app->add_option("--device", device,
-                  "Vulkan device: auto (GPU if present), gpu, cpu (lavapipe), an index or part of a name; "
-                  "default $PRISM_DEVICE or auto");
+  app->add_option("--device", device, device_help);
   app->add_option("--rays", rays,
                   std::string("rays (footprint: aperture cells) per 3 mm lenslet, ") + rays_rounding +
                       "; other lens sizes get the same per mm^2; 0: the converged default, " +

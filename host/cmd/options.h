@@ -30,6 +30,10 @@ struct SplatOptions {
 // What --rays becomes, said in each command's help: the aperture is cut
 // into n x n strata, n even, so 128 runs as 144.
 inline constexpr const char* rays_rounding = "rounded up to an even square of strata (128 runs as 144)";
+// What --device takes, said alike in every command's help.
+inline constexpr const char* device_help =
+    "Vulkan device: auto (GPU if present), gpu, cpu (lavapipe), an index or part of a name (prism devices); "
+    "default $PRISM_DEVICE or auto";
 
 struct ForwardOptions {
   std::string device;

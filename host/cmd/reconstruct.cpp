@@ -188,7 +188,7 @@ void add_reconstruct(CLI::App& app) {
                  "vulkan: sparse scan on the device; dense: the paper's dense correlation on the device (baseline); "
                  "cpu: the double-precision reference")
       ->capture_default_str()->check(CLI::IsMember({"vulkan", "dense", "cpu"}));
-  c->add_option("--device", a->device, "Vulkan device (see `prism devices`)");
+  c->add_option("--device", a->device, device_help);
   c->add_option("--precision", a->session.precision, "the scan level's values on the device: float or half")
       ->capture_default_str()->check(CLI::IsMember({"float", "half"}));
   c->add_option("--batch", a->session.batch, "events per device scan; the host's work on one batch runs while the device "

@@ -166,8 +166,7 @@ void add_simulate(CLI::App& app) {
                                    rays_rounding + "; 0: the splat's converged default")
       ->capture_default_str()->check(CLI::Range(0u, 1u << 24));
   a->splat.add_to(c);
-  c->add_option("--device", a->device, "Vulkan device: auto, gpu, cpu, an index or part of a name; default "
-                                       "$PRISM_DEVICE or auto");
+  c->add_option("--device", a->device, device_help);
   c->callback([a] { run(*a); });
 }
 

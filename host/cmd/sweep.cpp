@@ -304,7 +304,7 @@ void add_sweep(CLI::App& app) {
   c->add_option("--binning", a->binning, "analyse on B x B binned sensor pixels")
       ->capture_default_str()->check(CLI::Range(1u, 1024u));
   a->splat.add_to(c);
-  c->add_option("--device", a->device, "Vulkan device: auto, gpu, cpu (lavapipe), an index or part of a name");
+  c->add_option("--device", a->device, device_help);
   c->add_option("--backend", a->backend, "vulkan, or cpu (double-precision reference; slow)")
       ->capture_default_str()->check(CLI::IsMember({"vulkan", "cpu"}));
   c->add_option("--bound", a->bounds, "constraint NAME>=X or NAME<=X, e.g. photons>=100; repeatable");
