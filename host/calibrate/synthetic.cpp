@@ -10,23 +10,6 @@
 
 namespace prism {
 
-OpticalSystem synthetic_as_built(const OpticalSystem& nominal) {
-  OpticalSystem s = nominal;
-  for (size_t i = 0; i < s.lenslets.size(); ++i) {
-    const double k = double(i) + 1;
-    auto& l = s.lenslets[i];
-    l.x_mm += 0.04 * std::sin(1.7 * k);
-    l.y_mm += 0.03 * std::cos(2.3 * k);
-    l.focal_mm *= 1 + 0.02 * std::sin(0.9 * k + 0.4);
-    l.tilt_x_deg = 0.5 * std::sin(1.3 * k + 1);
-    l.tilt_y_deg = -0.4 * std::cos(0.7 * k);
-  }
-  s.lens_to_sensor_mm += 0.15;
-  s.working_distance_mm -= 0.1;
-  s.sensor_pose = {0.03, -0.02, 0.3, -0.2};
-  return s;
-}
-
 HdrFrames synthetic_exposures(const OpticalSystem& truth, const TraceSettings& settings, const glm::dvec3& theta,
                               uint64_t seed) {
   const AnalysisGrid grid = AnalysisGrid::of(truth, settings.binning);

@@ -1,6 +1,8 @@
 // Synthetic as-built systems and their "measured" PSFs, for calibration's
 // tests and benchmarks (issue 18): what a calibration must recover, with
-// noise as a camera and the HDR merge give it.
+// noise as a camera and the HDR merge give it. The as-built system itself,
+// synthetic_as_built, is a scene's (host/scene/scene.h: the built-in
+// "prototype-as-built").
 #pragma once
 #include <cstdint>
 
@@ -9,15 +11,9 @@
 #include "engine/hdr_merge.h"
 #include "host/calibrate/calibrate.h"
 #include "host/dictionary/hdr_stack.h"
+#include "host/scene/scene.h"
 
 namespace prism {
-
-// `nominal` as built, by known amounts: lenslet i (k = i + 1) moved by
-// (40 sin 1.7k, 30 cos 2.3k) um, its focal length off by 2% sin(0.9k + 0.4),
-// tilted (0.5 sin(1.3k + 1), -0.4 cos 0.7k) degrees; the sensor 0.15 mm
-// farther, moved by (30, -20) um and tilted (0.3, -0.2) degrees; the
-// scintillator face 0.1 mm nearer.
-OpticalSystem synthetic_as_built(const OpticalSystem& nominal);
 
 // PSF theta of `truth`, rendered by the CPU reference with `settings` (render
 // the truth apart from the model that fits it: more cells, another

@@ -19,7 +19,7 @@ namespace prism::cmd {
 namespace {
 
 struct EvaluateArgs {
-  std::string dictionary, scene, out = "evaluation", backend = "vulkan", experiments = "single-lines,photons,double";
+  std::string dictionary, scene, truth_scene, out = "evaluation", backend = "vulkan", experiments = "single-lines,photons,double";
   std::string device;
   std::string precision = "float";
   std::string model;  // scene | none; "": scene when the dictionary was synthesised from one (or --scene given)
@@ -47,7 +47,7 @@ glm::dvec2 range_of(const std::vector<double>& v, const char* option) {
 }
 
 void run(EvaluateArgs a) {
-  check_not_input(a.out, "--out", {{"--dictionary", a.dictionary}, {"--scene", a.scene}});
+  check_not_input(a.out, "--out", {{"--dictionary", a.dictionary}, {"--scene", a.scene}, {"--truth-scene", a.truth_scene}});
   Scene scene;
   std::unique_ptr<DictionaryReader> reader;
   if (a.scene.empty()) {
@@ -59,6 +59,7 @@ void run(EvaluateArgs a) {
   }
   const auto& m = reader->manifest();
   EvaluationOptions& o = a.options;
+  if (!a.truth_scene.empty()) o.truth_scene = load_scene(a.truth_scene);
   o.experiments = split(a.experiments);
   o.quick = a.quick;
   o.splat = a.splat.kind();
@@ -113,6 +114,9 @@ void run(EvaluateArgs a) {
                   a.precision.c_str(), ctx.describe().c_str());
     std::printf("# scene %s, dictionary %s, clicks on %u x %u binned pixels, %d trials per point, seed %llu\n",
                 scene.name.c_str(), a.dictionary.c_str(), binning, binning, o.trials, (unsigned long long)o.seed);
+    if (o.truth_scene)
+      std::printf("# events, CRLB%s from the truth scene %s (the refinement's model: scene %s)\n",
+                  o.volume_ambiguity ? " and ambiguity" : "", o.truth_scene->name.c_str(), scene.name.c_str());
     std::printf("# refinement: %s\n", describe(o.model, scene).c_str());
     std::printf("# best and worst trial (3D error) dropped; alpha error = |alpha - true photons|; CRLB: Poisson, "
                 "Fisher information scaled to the point's detected photons; catastrophic: 3D error > %g mm, left "
@@ -203,6 +207,10 @@ void add_evaluate(CLI::App& app) {
       "evaluate", "accuracy against the truth and the CRLB: the paper's protocol and events over the whole volume");
   c->add_option("--dictionary", a->dictionary, "PSF dictionary directory")->required();
   c->add_option("--scene", a->scene, "built-in scene or JSON file (default: the dictionary's own)");
+  c->add_option("--truth-scene", a->truth_scene,
+                "built-in scene or JSON file the events come from, when not --scene: an as-built system (for "
+                "example prototype-as-built) reconstructed with the nominal or a calibrated model; it gives the "
+                "events, the CRLB and the ambiguity, --scene only the refinement's model");
   c->add_option("--experiments", a->experiments,
                 "comma-separated: single-lines (x, y, depth lines through (1,1,31) mm at 100 photons), photons "
                 "(50, 100, 200, 400 at (1,1,31)), double ((1,1,depth) and (1,1,7.5), 250 photons split 50/50), volume "

@@ -411,6 +411,15 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   if (volume && !(o.volume_photons > 0 && std::isfinite(o.volume_photons)))
     throw std::invalid_argument("--volume-photons: a finite number above 0");
 
+  // The system the events come from; `scene` is the refinement's model.
+  const Scene& physical = o.truth_scene ? *o.truth_scene : scene;
+  if (o.truth_scene) {
+    const OpticalSystem &a = physical.optics, &b = m.scene.optics;
+    if (a.sensor_width_px != b.sensor_width_px || a.sensor_height_px != b.sensor_height_px || a.pixel_um != b.pixel_um)
+      throw std::invalid_argument("the truth scene " + physical.name + " has another sensor than the dictionary's (" +
+                                  std::to_string(b.sensor_width_px) + " x " + std::to_string(b.sensor_height_px) +
+                                  " px of " + std::to_string(b.pixel_um) + " um): events must be clicks on its pixels");
+  }
   const unsigned binning = unsigned(m.base_binning << o.level);
   const TraceSettings model_settings = refine_trace_settings(binning);
   const bool refining = o.model != RefineModel::none;
@@ -418,7 +427,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   t.binning = binning;
   t.rays_per_lenslet = o.rays ? o.rays : (m.rays_per_lenslet ? m.rays_per_lenslet : TraceSettings::default_rays(o.splat));
   if (!o.rays && o.model == RefineModel::scene) t.rays_per_lenslet = std::max(t.rays_per_lenslet, 4 * model_settings.rays_per_lenslet);
-  t.photons_emitted = scene.photons_emitted;
+  t.photons_emitted = physical.photons_emitted;
   t.splat = o.splat;
   t.estimator = TraceSettings::default_estimator(o.splat);
   t.stratification = o.stratification;
@@ -449,7 +458,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   std::optional<ForwardTruth> truth;
   std::unique_ptr<DictionaryService> service;
   if (!o.journal_only) {
-    truth.emplace(ctx, scene, t, 64);
+    truth.emplace(ctx, physical, t, 64);
     service = std::make_unique<DictionaryService>(dictionary, on_device ? &ctx : nullptr, s.search_level,
                                                   ServiceBudget{}, o.device_half);
   }
@@ -459,7 +468,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   // Its own model (not the refinement's), so that the refinement's renders
   // per event stay its own.
   std::unique_ptr<SourceModel> ambiguity_model;
-  if (o.volume_ambiguity && !o.journal_only) ambiguity_model = make_scene_model(scene, model_settings, &ctx);
+  if (o.volume_ambiguity && !o.journal_only) ambiguity_model = make_scene_model(physical, model_settings, &ctx);
   if (refining && !o.journal_only) {
     source_model = make_refine_model(o.model, scene, dictionary, o.level, &ctx);
     RefineSettings rs = o.refine;
@@ -488,6 +497,8 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
                   {"ladder_starts", rs.ladder_starts},
                   {"ladder_reach_px", rs.ladder_reach_px}, {"continuation", rs.continuation}, {"site_blur_px", rs.site_blur_px},
                   {"pvalue_draws", rs.pvalue_draws}}}};
+  // A journal of events from the model's own scene keeps its header.
+  if (o.truth_scene) run["truth"]["scene"] = to_json(physical);
   // Coarse to fine only where the scan is coarser than the select level (a
   // journal of the exhaustive scan keeps its header).
   if (s.search_level > select_level(s, o.level))
@@ -574,7 +585,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
     for (const auto& v : p.vertices) positions.push_back(v.position);
   const size_t volume_bounds = positions.size();
   positions.insert(positions.end(), volume_positions.begin(), volume_positions.end());
-  const auto bounds = crlb_study(scene, positions, t, Backend::vulkan, SensorModel::poisson, &ctx);
+  const auto bounds = crlb_study(physical, positions, t, Backend::vulkan, SensorModel::poisson, &ctx);
   auto crlb_at = [&](size_t i, double photons) {
     const auto& b = bounds.at(i);
     const double scale = b.photons > 0 ? std::sqrt(b.photons / photons) : INFINITY;
@@ -675,7 +686,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
         const auto ambiguity_start = std::chrono::steady_clock::now();
         AmbiguitySettings as = o.ambiguity;
         as.dark_rate = s.dark_rate;
-        const Ambiguity a = ambiguity(*ambiguity_model, scene, v.truth_mm, o.volume_photons, as);
+        const Ambiguity a = ambiguity(*ambiguity_model, physical, v.truth_mm, o.volume_photons, as);
         v.alias_kl = a.kl;
         v.alias_mm = a.impostor_mm;
         v.p_confusion = a.p_confusion;

@@ -29,7 +29,10 @@
 // mean of p_confusion: the catastrophic rate the figure predicts, beside the
 // rate measured (issue 13's validation).
 //
-// CRLB beside each error: crlb_study (the scene, Poisson sensor, the point,
+// EvaluationOptions::truth_scene sets the system the events come from apart
+// from the refinement's model (a calibration's comparison, issue 18).
+//
+// CRLB beside each error: crlb_study (the truth's scene, Poisson sensor, the point,
 // the truth's binning, rays and splat) gives the bound at the scene's emitted
 // photons, i.e. at row.photons expected detected photons; the Fisher
 // information is linear in the photon count, so the bound at the target
@@ -41,6 +44,7 @@
 #include <cmath>
 #include <cstdint>
 #include <functional>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -112,6 +116,13 @@ struct EvaluationOptions {
   unsigned rays = 0;
   Splat splat = TraceSettings{}.splat;  // forward truth and CRLB
   unsigned stratification = 1;  // forward truth: other strata than the dictionary's (0) by default
+  // The system the events come from, when it is not the model's scene: an
+  // as-built system (issue 18: truth from the as-built scene, refinement with
+  // the nominal, the fitted or the as-built one). It gives the event truth,
+  // the CRLB and the ambiguity (the real system's bounds); the scene passed
+  // to evaluate() gives only the refinement's model. Its sensor must be the
+  // dictionary's.
+  std::optional<Scene> truth_scene;
   uint64_t seed = 1;
   bool quick = false;          // few points per experiment (use with few trials)
   ReconstructionSettings settings;  // search_level -1: default_search_level()

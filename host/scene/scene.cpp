@@ -108,14 +108,34 @@ std::vector<LensletGeometry> hex_positions(int rows, int columns, double pitch_m
   return out;
 }
 
+OpticalSystem synthetic_as_built(const OpticalSystem& nominal) {
+  OpticalSystem s = nominal;
+  for (size_t i = 0; i < s.lenslets.size(); ++i) {
+    const double k = double(i) + 1;
+    auto& l = s.lenslets[i];
+    l.x_mm += 0.04 * std::sin(1.7 * k);
+    l.y_mm += 0.03 * std::cos(2.3 * k);
+    l.focal_mm *= 1 + 0.02 * std::sin(0.9 * k + 0.4);
+    l.tilt_x_deg = 0.5 * std::sin(1.3 * k + 1);
+    l.tilt_y_deg = -0.4 * std::cos(0.7 * k);
+  }
+  s.lens_to_sensor_mm += 0.15;
+  s.working_distance_mm -= 0.1;
+  s.sensor_pose = {0.03, -0.02, 0.3, -0.2};
+  return s;
+}
+
 std::vector<std::string> builtin_scene_names() {
-  return {"prototype", "unifocal-f3", "unifocal-f9", "unifocal-f15", "single-f3", "single-f9", "single-f15"};
+  return {"prototype", "prototype-as-built", "unifocal-f3", "unifocal-f9", "unifocal-f15", "single-f3", "single-f9", "single-f15"};
 }
 
 Scene builtin_scene(const std::string& name) {
   Scene s = base_scene(name);
   if (name == "prototype") {
     s.optics.lenslets = hex_array(0);
+  } else if (name == "prototype-as-built") {
+    s.optics.lenslets = hex_array(0);
+    s.optics = synthetic_as_built(s.optics);
   } else if (name.rfind("unifocal-f", 0) == 0 || name.rfind("single-f", 0) == 0) {
     bool single = name[0] == 's';
     const std::string digits = name.substr(name.find("-f") + 2);

@@ -39,6 +39,14 @@ struct SceneError : std::runtime_error {
 // Focal lengths are left 0 for the caller to assign.
 std::vector<LensletGeometry> hex_positions(int rows, int columns, double pitch_mm);
 
+// `nominal` as built, by known amounts, for calibration's tests and the
+// built-in "prototype-as-built" (issue 18): lenslet i (k = i + 1) moved by
+// (40 sin 1.7k, 30 cos 2.3k) um, its focal length off by 2% sin(0.9k + 0.4),
+// tilted (0.5 sin(1.3k + 1), -0.4 cos 0.7k) degrees; the sensor 0.15 mm
+// farther, moved by (30, -20) um and tilted (0.3, -0.2) degrees; the
+// scintillator face 0.1 mm nearer.
+OpticalSystem synthetic_as_built(const OpticalSystem& nominal);
+
 std::vector<std::string> builtin_scene_names();
 Scene builtin_scene(const std::string& name);
 // A built-in name, or the path of a JSON scene file.

@@ -58,7 +58,26 @@ TEST_CASE("every built-in scene round-trips through JSON") {
     CHECK(back.optics.lenslets.size() == s.optics.lenslets.size());
     CHECK(back.optics.lens_model == s.optics.lens_model);
     CHECK(back.optics.lenslets.back().focal_mm == s.optics.lenslets.back().focal_mm);
+    // Everything, the as-built's tilts and sensor pose included.
+    CHECK_MESSAGE(prism::to_json(back) == prism::to_json(s), name);
   }
+}
+
+TEST_CASE("prototype-as-built is the prototype moved by synthetic_as_built's known amounts") {
+  const auto nominal = prism::builtin_scene("prototype"), built = prism::builtin_scene("prototype-as-built");
+  REQUIRE(built.optics.lenslets.size() == nominal.optics.lenslets.size());
+  // Lenslet 1 (k = 2): the doc's formulas, by hand.
+  const auto &l = built.optics.lenslets[1], &n = nominal.optics.lenslets[1];
+  CHECK(l.x_mm - n.x_mm == doctest::Approx(0.04 * std::sin(3.4)));
+  CHECK(l.y_mm - n.y_mm == doctest::Approx(0.03 * std::cos(4.6)));
+  CHECK(l.focal_mm / n.focal_mm == doctest::Approx(1 + 0.02 * std::sin(2.2)));
+  CHECK(l.tilt_x_deg == doctest::Approx(0.5 * std::sin(3.6)));
+  CHECK(l.tilt_y_deg == doctest::Approx(-0.4 * std::cos(1.4)));
+  CHECK(built.optics.lens_to_sensor_mm - nominal.optics.lens_to_sensor_mm == doctest::Approx(0.15));
+  CHECK(built.optics.working_distance_mm - nominal.optics.working_distance_mm == doctest::Approx(-0.1));
+  CHECK(built.optics.sensor_pose.tilt_x_deg == 0.3);
+  CHECK(built.optics.as_built());
+  CHECK(built.volume.depth_max_mm == nominal.volume.depth_max_mm);
 }
 
 TEST_CASE("a bad scene names the file, the field and why") {
