@@ -124,7 +124,8 @@ Splat splat_from_string(const std::string& s);  // throws naming the choices
 enum class SceneParam {
   source_x, source_y, source_depth,
   lens_x, lens_y, lens_focal, lens_tilt_x, lens_tilt_y,
-  lens_to_sensor, working_distance, sensor_offset_x, sensor_offset_y, sensor_tilt_x, sensor_tilt_y
+  lens_to_sensor, working_distance, sensor_offset_x, sensor_offset_y, sensor_tilt_x, sensor_tilt_y,
+  source_sigma  // effect source_extent's sigma (mm): the calibration's blur term
 };
 struct Tangent {
   SceneParam param;

@@ -26,7 +26,8 @@ static_assert(sizeof(TraceParams) <= 128, "push constants beyond 128 bytes are n
 static_assert(PARAM_SOURCE_X == uint(SceneParam::source_x) && PARAM_LENS_X == uint(SceneParam::lens_x) &&
                   PARAM_LENS_TILT_Y == uint(SceneParam::lens_tilt_y) &&
                   PARAM_LENS_TO_SENSOR == uint(SceneParam::lens_to_sensor) &&
-                  PARAM_SENSOR_TILT_Y == uint(SceneParam::sensor_tilt_y),
+                  PARAM_SENSOR_TILT_Y == uint(SceneParam::sensor_tilt_y) &&
+                  PARAM_SOURCE_SIGMA == uint(SceneParam::source_sigma),
               "the kernels' PARAM_* must follow SceneParam's order");
 
 // A slot of TraceParams: PARAM_* | (lenslet + 1) << 8, 0 for every lenslet's own.

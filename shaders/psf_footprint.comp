@@ -37,7 +37,7 @@ void main() {
     uint i = cell % n;
     uint j = cell / n;
     float turn = strata_turn(in_design, P.stratification);
-    vec3 from = cell_source(theta, in_design, cell);
+    CellSource from = cell_source(theta, in_design, cell);
     Corner k[4];
     k[0] = trace_corner(from, lens, aperture_corner(i, j, n, turn));
     k[1] = trace_corner(from, lens, aperture_corner(i + 1u, j, n, turn));

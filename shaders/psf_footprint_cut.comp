@@ -16,7 +16,7 @@ void main() {
   uint stride = gl_NumWorkGroups.x * gl_WorkGroupSize.x;
   for (uint e = gl_GlobalInvocationID.x; e < total; e += stride) {
     Piece t;
-    vec3 from;
+    CellSource from;
     Lenslet lens;
     uint image_base, half_offset;
     float blur_half_px;

@@ -36,7 +36,7 @@ void main() {
   for (uint e = P.split_first + gl_GlobalInvocationID.x; e < end; e += stride) {
     uvec4 entry = splits[e];
     Piece t;
-    vec3 from;
+    CellSource from;
     Lenslet lens;
     uint image_base, half_offset;
     float blur_half_px;

@@ -330,23 +330,22 @@ SparseImage psf_footprint(const OpticalSystem& sys, const TraceSettings& setting
     const double half_cell_mm2 = 0.5 * M_PI * r * r / double(n * n);
     target.blur_half_px = sys.effects.diffraction ? sys.airy_half_side_mm(l) / px : 0.0;
     auto unit = [&](uint32_t i, uint32_t j) { return glm::dvec2(shared::aperture_corner(i, j, n, turn)); };
-    auto trace = [&](const glm::dvec3& from, glm::dvec2 u) {
-      return to_grid(trace_point(sys, settings, from, l, u, 1.0, tangents), half_w, half_h, px);
+    // From the source, moved by sigma times per_sigma (source_extent).
+    auto trace = [&](const glm::dvec3& per_sigma, glm::dvec2 u) {
+      return to_grid(trace_point(sys, settings, theta, per_sigma, l, u, 1.0, tangents), half_w, half_h, px);
     };
     // The corners, shared by neighbouring cells (without an extended source).
     std::vector<GridCorner> shared_corners;
     if (!sys.effects.source_extent) {
       shared_corners.resize(size_t(n + 1) * (n + 1));
       for (uint32_t j = 0; j <= n; ++j)
-        for (uint32_t i = 0; i <= n; ++i) shared_corners[size_t(j) * (n + 1) + i] = trace(theta, unit(i, j));
+        for (uint32_t i = 0; i <= n; ++i) shared_corners[size_t(j) * (n + 1) + i] = trace(glm::dvec3(0.0), unit(i, j));
     }
     for (uint32_t j = 0; j < n; ++j)
       for (uint32_t i = 0; i < n; ++i) {
-        glm::dvec3 from = theta;
-        if (sys.effects.source_extent)
-          from += source_offset(uint32_t(l), i + j * n, sys.effects.source_sigma_mm, settings.stratification);
+        const glm::dvec3 per_sigma = source_offset_per_sigma(sys, uint32_t(l), i + j * n, settings.stratification);
         auto corner = [&](uint32_t ci, uint32_t cj) {
-          return sys.effects.source_extent ? trace(from, unit(ci, cj)) : shared_corners[size_t(cj) * (n + 1) + ci];
+          return sys.effects.source_extent ? trace(per_sigma, unit(ci, cj)) : shared_corners[size_t(cj) * (n + 1) + ci];
         };
         const int half = int((i + j) & 1u);
         // One triangle: split while its image is large (LARGE_TRIANGLE_PX,
@@ -378,7 +377,7 @@ SparseImage psf_footprint(const OpticalSystem& sys, const TraceSettings& setting
           if (passed == 0) return;
           if (large(k) && depth < shared::SPLIT_DEPTH) {
             const glm::dvec2 m[3] = {0.5 * (p[0] + p[1]), 0.5 * (p[1] + p[2]), 0.5 * (p[2] + p[0])};
-            GridCorner km[3] = {trace(from, m[0]), trace(from, m[1]), trace(from, m[2])};
+            GridCorner km[3] = {trace(per_sigma, m[0]), trace(per_sigma, m[1]), trace(per_sigma, m[2])};
             GridCorner c0[3] = {k[0], km[0], km[2]}, c1[3] = {km[0], k[1], km[1]}, c2[3] = {km[2], km[1], k[2]},
                        c3[3] = {km[0], km[1], km[2]};
             glm::dvec2 p0[3] = {p[0], m[0], m[2]}, p1[3] = {m[0], p[1], m[1]}, p2[3] = {m[2], m[1], p[2]},
@@ -405,7 +404,7 @@ SparseImage psf_footprint(const OpticalSystem& sys, const TraceSettings& setting
             GridCorner best = odd_ok ? q[0] : q[1 + e];
             for (int st = 0; st < kCutSteps; ++st) {
               glm::dvec2 mid = 0.5 * (through + stopped);
-              GridCorner m = trace(from, mid);
+              GridCorner m = trace(per_sigma, mid);
               if (m.ok) through = mid, best = m;
               else stopped = mid;
             }

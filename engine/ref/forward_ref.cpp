@@ -257,24 +257,22 @@ SampleHit trace_sample_impl(const OpticalSystem& sys, const TraceSettings& setti
                             size_t lens, uint32_t sample, const Tangents& t) {
   const uint32_t strata = settings.strata_for(sys.lenslets[lens].diameter_mm);
   glm::dvec2 u = unit_disk_sample(uint32_t(lens), sample, strata, settings.stratification);
-  glm::dvec3 centre = theta;
-  if (sys.effects.source_extent)
-    centre += source_offset(uint32_t(lens), sample, sys.effects.source_sigma_mm, settings.stratification);
+  const glm::dvec3 per_sigma = source_offset_per_sigma(sys, uint32_t(lens), sample, settings.stratification);
   const double r = 0.5 * sys.lenslets[lens].diameter_mm;
-  return trace_point(sys, settings, centre, lens, u, M_PI * r * r / double(strata * strata), t);
+  return trace_point(sys, settings, theta, per_sigma, lens, u, M_PI * r * r / double(strata * strata), t);
 }
 
 }  // namespace
 
-glm::dvec3 source_offset(uint32_t lens, uint32_t sample, double sigma, uint32_t seed) {
-  return glm::dvec3(shared::source_offset(lens, sample, float(sigma), seed));
+glm::dvec3 source_offset_per_sigma(const OpticalSystem& sys, uint32_t lens, uint32_t sample, uint32_t seed) {
+  return sys.effects.source_extent ? glm::dvec3(shared::source_offset(lens, sample, 1.0f, seed)) : glm::dvec3(0.0);
 }
 
 // The ray from source `centre` through point `u` of lenslet `lens`'s
 // entrance disk (unit-disk coordinates), carrying the photons of `area_mm2`
 // of aperture there.
-SampleHit trace_point(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& centre, size_t lens,
-                      glm::dvec2 u, double area_mm2, const Tangents& t) {
+SampleHit trace_point(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta,
+                      const glm::dvec3& per_sigma, size_t lens, glm::dvec2 u, double area_mm2, const Tangents& t) {
   const int li = int(lens);
   const LensFrame f = lens_frame(sys, lens, t);
   const Geometry& g = f.g;
@@ -283,8 +281,10 @@ SampleHit trace_point(const OpticalSystem& sys, const TraceSettings& settings, c
   const V3 on_disk{D(g.radius * u.x), D(g.radius * u.y), z_ap};
   const V3 p = f.tilted ? f.c + f.m.apply(on_disk) : f.c + on_disk;
   const D wd = seeded(sys.working_distance_mm, Param::working_distance, li, t);
-  V3 s{seeded(centre.x, Param::source_x, li, t), seeded(centre.y, Param::source_y, li, t),
-       -(seeded(centre.z, Param::source_depth, li, t) + wd)};
+  // The source point, moving with sigma along per_sigma (source_extent).
+  const D sigma = seeded(sys.effects.source_sigma_mm, Param::source_sigma, li, t);
+  auto coordinate = [&](int k, Param p) { return seeded(theta[k], p, li, t) + sigma * D(per_sigma[k]); };
+  V3 s{coordinate(0, Param::source_x), coordinate(1, Param::source_y), -(coordinate(2, Param::source_depth) + wd)};
   double photons = settings.photons_emitted * sys.effects.detection_efficiency / (4 * M_PI) * area_mm2;
   V3 origin = s;
   D weight;

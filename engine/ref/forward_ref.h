@@ -67,18 +67,22 @@ struct SampleHit {
 SampleHit trace_sample(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta,
                        size_t lens, uint32_t sample);
 
-// The ray from source point `centre` through point `u` (unit-disk
-// coordinates) of lenslet `lens`'s entrance disk, carrying the photons of
-// `area_mm2` of aperture there (the footprint's corners: footprint_ref.cpp).
-SampleHit trace_point(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& centre, size_t lens,
-                      glm::dvec2 u, double area_mm2, const Tangents& tangents = source_tangents);
+// The ray from source theta through point `u` (unit-disk coordinates) of
+// lenslet `lens`'s entrance disk, carrying the photons of `area_mm2` of
+// aperture there (the footprint's corners: footprint_ref.cpp). With
+// source_extent it leaves from theta + sigma per_sigma (per_sigma: the
+// sample's source_offset at sigma 1, the point's derivative by sigma).
+SampleHit trace_point(const OpticalSystem& sys, const TraceSettings& settings, const glm::dvec3& theta,
+                      const glm::dvec3& per_sigma, size_t lens, glm::dvec2 u, double area_mm2,
+                      const Tangents& tangents = source_tangents);
 // Effect diffraction: `weight` at point (u, v) (grid pixels) blurred by a
 // uniform square of half side h (the Airy core, shaders/common/blur.glsl):
 // each box pixel gets the square's share in it, the sensor's far edges
 // (u_max, v_max) bounding the last column and row; derivatives to
 // checkerboard half `half`.
 void add_blurred_point(SparseImage& img, D u, D v, double h, D weight, int half, double u_max, double v_max);
-// Effect source_extent: the source point of sample `sample` (shared sampling code).
-glm::dvec3 source_offset(uint32_t lens, uint32_t sample, double sigma, uint32_t seed);
+// Effect source_extent: sample `sample`'s offset from the source at sigma 1
+// (shared sampling code); 0 without the effect.
+glm::dvec3 source_offset_per_sigma(const OpticalSystem& sys, uint32_t lens, uint32_t sample, uint32_t seed);
 
 }  // namespace prism::ref

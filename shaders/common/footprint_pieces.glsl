@@ -75,7 +75,7 @@ float twice_area(vec2 a, vec2 b, vec2 c) { return abs((b.x - a.x) * (c.y - a.y) 
 // Triangle (a, b, c) with some corners stopped: the part that passes, found
 // by bisection along a-b and a-c from the odd corner out, with its share of
 // `area_mm2` of aperture.
-void rasterise_cut(uint image_base, vec3 from, Lenslet lens, Corner a, Corner b, Corner c, vec2 pa, vec2 pb, vec2 pc,
+void rasterise_cut(uint image_base, CellSource from, Lenslet lens, Corner a, Corner b, Corner c, vec2 pa, vec2 pb, vec2 pc,
                    float area_mm2, float blur_half_px, uint half_offset) {
   int passed = int(a.ok) + int(b.ok) + int(c.ok);
   // The odd one out first, cyclic order kept: a stopped with b, c through
@@ -166,7 +166,7 @@ bool is_split(Piece t, int depth) {
 // The piece of list entry `entry` (footprint_raster.glsl): its triangle
 // split along the entry's path (piece_code); `from` is the cell's source
 // point.
-void listed_piece(uvec4 entry, out Piece t, out vec3 from, out Lenslet lens, out uint image_base,
+void listed_piece(uvec4 entry, out Piece t, out CellSource from, out Lenslet lens, out uint image_base,
                   out uint half_offset, out float blur_half_px) {
   uint s = entry.x;
   DesignRange design = designs[source_design[P.source_offset + s]];

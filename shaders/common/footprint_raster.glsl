@@ -64,18 +64,24 @@ struct Corner {
   bool ok;
 };
 
-Corner trace_corner(vec3 theta, Lenslet lens, vec2 unit) {
-  Hit hit = trace_aperture_point(theta, lens, unit, 1.0f, P, LENS_MODEL, SCINT_REFRACTION, HOLDER, AS_BUILT);
+// Where a cell's rays leave from: the source theta and, with source_extent,
+// the cell's own offset per unit sigma (source_point, optics.glsl).
+struct CellSource {
+  vec3 theta;
+  vec3 per_sigma;
+};
+
+// The source of cell `cell` of lenslet `lens_index` (index within its design).
+CellSource cell_source(vec3 theta, uint lens_index, uint cell) {
+  return CellSource(theta, SOURCE_EXTENT ? source_offset(lens_index, cell, 1.0f, P.stratification) : vec3(0.0f));
+}
+
+Corner trace_corner(CellSource from, Lenslet lens, vec2 unit) {
+  Hit hit = trace_aperture_point(from.theta, from.per_sigma, lens, unit, 1.0f, P, LENS_MODEL, SCINT_REFRACTION, HOLDER,
+                                 AS_BUILT);
   float inv_px = 1.0f / P.pixel_mm;
   return Corner(d_scale(d_addc(hit.x_mm, P.sensor_half_w_mm), inv_px),
                 d_scale(d_addc(hit.y_mm, P.sensor_half_h_mm), inv_px), hit.weight, hit.ok);
-}
-
-// The point cell `cell` of lenslet `lens_index` (index within its design)
-// leaves from: the source, or with source_extent the cell's own offset.
-vec3 cell_source(vec3 theta, uint lens_index, uint cell) {
-  if (!SOURCE_EXTENT) return theta;
-  return theta + source_offset(lens_index, cell, P.source_sigma_mm, P.stratification);
 }
 
 const int MAX_SIDES = 5;  // a triangle clipped by the sensor's two far edges

@@ -111,6 +111,7 @@ const uint PARAM_SENSOR_OFFSET_X = 10u;
 const uint PARAM_SENSOR_OFFSET_Y = 11u;
 const uint PARAM_SENSOR_TILT_X = 12u;
 const uint PARAM_SENSOR_TILT_Y = 13u;
+const uint PARAM_SOURCE_SIGMA = 14u;  // effect source_extent's sigma
 
 // 1 when slot code `slot` names parameter `param` of lenslet `lens` (a
 // lenslet's parameter: its own or every lenslet's; a global one: any).
@@ -240,7 +241,9 @@ PRISM_FN vec2 aperture_sample(uint lens, uint sample_index, uint strata, uint se
 // Effect "source_extent": each ray leaves from the source centre plus a
 // Gaussian offset (sigma per axis), a fixed function of (lens, sample) like the
 // aperture point, so the PSF is the point PSF convolved with the source's
-// extent and derivatives in theta stay exact. Box-Muller on the hash.
+// extent and derivatives in theta stay exact. Box-Muller on the hash. The
+// offset is linear in sigma: source_offset(.., 1, ..) is its derivative by
+// sigma (the calibration's blur term).
 PRISM_FN vec3 source_offset(uint lens, uint sample_index, float sigma_mm, uint seed) {
   uint key = lens * 3266489917u ^ sample_index * 668265263u ^ 0x5bd1e995u ^ seed * 0x9e3779b9u;
   float u1 = max(hash_unit(key), 1.0f / 16777216.0f);
@@ -255,9 +258,15 @@ PRISM_FN vec3 source_offset(uint lens, uint sample_index, float sigma_mm, uint s
 
 // The source theta = (x, y, depth) as a point: (x, y, -(depth + wd)), its
 // coordinates seeded as the slots say (the identity Jacobian by default).
-PRISM_FN DVec3 source_point(vec3 theta, Dual working_distance_mm, uint lens, TraceParams P) {
-  return DVec3(Dual(theta.x, seed(PARAM_SOURCE_X, lens, P)), Dual(theta.y, seed(PARAM_SOURCE_Y, lens, P)),
-               d_neg(d_add(Dual(theta.z, seed(PARAM_SOURCE_DEPTH, lens, P)), working_distance_mm)));
+// With source_extent the ray leaves from theta + sigma * per_sigma
+// (per_sigma: the sample's source_offset at sigma 1; 0 without the effect),
+// which moves with sigma by per_sigma.
+PRISM_FN DVec3 source_point(vec3 theta, vec3 per_sigma, Dual working_distance_mm, uint lens, TraceParams P) {
+  vec3 at = theta + P.source_sigma_mm * per_sigma;
+  vec3 by_sigma = seed(PARAM_SOURCE_SIGMA, lens, P);
+  return DVec3(Dual(at.x, seed(PARAM_SOURCE_X, lens, P) + per_sigma.x * by_sigma),
+               Dual(at.y, seed(PARAM_SOURCE_Y, lens, P) + per_sigma.y * by_sigma),
+               d_neg(d_add(Dual(at.z, seed(PARAM_SOURCE_DEPTH, lens, P) + per_sigma.z * by_sigma), working_distance_mm)));
 }
 
 // ---------------------------------------------------------------------------
@@ -555,12 +564,13 @@ PRISM_FN Hit trace_as_built(Ray ray, LensShape g, DMat3 m, int lens_model, float
 }
 #endif  // PRISM_AS_BUILT
 
-// Trace the ray from source theta through point `unit` of the lenslet's
+// Trace the ray from source theta (with source_extent: moved by sigma times
+// per_sigma, source_point) through point `unit` of the lenslet's
 // entrance disk (unit-disk coordinates). Its weight is the photons per mm^2
 // of aperture there times `area_mm2`. The effect switches are compile-time
 // constants in the kernels (specialisation constants), so an effect the scene
 // does not name is compiled out.
-PRISM_FN Hit trace_aperture_point(vec3 theta, Lenslet lens, vec2 unit, float area_mm2, TraceParams P, int lens_model,
+PRISM_FN Hit trace_aperture_point(vec3 theta, vec3 per_sigma, Lenslet lens, vec2 unit, float area_mm2, TraceParams P, int lens_model,
                                   bool scint_refraction, bool holder, bool as_built) {
   LensShape g = seeded_shape(lens, P);
   // The entrance disk: the rim plane of a front sphere, else the plane z = 0.
@@ -577,7 +587,7 @@ PRISM_FN Hit trace_aperture_point(vec3 theta, Lenslet lens, vec2 unit, float are
   DVec3 p = dv_add(lens_pivot(g), on_disk);
   float photons = P.photons_per_sr * area_mm2;
   Dual working_distance = Dual(P.working_distance_mm, seed(PARAM_WORKING_DISTANCE, lens.index, P));
-  DVec3 src = source_point(theta, working_distance, lens.index, P);
+  DVec3 src = source_point(theta, per_sigma, working_distance, lens.index, P);
   Ray ray = scint_refraction ? emit_through_face(src, p, photons, P.scint_index, d_neg(working_distance))
                              : emit_direct(src, p, photons);
   float bore = holder ? P.holder_bore_mm : 0.0f;
@@ -598,10 +608,10 @@ PRISM_FN Hit trace_aperture_point(vec3 theta, Lenslet lens, vec2 unit, float are
 // theta: its jittered stratum's point, carrying an equal share of the area.
 PRISM_FN Hit trace_sample(vec3 theta, Lenslet lens, uint lens_index, uint sample_index, TraceParams P,
                           int lens_model, bool scint_refraction, bool holder, bool source_extent, bool as_built) {
-  if (source_extent) theta = theta + source_offset(lens_index, sample_index, P.source_sigma_mm, P.stratification);
+  vec3 per_sigma = source_extent ? source_offset(lens_index, sample_index, 1.0f, P.stratification) : vec3(0.0f);
   vec2 unit = aperture_sample(lens_index, sample_index, lens.strata, P.stratification);
   float area = 3.14159265358979f * lens.radius_mm * lens.radius_mm / float(lens.strata * lens.strata);
-  return trace_aperture_point(theta, lens, unit, area, P, lens_model, scint_refraction, holder, as_built);
+  return trace_aperture_point(theta, per_sigma, lens, unit, area, P, lens_model, scint_refraction, holder, as_built);
 }
 
 // ---------------------------------------------------------------------------

@@ -40,6 +40,7 @@ int compare_rays(const prism::OpticalSystem& sys, bool built, const prism::Tange
   P.sensor_offset_y_mm = float(sys.sensor_pose.offset_y_mm);
   P.sensor_tilt_x_rad = float(sys.sensor_pose.tilt_x_deg * M_PI / 180);
   P.sensor_tilt_y_rad = float(sys.sensor_pose.tilt_y_deg * M_PI / 180);
+  P.source_sigma_mm = float(sys.effects.source_sigma_mm);
   sh::set_tangents(P, tangents);
   const int model = sys.lens_model == prism::LensModel::real ? sh::LENS_REAL : sh::LENS_THIN;
   const bool face = sys.effects.scintillator_refraction;
@@ -51,8 +52,10 @@ int compare_rays(const prism::OpticalSystem& sys, bool built, const prism::Tange
     const double area = M_PI * lenses[l].radius_mm * lenses[l].radius_mm / double(strata * strata);
     for (uint32_t s = 0; s < t.rays(); ++s) {
       const glm::dvec2 u(sh::aperture_sample(uint32_t(l), s, strata, 0));
-      auto r = prism::ref::trace_point(sys, t, theta, l, u, area, tangents);
-      auto h = sh::trace_sample(glm::vec3(theta), lenses[l], uint32_t(l), s, P, model, face, false, false, built);
+      const glm::dvec3 per_sigma = prism::ref::source_offset_per_sigma(sys, uint32_t(l), s, 0);
+      auto r = prism::ref::trace_point(sys, t, theta, per_sigma, l, u, area, tangents);
+      auto h = sh::trace_sample(glm::vec3(theta), lenses[l], uint32_t(l), s, P, model, face, false,
+                                sys.effects.source_extent, built);
       REQUIRE(h.ok == r.ok);
       // Grazing rays that land far off the sensor amplify float rounding; they carry no signal.
       if (!r.ok || std::abs(r.x_mm) > 0.5 * sys.sensor_width_mm() || std::abs(r.y_mm) > 0.5 * sys.sensor_height_mm())
@@ -107,6 +110,14 @@ TEST_CASE("shared GLSL math: derivatives by scene parameters are the reference's
         // Derivatives by tilts need the as-built path, as the calibrate kernels always take.
         CHECK(compare_rays(system_of(model, face, true), true, sets[k]) > 200);
       }
+  // The blur term: an extended source's sigma, beside the source's position.
+  for (auto model : {prism::LensModel::thin, prism::LensModel::real}) {
+    auto extended = system_of(model, true, true);
+    extended.effects.source_extent = true;
+    extended.effects.source_sigma_mm = 0.4;
+    CHECK(compare_rays(extended, true, {{{SceneParam::source_sigma}, {SceneParam::source_x}, {SceneParam::lens_x, 2}}}) >
+          200);
+  }
   // Flipped lenses move their curved face's centre with the focal length.
   auto flipped = system_of(prism::LensModel::real, false, true);
   flipped.curved_toward_sensor = true;
