@@ -115,12 +115,17 @@ void run_info(const std::string& dir, bool verify) {
   std::printf("  grid x      %s mm\n  grid y      %s mm\n  grid depth  %s mm\n", range(m.grid.x_mm).c_str(),
               range(m.grid.y_mm).c_str(), range(m.grid.depth_mm).c_str());
   std::printf("  entries     %zu of %zu files present%s%s\n", present, m.grid.size(),
-              present < m.grid.size() ? " (run `prism dictionary build` again to finish)" : "",
+              present == m.grid.size()   ? ""
+              : m.source == "calibrated" ? " (the others are missing: assemble it again from every PSF)"
+                                         : " (run `prism dictionary build` again to finish)",
               verify ? "" : " (not read: --verify reads every level of every file)");
   std::printf("  storage     half floats x 2^15, ZIP, %d px tiles; %.1f MiB on disk (%.2f MiB per PSF)\n", m.tile_px,
               bytes / 1048576.0, present ? bytes / 1048576.0 / present : 0.0);
-  std::printf("  rays        %u per 3 mm lenslet, %s splat, stratification %u\n", m.rays_per_lenslet,
-              to_string(m.splat), m.stratification);
+  if (m.source == "calibrated")
+    std::printf("  measured    PSFs merged from calibration exposures (prism dictionary assemble)\n");
+  else
+    std::printf("  rays        %u per 3 mm lenslet, %s splat, stratification %u\n", m.rays_per_lenslet,
+                to_string(m.splat), m.stratification);
   std::printf("  levels      %d; every level of every PSF sums to 1 over the sensor\n", m.levels);
   for (int l = 0; l < m.levels; ++l)
     std::printf("    level %-2d  %5d x %-5d px of %7.1f um\n", l, m.level_width(l), m.level_height(l), m.pixel_mm(l) * 1e3);

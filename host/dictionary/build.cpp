@@ -33,15 +33,6 @@ DictionaryManifest manifest_for(const Scene& scene, const DictionaryBuildOptions
   return m;
 }
 
-void write_manifest(const std::string& dir, const DictionaryManifest& m) {
-  std::string path = dir + "/manifest.json";
-  write_atomically(path, [&](const std::string& tmp) {
-    std::ofstream out(tmp);
-    out << m.to_json().dump(2) << '\n';
-    if (!out) throw DictionaryError(path + ": cannot write");
-  });
-}
-
 }  // namespace
 
 void check_build_options(const std::string& dir, const Scene& scene, const DictionaryBuildOptions& o) {

@@ -270,6 +270,15 @@ PsfLevel bin_level(const PsfLevel& l0, int k) {
   return out;
 }
 
+void write_manifest(const std::string& dir, const DictionaryManifest& m) {
+  std::string path = dir + "/manifest.json";
+  write_atomically(path, [&](const std::string& tmp) {
+    std::ofstream out(tmp);
+    out << m.to_json().dump(2) << '\n';
+    if (!out) throw DictionaryError(path + ": cannot write");
+  });
+}
+
 void write_psf_file(const std::string& path, const DictionaryManifest& m, size_t index, const PsfLevel& level0,
                     double photons_on_sensor) {
   if (level0.width != m.width || level0.height != m.height)

@@ -100,6 +100,9 @@ PsfLevel bin_level(const PsfLevel& level0, int k);
 void write_psf_file(const std::string& path, const DictionaryManifest& m, size_t index, const PsfLevel& level0,
                     double photons_on_sensor);
 
+// Writes DIR/manifest.json atomically (DIR must exist).
+void write_manifest(const std::string& dir, const DictionaryManifest& m);
+
 class DictionaryReader {
  public:
   // Opens DIR/manifest.json; checks version and, when `expect` is given,

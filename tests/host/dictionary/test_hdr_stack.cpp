@@ -1,5 +1,6 @@
 // Calibration stacks on disk (capture-hdr's format): round trip, errors that
-// name the file and field, and `prism dictionary merge-hdr` end to end.
+// name the file and field, and `prism dictionary merge-hdr` and `assemble`
+// end to end.
 #include <cstdlib>
 #include <functional>
 #include <filesystem>
@@ -9,6 +10,7 @@
 
 #include "compare.h"
 #include "host/dictionary/hdr_stack.h"
+#include "host/dictionary/store.h"
 #include "host/util/image_io.h"
 #include "host/util/memory.h"
 #include "support.h"
@@ -205,5 +207,77 @@ TEST_CASE("prism dictionary merge-hdr writes normalised PSFs with sidecars (CLI)
   rc = prism_cli("dictionary merge-hdr --out " + (root / "bad").string(), out);
   CHECK(rc != 0);
   CHECK(out.find("--stack DIR") != std::string::npos);
+  fs::remove_all(root);
+}
+
+TEST_CASE("prism dictionary assemble: merged PSFs on a grid become a calibrated dictionary (CLI)") {
+  fs::path root = fresh_dir("assemble");
+  write_hdr_stack((root / "stacks" / "p").string(), small_stack(64, 48, 3));
+  std::string out;
+  REQUIRE(prism_cli("dictionary merge-hdr --stacks " + (root / "stacks").string() + " --out " +
+                        (root / "merged0").string() + " --backend cpu",
+                    out) == 0);
+  // The camera: one lenslet over a 64 x 48 px sensor of 100 um pixels.
+  const std::string scene = (root / "camera.json").string();
+  std::ofstream(scene) << R"({"name": "camera", "lenslets": [{"x_mm": 0, "y_mm": 0, "focal_mm": 9}],
+                             "sensor": {"width_px": 64, "height_px": 48, "pixel_um": 100}})";
+  // That PSF as if measured at the four nodes of x {-2, 2} x y {0} x depth {10, 20}.
+  auto place = [&](const std::string& name, double x, double depth) {
+    fs::copy_file(root / "merged0" / "p.exr", root / "merged" / (name + ".exr"), fs::copy_options::overwrite_existing);
+    nlohmann::json j;
+    std::ifstream(root / "merged0" / "p.json") >> j;
+    j["source"] = {{"x_mm", x}, {"y_mm", 0.0}, {"depth_mm", depth}};
+    std::ofstream(root / "merged" / (name + ".json")) << j.dump();
+  };
+  fs::create_directories(root / "merged");
+  place("a", -2, 10), place("b", 2, 10), place("c", -2, 20), place("d", 2, 20);
+  const std::string dict = (root / "dict").string();
+  const std::string args = "dictionary assemble --merged " + (root / "merged").string() + " --scene " + scene;
+  int rc = prism_cli(args + " --binning 2 --out " + dict, out);
+  INFO(out);
+  REQUIRE(rc == 0);
+  CHECK(out.find("4 merged PSFs, a 2 x 1 x 2 grid") != std::string::npos);
+  const DictionaryReader reader(dict);
+  const DictionaryManifest& m = reader.manifest();
+  CHECK(m.source == "calibrated");
+  CHECK(m.grid.x_mm == std::vector<double>{-2, 2});
+  CHECK(m.grid.depth_mm == std::vector<double>{10, 20});
+  CHECK(m.base_binning == 2);
+  REQUIRE(reader.present() == 4);
+  REQUIRE(prism_cli("dictionary info " + dict, out) == 0);
+  CHECK(out.find("measured    PSFs merged from calibration exposures") != std::string::npos);
+  // Level 0: the merged PSF binned 2 x 2, normalised, in half precision.
+  int w = 0, h = 0;
+  const auto y = read_exr_channel((root / "merged0" / "p.exr").string(), "Y", w, h);
+  PsfLevel binned = bin_level(PsfLevel{0, w, h, y}, 1);
+  const double sum = std::accumulate(binned.p.begin(), binned.p.end(), 0.0);
+  for (float& v : binned.p) v = float(v / sum);
+  const PsfLevel stored = reader.read_level(3, 0);
+  REQUIRE(stored.width == 32);
+  auto cmp = prism::test::compare_values(binned.p, stored.p, {.abs = 1e-7, .rel = 2e-3});
+  CHECK_MESSAGE(cmp.ok(), cmp.report("stored level 0 vs the merged PSF binned"));
+  CHECK(std::accumulate(stored.p.begin(), stored.p.end(), 0.0) == doctest::Approx(1.0).epsilon(1e-3));
+
+  // Errors, and nothing written.
+  rc = prism_cli(args + " --out " + dict, out);
+  CHECK(rc != 0);
+  CHECK(out.find("exists; give --out a new folder") != std::string::npos);
+  const std::string fresh = (root / "dict2").string();
+  rc = prism_cli(args + " --binning 3 --out " + fresh, out);
+  CHECK(rc != 0);
+  CHECK(out.find("--binning 3: give a power of two") != std::string::npos);
+  place("e", 2, 20);  // twice at one node
+  rc = prism_cli(args + " --out " + fresh, out);
+  CHECK(rc != 0);
+  CHECK(out.find("were both taken at (2, 0, 20) mm") != std::string::npos);
+  fs::remove(root / "merged" / "e.json");
+  fs::remove(root / "merged" / "e.exr");
+  fs::remove(root / "merged" / "b.json");  // a node without its PSF
+  fs::remove(root / "merged" / "b.exr");
+  rc = prism_cli(args + " --out " + fresh, out);
+  CHECK(rc != 0);
+  CHECK(out.find("1 of its nodes have no PSF: (2, 0, 10) mm") != std::string::npos);
+  CHECK_FALSE(fs::exists(fresh));
+  for (const auto& e : fs::directory_iterator(root)) CHECK(e.path().filename().string().find("assembling") == std::string::npos);
   fs::remove_all(root);
 }
