@@ -20,8 +20,12 @@ TRUE_PHOTONS = 100.0   # the runs' --volume-photons
 
 
 def read(path):
-    with open(path) as f:
-        return {int(r["event"]): r for r in csv.DictReader(f)}
+    try:
+        with open(path) as f:
+            return {int(r["event"]): r for r in csv.DictReader(f)}
+    except FileNotFoundError:
+        sys.exit(f"{path}: not there; a run still going writes it when done (or now: `prism evaluate` with its "
+                 "options and --journal-only)")
 
 
 def main(args):
@@ -33,7 +37,7 @@ def main(args):
         sys.exit("no event is in every run")
     print(f"{len(common)} events in every run (indices {common[0]}..{common[-1]})")
     print("| model | events | > 3 mm | median 3D (mm) | RMSE x / y / z (mm) | median error / CRLB x / y / z"
-          " | mean |alpha - 100| | s / event |")
+          " | mean abs(alpha - 100) | s / event |")
     print("|---|---|---|---|---|---|---|---|")
     for name, events in runs:
         rows = [events[i] for i in common]
