@@ -226,7 +226,7 @@ void add_crlb(CLI::App& app) {
   auto a = std::make_shared<CrlbArgs>();
   CLI::App* c = app.add_subcommand("crlb", "Cramer-Rao lower bounds (Fisher information) against depth");
   c->add_option("--scene", a->scenes,
-                "built-in scene or JSON file; repeat for several (prototype, unifocal-f3/9/15, single-f3/9/15)")
+                "built-in scene or JSON file; repeat for several (prototype, prototype-as-built, unifocal-f3/9/15, single-f3/9/15)")
       ->capture_default_str();
   c->add_option("--depth-mm", a->depths, "depths from the scintillator face: A,B,C or FIRST:LAST:STEP")
       ->capture_default_str();
