@@ -31,9 +31,9 @@ struct AssembleArgs {
   unsigned binning = 4;  // as `prism dictionary build`
 };
 
-// The sorted distinct values of one coordinate; positions within
-// kSameMm of each other are one grid line (positions typed into a stage
-// controller's log, or printed and read back, differ in the last digits).
+// The sorted distinct values of one coordinate; positions within kSameMm
+// of each other are one grid line (a position printed and read back
+// differs in its last digits).
 constexpr double kSameMm = 1e-6;
 std::vector<double> grid_line(const std::vector<MeasuredPsf>& psfs, int axis) {
   std::vector<double> v;
@@ -43,10 +43,6 @@ std::vector<double> grid_line(const std::vector<MeasuredPsf>& psfs, int axis) {
   for (double x : v)
     if (out.empty() || x - out.back() > kSameMm) out.push_back(x);
   return out;
-}
-
-size_t node_of(const std::vector<double>& line, double x) {
-  return size_t(std::lower_bound(line.begin(), line.end(), x - kSameMm) - line.begin());
 }
 
 void run(const AssembleArgs& a) {
@@ -78,8 +74,7 @@ void run(const AssembleArgs& a) {
   std::map<size_t, size_t> at;  // node -> PSF
   for (size_t k = 0; k < psfs.size(); ++k) {
     const glm::dvec3& t = psfs[k].theta_mm;
-    const size_t i = m.grid.index(glm::ivec3(int(node_of(m.grid.x_mm, t.x)), int(node_of(m.grid.y_mm, t.y)),
-                                             int(node_of(m.grid.depth_mm, t.z))));
+    const size_t i = m.grid.index(m.grid.nearest_node(t));  // every position is a node, to kSameMm
     if (auto [it, fresh] = at.emplace(i, k); !fresh)
       throw std::runtime_error(psfs[k].name + " and " + psfs[it->second].name + " were both taken at (" +
                                format_number(t.x) + ", " + format_number(t.y) + ", " + format_number(t.z) +

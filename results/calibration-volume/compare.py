@@ -4,7 +4,7 @@
 Reads <dir>/volume-events.csv of each model's `prism evaluate` run (given as
 NAME=DIR) and prints one row per model over the events every run has done
 (the runs grow at their own pace; a comparison is only fair on the same
-events): catastrophic count (3D error > 3 mm), median 3D error, RMSE and
+events): catastrophic count (3D error > 3 mm), mean and median 3D error, RMSE and
 median |error| / CRLB per axis over the other events, the mean photon-count
 error, and the seconds per event.
 
@@ -36,7 +36,7 @@ def main(args):
     if not common:
         sys.exit("no event is in every run")
     print(f"{len(common)} events in every run (indices {common[0]}..{common[-1]})")
-    print("| model | events | > 3 mm | median 3D (mm) | RMSE x / y / z (mm) | median error / CRLB x / y / z"
+    print("| model | events | > 3 mm | mean / median 3D (mm) | RMSE x / y / z (mm) | median error / CRLB x / y / z"
           " | mean abs(alpha - 100) | s / event |")
     print("|---|---|---|---|---|---|---|---|")
     for name, events in runs:
@@ -52,7 +52,7 @@ def main(args):
             ratio.append(statistics.median(abs(e) / float(r[bound]) for e, r in zip(errs, good)) if errs else math.nan)
         alpha = statistics.mean(abs(float(r["alpha"]) - TRUE_PHOTONS) for r in rows)
         seconds = [float(r["seconds"]) for r in rows if r["seconds"]]
-        print(f"| {name} | {len(rows)} | {len(rows) - len(good)} | {statistics.median(err3d):.3f} | "
+        print(f"| {name} | {len(rows)} | {len(rows) - len(good)} | {statistics.mean(err3d):.3f} / {statistics.median(err3d):.3f} | "
               f"{rmse[0]:.3f} / {rmse[1]:.3f} / {rmse[2]:.3f} | {ratio[0]:.2f} / {ratio[1]:.2f} / {ratio[2]:.2f} | "
               f"{alpha:.1f} | {statistics.median(seconds) if seconds else math.nan:.0f} |")
 
