@@ -32,8 +32,8 @@ struct Faults {
                       TruncatedTrailer, Oversize, TrailerStatus, Stall, Unplug, Silence } stream = Stream::None;
   size_t usbfs_limit = 0;          // bytes of URB buffers the "kernel" accepts at once (0 = unlimited)
   // Soak: besides `frame`, each frame gets a fault with probability
-  // random_rate, of a kind drawn from random_kinds; seeded, so a failing run
-  // repeats exactly.
+  // random_rate, of a kind drawn from random_kinds (a kind listed n times is
+  // drawn n times as often); seeded, so a failing run repeats exactly.
   double random_rate = 0;
   std::vector<Stream> random_kinds;
   uint64_t random_seed = 1;
