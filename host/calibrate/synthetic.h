@@ -1,6 +1,6 @@
 // Synthetic as-built systems and their "measured" PSFs, for calibration's
-// tests and benchmarks (issue 18): what a calibration must recover, with
-// noise as a camera and the HDR merge give it. The as-built system itself,
+// tests and benchmarks and `prism dictionary simulate-hdr` (issue 18): what a
+// calibration must recover, with noise as a camera and the HDR merge give it. The as-built system itself,
 // synthetic_as_built, is a scene's (host/scene/scene.h: the built-in
 // "prototype-as-built").
 #pragma once

@@ -23,6 +23,7 @@ void add_dictionary_merge_hdr(CLI::App& dictionary);
 void add_dictionary_build(CLI::App& dictionary);
 void add_dictionary_info(CLI::App& dictionary);
 void add_dictionary_assemble(CLI::App& dictionary);
+void add_dictionary_simulate_hdr(CLI::App& dictionary);
 void add_simulate(CLI::App& app);
 void add_reconstruct(CLI::App& app);
 void add_evaluate(CLI::App& app);
