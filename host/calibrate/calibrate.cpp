@@ -269,7 +269,12 @@ struct Evaluation {
 // mostly below the threshold, fitted 2 degrees tilted against a true -0.3,
 // both when the rejected pixels counted as 0 and as at most the faintest
 // kept value). Pixels fainter than defaults::calibration_reliable_over_faintest
-// times the faintest value kept are left out.
+// times the faintest value kept are censored: they say only that the light
+// there is below that value (upper_bound), and count where the model exceeds
+// it. Left out altogether, they let a lenslet's image wander into the dark:
+// the whole prototype fitted from HDR-merged PSFs put f = 3 mm lenslets'
+// focal lengths hundreds of sigmas off and tilted others by 6-10 degrees
+// (README "Calibration").
 struct Noise {
   double floor = 0;     // weight floor (calibrate.h)
   double reliable = 0;  // the faintest value fitted
@@ -289,6 +294,12 @@ double weight(double p, const Noise& n) { return 1.0 / (std::max(p, 0.0) + n.flo
 // level: every sub-pixel was, MeasuredPsf::unknown).
 bool known(const MeasuredPsf& psf, size_t i, const Noise& n) {
   return psf.unknown.empty() ? psf.p[i] >= n.reliable : psf.unknown[i] == 0;
+}
+
+// The most light a censored pixel i may hold: the reliable value (at a coarse
+// level: what its measured sub-pixels hold plus the censored ones' bound).
+double upper_bound(const MeasuredPsf& psf, size_t i, const Noise& n) {
+  return psf.unknown.empty() ? n.reliable : double(psf.p[i]) + double(psf.unknown[i]);
 }
 
 // The PSF's photon scale that minimises chi2 over its measured pixels under
@@ -331,18 +342,21 @@ PsfTerms psf_terms(const MeasuredPsf& psf, const Model& model, double weight_flo
   std::vector<double> u(sums ? P : 0, 0.0), v(sums ? P : 0, 0.0);
   double q = 0;
   for (const auto& [key, m] : model) {
-    if (!known(psf, size_t(key), noise)) continue;
-    const double p = psf.p[size_t(key)], w = weight(p, noise), r = p - s * m.b;
+    // A censored pixel counts as measured at its bound where the model
+    // exceeds that; the scale, fitted to the measured pixels, is held.
+    const bool measured = known(psf, size_t(key), noise);
+    const double p = measured ? psf.p[size_t(key)] : upper_bound(psf, size_t(key), noise);
+    if (!measured && s * m.b <= p) continue;
+    const double w = weight(p, noise), r = p - s * m.b;
     out.fit.chi2 += w * r * r;
     ++out.fit.pixels;
     if (m.lens >= 0) out.lens_chi2[size_t(m.lens)] += w * r * r, ++out.lens_pixels[size_t(m.lens)];
     if (!sums) continue;
     const double wr2 = (w * r) * (w * r);
-    q += wr2 * m.b * m.b;
+    if (measured) q += wr2 * m.b * m.b;
     for (const auto& a : m.d) {
       sums->grad[a.param] -= w * r * s * a.d;
-      u[a.param] += w * s * a.d * m.b;
-      v[a.param] += wr2 * s * a.d * m.b;
+      if (measured) u[a.param] += w * s * a.d * m.b, v[a.param] += wr2 * s * a.d * m.b;
       for (const auto& c : m.d) {
         sums->gn[size_t(a.param) * P + c.param] += w * s * s * a.d * c.d;
         sums->meat[size_t(a.param) * P + c.param] += wr2 * s * s * a.d * c.d;
@@ -531,14 +545,15 @@ int levenberg_marquardt(const Fitter& fitter, std::vector<double>& x, const std:
 }
 
 // The PSFs binned by 2^k (each a sum over 2^k x 2^k pixels, as the
-// dictionary's levels are); a pixel with an unknown sub-pixel is unknown.
+// dictionary's levels are); a pixel with a censored sub-pixel is censored,
+// its bound the sum of what its sub-pixels may hold.
 std::vector<MeasuredPsf> binned(const std::vector<MeasuredPsf>& psfs, const AnalysisGrid& grid, int k,
                                 double weight_floor) {
   std::vector<MeasuredPsf> out;
   for (const auto& p : psfs) {
     const Noise n = noise_of(p, weight_floor);
     PsfLevel sl{0, grid.width, grid.height, std::vector<float>(p.p.size())};
-    for (size_t i = 0; i < p.p.size(); ++i) sl.p[i] = known(p, i, n) ? 0.0f : 1.0f;
+    for (size_t i = 0; i < p.p.size(); ++i) sl.p[i] = known(p, i, n) ? 0.0f : float(n.reliable);
     PsfLevel l = bin_level(PsfLevel{0, grid.width, grid.height, p.p}, k);
     out.push_back({p.theta_mm, std::move(l.p), p.name, bin_level(sl, k).p});
   }

@@ -13,8 +13,10 @@
 // floor_k = defaults::calibration_weight_floor times the PSF's brightest
 // pixel: an HDR pixel's variance grows with its signal (shot noise) above a
 // floor. Pixels fainter than defaults::calibration_reliable_over_faintest
-// times the faintest value the HDR merge kept are left out (near its
-// threshold it keeps only upward fluctuations). Each s_k has its optimum in
+// times the faintest value the HDR merge kept (near its threshold it keeps
+// only upward fluctuations) are censored: all the fit knows of them is that
+// they hold less than that value, so they count only where the model puts
+// more light there, as a measurement at that value would. Each s_k has its optimum in
 // closed form and is profiled out; the geometric parameters are found by
 // Levenberg-Marquardt on the profiled chi2 with its Gauss-Newton matrix H
 // (the scales' share removed by their Schur complement), first on pixels
@@ -73,13 +75,14 @@ std::vector<CalibrationParameter> calibration_parameters(const OpticalSystem& s,
 // One measured PSF: where its source was and its image on the model's grid
 // (settings.binning), row-major, summing to ~1 over the sensor.
 // A pixel of value 0 is one the HDR merge rejected as too faint; the fit
-// leaves out those and the faint ones near them (calibrate.cpp, Noise).
+// censors those and the faint ones near them (calibrate.cpp, Noise).
 struct MeasuredPsf {
   glm::dvec3 theta_mm{0.0};  // x, y, depth
   std::vector<float> p;
   std::string name;  // for messages: its file
-  // Binned PSFs (calibrate's coarse levels): per pixel, nonzero where a
-  // sub-pixel is left out; empty: decided from p.
+  // Binned PSFs (calibrate's coarse levels): per pixel, the most light its
+  // censored sub-pixels may hold (their count times the reliable value), 0
+  // where every sub-pixel is measured; empty: decided from p.
   std::vector<float> unknown;
 };
 
