@@ -302,18 +302,38 @@ double upper_bound(const MeasuredPsf& psf, size_t i, const Noise& n) {
   return psf.unknown.empty() ? n.reliable : double(psf.p[i]) + double(psf.unknown[i]);
 }
 
-// The PSF's photon scale that minimises chi2 over its measured pixels under
-// `model`: s = sum w p b / sum w b^2; also returns sum w b^2 (the scale's
-// information).
+// The value pixel i is fitted to where the model gives it s b: its measured
+// value, or a censored pixel's bound where s b exceeds that; NaN where the
+// pixel does not count.
+double target(const MeasuredPsf& psf, size_t i, double sb, const Noise& n) {
+  if (known(psf, i, n)) return psf.p[i];
+  const double bound = upper_bound(psf, i, n);
+  return sb > bound ? bound : std::numeric_limits<double>::quiet_NaN();
+}
+
+// The PSF's photon scale that minimises chi2 under `model`: over its measured
+// pixels, and its censored ones where s b exceeds their bound (convex in s,
+// quadratic between changes of that set: solved set by set); also returns
+// sum w b^2 over the pixels that count (the scale's information). At this
+// optimum the gradient by the other parameters needs no term through s.
 std::pair<double, double> best_scale(const MeasuredPsf& psf, const Model& model, const Noise& n) {
-  double wpb = 0, wbb = 0;
-  for (const auto& [key, m] : model) {
-    const double p = psf.p[size_t(key)], w = weight(p, n);
-    if (!known(psf, size_t(key), n)) continue;
-    wpb += w * p * m.b;
-    wbb += w * m.b * m.b;
+  double s = 0, wbb = 0;  // s = 0 first: the measured pixels alone
+  for (int pass = 0; pass < 32; ++pass) {
+    double wpb = 0;
+    wbb = 0;
+    for (const auto& [key, m] : model) {
+      const double p = target(psf, size_t(key), s * m.b, n);
+      if (std::isnan(p)) continue;
+      const double w = weight(p, n);
+      wpb += w * p * m.b;
+      wbb += w * m.b * m.b;
+    }
+    const double next = wbb > 0 ? wpb / wbb : 0.0;
+    const bool settled = std::abs(next - s) <= 1e-12 * std::abs(next);
+    s = next;
+    if (settled) break;
   }
-  return {wbb > 0 ? wpb / wbb : 0.0, wbb};
+  return {s, wbb};
 }
 
 // The sums over pixels that derivatives give: the gradient of chi2 / 2, its
@@ -342,21 +362,19 @@ PsfTerms psf_terms(const MeasuredPsf& psf, const Model& model, double weight_flo
   std::vector<double> u(sums ? P : 0, 0.0), v(sums ? P : 0, 0.0);
   double q = 0;
   for (const auto& [key, m] : model) {
-    // A censored pixel counts as measured at its bound where the model
-    // exceeds that; the scale, fitted to the measured pixels, is held.
-    const bool measured = known(psf, size_t(key), noise);
-    const double p = measured ? psf.p[size_t(key)] : upper_bound(psf, size_t(key), noise);
-    if (!measured && s * m.b <= p) continue;
+    const double p = target(psf, size_t(key), s * m.b, noise);
+    if (std::isnan(p)) continue;
     const double w = weight(p, noise), r = p - s * m.b;
     out.fit.chi2 += w * r * r;
     ++out.fit.pixels;
     if (m.lens >= 0) out.lens_chi2[size_t(m.lens)] += w * r * r, ++out.lens_pixels[size_t(m.lens)];
     if (!sums) continue;
     const double wr2 = (w * r) * (w * r);
-    if (measured) q += wr2 * m.b * m.b;
+    q += wr2 * m.b * m.b;
     for (const auto& a : m.d) {
       sums->grad[a.param] -= w * r * s * a.d;
-      if (measured) u[a.param] += w * s * a.d * m.b, v[a.param] += wr2 * s * a.d * m.b;
+      u[a.param] += w * s * a.d * m.b;
+      v[a.param] += wr2 * s * a.d * m.b;
       for (const auto& c : m.d) {
         sums->gn[size_t(a.param) * P + c.param] += w * s * s * a.d * c.d;
         sums->meat[size_t(a.param) * P + c.param] += wr2 * s * s * a.d * c.d;
