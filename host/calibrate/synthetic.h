@@ -15,13 +15,23 @@
 
 namespace prism {
 
+// How the synthetic camera records a stack: `exposures` times spread
+// log-uniformly over [min_us, max_us] (as capture-hdr takes them), `darks`
+// dark frames at the longest, the PSF's brightest pixel at peak_dn_per_s.
+// The longest exposure sets the faintest light the merge keeps: 16 DN over
+// max_us of the peak's rate (4e-5 of the peak by default).
+struct SyntheticCapture {
+  unsigned exposures = 7, darks = 3;
+  double min_us = 20, max_us = 2e5;
+  double peak_dn_per_s = 2e6;
+};
+
 // PSF theta of `truth`, rendered by the CPU reference with `settings` (render
 // the truth apart from the model that fits it: more cells, another
-// stratification), as `prism camera capture-hdr` would record it: 7
-// exposures (20 us .. 0.2 s) and 3 darks of SyntheticSensor's 12-bit sensor,
-// the brightest pixel at 2e6 DN/s.
+// stratification), as `prism camera capture-hdr` would record it with
+// SyntheticSensor's 12-bit sensor.
 HdrFrames synthetic_exposures(const OpticalSystem& truth, const TraceSettings& settings, const glm::dvec3& theta,
-                              uint64_t seed);
+                              uint64_t seed, const SyntheticCapture& capture = {});
 
 // ... merged as `prism dictionary merge-hdr` does (the CPU reference).
 MeasuredPsf synthetic_measured_psf(const OpticalSystem& truth, const TraceSettings& settings, const glm::dvec3& theta,

@@ -15,6 +15,7 @@
 #include "host/cmd/options.h"
 #include "host/dictionary/hdr_stack.h"
 #include "host/dictionary/store.h"
+#include "host/util/format.h"
 #include "host/util/progress.h"
 
 namespace fs = std::filesystem;
@@ -30,10 +31,8 @@ struct SimulateHdrArgs {
   unsigned rays = 4096;
   uint64_t seed = 1;
   unsigned threads = std::max(1u, std::thread::hardware_concurrency());
+  SyntheticCapture capture;
 };
-
-// A stack's frames: synthetic_exposures' 7 exposures and 3 darks.
-constexpr size_t frames_per_stack = 10;
 
 std::string stack_name(size_t index) {
   char b[32];
@@ -42,6 +41,8 @@ std::string stack_name(size_t index) {
 }
 
 void run(const SimulateHdrArgs& a) {
+  if (!(a.capture.max_us > a.capture.min_us))
+    throw std::invalid_argument("--max-us must exceed --min-us (" + format_number(a.capture.min_us) + ")");
   const Scene scene = load_scene(a.scene);
   DictionaryGrid grid{parse_list(a.grid_x, "--grid-x-mm"), parse_list(a.grid_y, "--grid-y-mm"),
                       parse_list(a.grid_depth, "--grid-depth-mm")};
@@ -54,8 +55,8 @@ void run(const SimulateHdrArgs& a) {
   // The camera records the scene's sensor pixels as they are; bin in the
   // camera (a scene with larger pixels) to keep the stacks small.
   const OpticalSystem& optics = scene.optics;
-  const uint64_t stack_bytes =
-      uint64_t(optics.sensor_width_px) * uint64_t(optics.sensor_height_px) * 2 * frames_per_stack;
+  const uint64_t stack_bytes = uint64_t(optics.sensor_width_px) * uint64_t(optics.sensor_height_px) * 2 *
+                               (a.capture.exposures + a.capture.darks);
   std::vector<size_t> todo;
   for (size_t i = 0; i < grid.size(); ++i)
     if (!fs::exists(fs::path(a.out) / stack_name(i) / "stack.json")) todo.push_back(i);
@@ -65,7 +66,7 @@ void run(const SimulateHdrArgs& a) {
     throw std::runtime_error(
         std::to_string(todo.size()) + " stacks of " + std::to_string(stack_bytes >> 20) + " MiB (" +
         std::to_string(optics.sensor_width_px) + " x " + std::to_string(optics.sensor_height_px) +
-        " px, 10 frames) need more than the " + std::to_string(free_bytes >> 20) + " MiB free in " + a.out +
+        " px, " + std::to_string(a.capture.exposures + a.capture.darks) + " frames) need more than the " + std::to_string(free_bytes >> 20) + " MiB free in " + a.out +
         ": give a scene whose sensor is binned in the camera (e.g. pixel_um 110.4 and a sensor 16 times smaller "
         "in each direction), or fewer positions");
 
@@ -94,7 +95,7 @@ void run(const SimulateHdrArgs& a) {
                         {"scene", scene.name},
                         {"rays_per_lenslet", truth.rays()},
                         {"seed", a.seed + i}};
-        stack.frames = synthetic_exposures(optics, truth, stack.source_mm, a.seed + i);
+        stack.frames = synthetic_exposures(optics, truth, stack.source_mm, a.seed + i, a.capture);
         // stack.json is written last: its presence says the stack is whole.
         write_hdr_stack((fs::path(a.out) / stack_name(i)).string(), stack);
       } catch (...) {
@@ -121,8 +122,9 @@ void add_dictionary_simulate_hdr(CLI::App& dictionary) {
   auto a = std::make_shared<SimulateHdrArgs>();
   CLI::App* c = dictionary.add_subcommand(
       "simulate-hdr",
-      "write the capture-hdr stacks a camera would record of a scene's PSFs at grid positions (7 exposures of 20 us "
-      "to 0.2 s and 3 darks of a noisy 12-bit sensor, the brightest pixel at 2e6 DN/s), to rehearse a calibration");
+      "write the capture-hdr stacks a camera would record of a scene's PSFs at grid positions (exposures "
+      "log-spaced over --min-us .. --max-us and darks at the longest, of a noisy 12-bit sensor, the brightest pixel "
+      "at 2e6 DN/s), to rehearse a calibration");
   c->add_option("--scene", a->scene,
                 "the system as built, with the camera's pixels (built-in scene or JSON file; a 6.9 um sensor makes "
                 "stacks of 640 MB: bin it in the camera)")
@@ -137,6 +139,15 @@ void add_dictionary_simulate_hdr(CLI::App& dictionary) {
                             "sees them, and not a model's strata), ") + rays_rounding)
       ->capture_default_str()
       ->check(CLI::Range(4u, 1u << 24));
+  c->add_option("--exposures", a->capture.exposures, "number of exposure times")
+      ->capture_default_str()
+      ->check(CLI::Range(2u, 64u));
+  c->add_option("--darks", a->capture.darks, "number of dark frames")->capture_default_str()->check(CLI::Range(1u, 64u));
+  c->add_option("--min-us", a->capture.min_us, "shortest exposure in us")->capture_default_str()->check(positive_number);
+  c->add_option("--max-us", a->capture.max_us,
+                "longest exposure in us: the faintest light kept is 16 DN over it, of the peak's 2e6 DN/s")
+      ->capture_default_str()
+      ->check(positive_number);
   c->add_option("--seed", a->seed, "noise seed of the first position; position i gets seed + i")->capture_default_str();
   c->add_option("--threads", a->threads, "positions rendered at once (CPU reference)")
       ->capture_default_str()

@@ -332,10 +332,20 @@ TEST_CASE("prism dictionary simulate-hdr: a scene's PSFs as capture-hdr stacks t
     return std::string(std::istreambuf_iterator<char>(in), {});
   };
   CHECK(bytes(root / "again" / "p0001" / "exposure_3.raw") == bytes(root / "stacks" / "p0001" / "exposure_3.raw"));
-  // A source behind the lenses is refused, nothing written.
+  // The capture's exposures as capture-hdr's options name them.
+  REQUIRE(prism_cli(args + " --exposures 5 --darks 2 --min-us 50 --max-us 1e6 --out " + (root / "long").string(), out) == 0);
+  const HdrStack longer = read_hdr_stack((root / "long" / "p0000").string());
+  REQUIRE(longer.frames.exposure_s.size() == 5);
+  CHECK(longer.frames.exposure_s.front() == doctest::Approx(50e-6));
+  CHECK(longer.frames.exposure_s.back() == doctest::Approx(1.0));
+  CHECK(longer.frames.dark_s == std::vector<double>{1.0, 1.0});
+  // A source behind the lenses, or exposures the wrong way round, are refused, nothing written.
   rc = prism_cli(cmd + " --grid-depth-mm=-20 --out " + (root / "bad").string(), out);
   CHECK(rc != 0);
   CHECK(out.find("--grid-*-mm:") != std::string::npos);
+  rc = prism_cli(args + " --min-us 300 --max-us 200 --out " + (root / "bad").string(), out);
+  CHECK(rc != 0);
+  CHECK(out.find("--max-us must exceed --min-us (300)") != std::string::npos);
   CHECK_FALSE(fs::exists(root / "bad"));
   fs::remove_all(root);
 }
