@@ -629,8 +629,11 @@ CalibrationResult calibrate(const OpticalSystem& start, const std::vector<Measur
   // did not: on the synthetic HDR test that put 7 of 31 parameters 3-9 of
   // their reported sigmas from the truth even with the model's own rays.
   std::vector<size_t> act;
-  for (size_t j = 0; j < P; ++j)
-    if (cur.gn[j * P + j] > 0) act.push_back(j);
+  std::vector<bool> at_bound(P);
+  for (size_t j = 0; j < P; ++j) {
+    at_bound[j] = x[j] <= lo[j] || x[j] >= hi[j];
+    if (cur.gn[j * P + j] > 0 && !at_bound[j]) act.push_back(j);
+  }
   std::vector<double> sigma(P, std::numeric_limits<double>::infinity());
   const size_t m = act.size();
   std::vector<double> A(m * m), inv(m * m);  // H over act, and its inverse (column by column)
@@ -650,7 +653,7 @@ CalibrationResult calibrate(const OpticalSystem& start, const std::vector<Measur
         for (size_t c = 0; c < m; ++c) var += inv[a * m + b] * cur.meat[act[b] * P + act[c]] * inv[c * m + a];
       if (var > 0) sigma[act[a]] = std::sqrt(var);
     }
-  for (size_t j = 0; j < P; ++j) r.estimates.push_back({free[j], free[j].get(start), x[j], sigma[j]});
+  for (size_t j = 0; j < P; ++j) r.estimates.push_back({free[j], free[j].get(start), x[j], sigma[j], at_bound[j]});
   r.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count() - t0;
   return r;
 }

@@ -121,7 +121,12 @@ struct CalibrationOptions {
 struct ParameterEstimate {
   CalibrationParameter parameter;
   double start = 0, value = 0;
-  double sigma = 0;  // one standard deviation; infinite when no PSF constrains it
+  // One standard deviation; infinite when no PSF constrains it or the fit
+  // ended on one of its bounds (at_bound: the data pushed it to the edge of
+  // the range CalibrationParameter::bounds allows, so no interior optimum
+  // exists to take an uncertainty at; the others' sigmas hold it fixed).
+  double sigma = 0;
+  bool at_bound = false;
 };
 
 struct PsfFit {

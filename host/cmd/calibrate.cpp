@@ -179,10 +179,11 @@ void run(const CalibrateArgs& a) {
   fitted.name = scene.name + "-calibrated";
   write_text(a.out, to_json(fitted).dump(2) + "\n");
 
-  std::string table = "parameter,start,fitted,sigma,change_over_sigma\n";
+  std::string table = "parameter,start,fitted,sigma,change_over_sigma,at_bound\n";
   for (const auto& e : r.estimates)
     table += e.parameter.name() + "," + format_number(e.start, 12) + "," + format_number(e.value, 12) + "," +
-             format_number(e.sigma) + "," + format_number((e.value - e.start) / e.sigma) + "\n";
+             format_number(e.sigma) + "," + format_number((e.value - e.start) / e.sigma) + "," +
+             (e.at_bound ? "1" : "0") + "\n";
   if (!a.csv.empty()) write_text(a.csv, table);
 
   if (!a.residuals.empty()) {
@@ -222,9 +223,18 @@ void run(const CalibrateArgs& a) {
   }
 
   std::printf("%-28s %14s %14s %12s %10s\n", "parameter", "start", "fitted", "sigma", "change/sd");
-  for (const auto& e : r.estimates)
-    std::printf("%-28s %14.6f %14.6f %12.3g %10.2f\n", e.parameter.name().c_str(), e.start, e.value, e.sigma,
-                (e.value - e.start) / e.sigma);
+  std::string on_bounds;
+  size_t n_on_bounds = 0;
+  for (const auto& e : r.estimates) {
+    std::printf("%-28s %14.6f %14.6f %12.3g %10.2f%s\n", e.parameter.name().c_str(), e.start, e.value, e.sigma,
+                (e.value - e.start) / e.sigma, e.at_bound ? "  at its bound" : "");
+    if (e.at_bound) on_bounds += (n_on_bounds++ ? ", " : "") + e.parameter.name();
+  }
+  if (n_on_bounds)
+    std::printf("%zu parameter(s) ended on the bounds of their range (the PSFs do not hold them inside it; no "
+                "sigma): %s. Add PSFs that show those lenslets (other positions, longer exposures) or leave their "
+                "group out of --fit\n",
+                n_on_bounds, on_bounds.c_str());
   std::printf("chi2 %.6g -> %.6g over %zu pixels of %zu PSFs, chi2 / dof %.4g, %d steps%s, %.1f s\n", r.chi2_start,
               r.chi2, r.pixels, psfs.size(), r.reduced_chi2(), r.steps,
               r.converged ? " (converged)" : " (step limit reached)", r.seconds);

@@ -61,13 +61,15 @@ void check_table(const std::string& csv, const prism::OpticalSystem& truth, cons
   std::ifstream table(csv);
   std::string line;
   std::getline(table, line);
-  CHECK(line == "parameter,start,fitted,sigma,change_over_sigma");
+  CHECK(line == "parameter,start,fitted,sigma,change_over_sigma,at_bound");
   for (const auto& p : prism::calibration_parameters(truth, prism::calibration_groups())) {
     REQUIRE(std::getline(table, line));
     CAPTURE(line);
     REQUIRE(line.rfind(p.name() + ",", 0) == 0);
     double start, value, sigma;
-    REQUIRE(std::sscanf(line.c_str() + p.name().size(), ",%lf,%lf,%lf", &start, &value, &sigma) == 3);
+    int at_bound = -1;
+    REQUIRE(std::sscanf(line.c_str() + p.name().size(), ",%lf,%lf,%lf,%*[^,],%d", &start, &value, &sigma, &at_bound) == 4);
+    CHECK(at_bound == 0);
     CHECK(std::abs(value - p.get(truth)) <= 3 * sigma);
     CHECK(p.get(fitted) == doctest::Approx(value).epsilon(1e-9));
   }
@@ -159,6 +161,32 @@ TEST_CASE("calibration: light the model puts where the merged PSF is dark counts
   CHECK(r.lenses[3].pixels > r0.lenses[3].pixels / 2);
   CHECK(r.lenses[3].chi2 > 100 * r0.lenses[3].chi2);
   CHECK(r.psfs[0].scale < 0.9 * r0.psfs[0].scale);
+}
+
+TEST_CASE("calibration: a parameter the data push past its range ends on its bound, without a sigma") {
+  // The sensor lies 2.3 mm farther than nominal in truth; the fit may move it
+  // by 2 mm (defaults::calibration_max_distance_mm), so it ends there, flagged.
+  prism::OpticalSystem truth = nominal_row();
+  truth.lens_to_sensor_mm += 2.3;
+  std::vector<prism::MeasuredPsf> psfs;
+  uint64_t seed = 40;
+  for (const glm::dvec3& theta : positions(true)) psfs.push_back(measured(truth, theta, seed++));
+  const prism::OpticalSystem start = nominal_row();
+  prism::CalibrationOptions o;
+  o.settings = model_settings();
+  o.max_steps = 10;
+  std::vector<prism::CalibrationParameter> free = prism::calibration_parameters(start, {"lens_to_sensor"});
+  free.push_back(prism::calibration_parameters(start, {"lens_xy"}).at(4));  // lenslet 2's x
+  const prism::CalibrationResult r = prism::calibrate(start, psfs, free, o);
+  REQUIRE(r.estimates.size() == 2);
+  const auto& distance = r.estimates[0];
+  CAPTURE(distance.value);
+  CAPTURE(distance.sigma);
+  CHECK(distance.at_bound);
+  CHECK(distance.value == doctest::Approx(start.lens_to_sensor_mm + prism::defaults::calibration_max_distance_mm));
+  CHECK(std::isinf(distance.sigma));
+  CHECK_FALSE(r.estimates[1].at_bound);
+  CHECK(std::isfinite(r.estimates[1].sigma));
 }
 
 TEST_CASE("calibration: parameter groups, names and errors") {
