@@ -271,10 +271,10 @@ struct Evaluation {
 // kept value). Pixels fainter than defaults::calibration_reliable_over_faintest
 // times the faintest value kept are censored: they say only that the light
 // there is below that value (upper_bound), and count where the model exceeds
-// it. Left out altogether, they let a lenslet's image wander into the dark:
-// the whole prototype fitted from HDR-merged PSFs put f = 3 mm lenslets'
-// focal lengths hundreds of sigmas off and tilted others by 6-10 degrees
-// (README "Calibration").
+// it: the likelihood of a censored measurement. Left out altogether, they
+// would cost a lenslet nothing for light it puts where the camera saw none.
+// Neither way finds lenslets whose images lie below what the merge keeps
+// (README "Calibration": the whole prototype at 0.2 s and at 2 s exposures).
 struct Noise {
   double floor = 0;     // weight floor (calibrate.h)
   double reliable = 0;  // the faintest value fitted
