@@ -54,8 +54,8 @@ TEST_CASE("prism --help names every subcommand, and a word where one must stand 
   // A word where a command must stand names the commands there (CLI11 alone
   // says "A subcommand is required" to a typo).
   refused("dictionry", "'dictionry' is not a command of prism; choose from crlb, psf, dictionary");
-  refused("dictionary merge", "'merge' is not a command of prism dictionary; choose from build, info, merge-hdr");
-  refused("dictionary", "prism dictionary needs a command: build, info, merge-hdr");
+  refused("dictionary merge", "'merge' is not a command of prism dictionary; choose from build, info, simulate-hdr, merge-hdr, assemble");
+  refused("dictionary", "prism dictionary needs a command: build, info, simulate-hdr, merge-hdr, assemble");
   refused("crlb extra", "not expected: extra");  // a command's own words: CLI11's message
 }
 
