@@ -57,14 +57,14 @@ void run(const SimulateHdrArgs& a) {
   const OpticalSystem& optics = scene.optics;
   const uint64_t stack_bytes = uint64_t(optics.sensor_width_px) * uint64_t(optics.sensor_height_px) * 2 *
                                (a.capture.exposures + a.capture.darks);
-  std::vector<size_t> todo;
+  std::vector<size_t> missing;
   for (size_t i = 0; i < grid.size(); ++i)
-    if (!fs::exists(fs::path(a.out) / stack_name(i) / "stack.json")) todo.push_back(i);
+    if (!fs::exists(fs::path(a.out) / stack_name(i) / "stack.json")) missing.push_back(i);
   fs::create_directories(a.out);
   const uint64_t free_bytes = fs::space(a.out).available;
-  if (stack_bytes * todo.size() > free_bytes)
+  if (stack_bytes * missing.size() > free_bytes)
     throw std::runtime_error(
-        std::to_string(todo.size()) + " stacks of " + std::to_string(stack_bytes >> 20) + " MiB (" +
+        std::to_string(missing.size()) + " stacks of " + std::to_string(stack_bytes >> 20) + " MiB (" +
         std::to_string(optics.sensor_width_px) + " x " + std::to_string(optics.sensor_height_px) +
         " px, " + std::to_string(a.capture.exposures + a.capture.darks) + " frames) need more than the " + std::to_string(free_bytes >> 20) + " MiB free in " + a.out +
         ": give a scene whose sensor is binned in the camera (e.g. pixel_um 110.4 and a sensor 16 times smaller "
@@ -77,16 +77,16 @@ void run(const SimulateHdrArgs& a) {
   std::fprintf(stderr,
                "prism dictionary simulate-hdr: %zu of %zu stacks to write (%zu present), %s, %d x %d px of %.2f um, "
                "%.1f MiB each; CPU reference on %u threads\n",
-               todo.size(), grid.size(), grid.size() - todo.size(), scene.name.c_str(), optics.sensor_width_px,
+               missing.size(), grid.size(), grid.size() - missing.size(), scene.name.c_str(), optics.sensor_width_px,
                optics.sensor_height_px, optics.pixel_um, double(stack_bytes) / 1048576.0, a.threads);
 
-  Progress progress("prism dictionary simulate-hdr", todo.size());
+  Progress progress("prism dictionary simulate-hdr", missing.size());
   std::atomic<size_t> next{0}, done{0};
   std::mutex lock;
   std::exception_ptr failure;
   auto worker = [&] {
-    for (size_t k; (k = next++) < todo.size();) {
-      const size_t i = todo[k];
+    for (size_t k; (k = next++) < missing.size();) {
+      const size_t i = missing[k];
       try {
         HdrStack stack;
         stack.source_mm = grid.position(i);
@@ -101,19 +101,19 @@ void run(const SimulateHdrArgs& a) {
       } catch (...) {
         std::lock_guard<std::mutex> g(lock);
         if (!failure) failure = std::current_exception();
-        next = todo.size();
+        next = missing.size();
       }
       std::lock_guard<std::mutex> g(lock);
       progress.update(++done);
     }
   };
   std::vector<std::thread> pool;
-  for (unsigned t = 0; t < std::min<size_t>(a.threads, std::max<size_t>(1, todo.size())); ++t) pool.emplace_back(worker);
+  for (unsigned t = 0; t < std::min<size_t>(a.threads, std::max<size_t>(1, missing.size())); ++t) pool.emplace_back(worker);
   for (auto& t : pool) t.join();
   progress.finish();
   if (failure) std::rethrow_exception(failure);
   std::printf("%s: %zu stacks written, %zu already present; next: prism dictionary merge-hdr --stacks %s --out MERGED\n",
-              a.out.c_str(), todo.size(), grid.size() - todo.size(), a.out.c_str());
+              a.out.c_str(), missing.size(), grid.size() - missing.size(), a.out.c_str());
 }
 
 }  // namespace
