@@ -12,16 +12,16 @@ namespace prism {
 
 HdrFrames synthetic_exposures(const OpticalSystem& truth, const TraceSettings& settings, const glm::dvec3& theta,
                               uint64_t seed, const SyntheticCapture& capture) {
+  if (capture.exposures < 2 || !(capture.min_us > 0) || !(capture.max_us > capture.min_us) || capture.darks < 1 ||
+      !(capture.peak_dn_per_s > 0))
+    throw std::invalid_argument("synthetic capture: give 2 or more exposures, min_us > 0, max_us > min_us, 1 or more "
+                                "darks and a peak rate > 0");
   const AnalysisGrid grid = AnalysisGrid::of(truth, settings.binning);
   std::vector<double> b(size_t(grid.width) * size_t(grid.height), 0.0);
   double peak = 0;
   for (const auto& [key, px] : ref::psf(truth, settings, theta).pixels)
     b[size_t(key)] = px[0], peak = std::max(peak, px[0]);
   if (!(peak > 0)) throw std::invalid_argument("synthetic PSF: no light on the sensor from this source");
-  if (capture.exposures < 2 || !(capture.min_us > 0) || !(capture.max_us > capture.min_us) || capture.darks < 1 ||
-      !(capture.peak_dn_per_s > 0))
-    throw std::invalid_argument("synthetic capture: give 2 or more exposures, min_us > 0, max_us > min_us, 1 or more "
-                                "darks and a peak rate > 0");
   for (double& v : b) v *= capture.peak_dn_per_s / peak;
   return simulate_hdr_frames(b, grid.width, grid.height,
                              log_spaced_times(capture.min_us * 1e-6, capture.max_us * 1e-6, int(capture.exposures)),
