@@ -126,7 +126,7 @@ int main(int argc, char** argv) {
   for (double depth : {6.0, 15.0, 30.0, 45.0})
     for (glm::dvec2 xy : {glm::dvec2(-6, -3), glm::dvec2(2, 3), glm::dvec2(8, -2)})
       psfs.push_back(synthetic_measured_psf(truth, truth_settings, {xy.x, xy.y, depth}, seed++));
-  const auto free = calibration_parameters(nominal, calibration_groups());
+  const auto free = calibration_parameters(nominal, calibration_default_groups());
   std::printf("\n## 2. A whole fit: 5 as-built lenslets (f = 4.5-12 mm), %zu parameters, %zu HDR-merged PSFs at 4096 "
               "cells (stratification 1), model %u cells, from the nominal scene\n",
               free.size(), psfs.size(), t.rays());
@@ -154,7 +154,7 @@ int main(int argc, char** argv) {
   const OpticalSystem proto_truth = synthetic_as_built(proto);
   std::vector<MeasuredPsf> two{synthetic_measured_psf(proto_truth, truth_settings, {3, -2, 20}, 101),
                                synthetic_measured_psf(proto_truth, truth_settings, {-8, 5, 35}, 102)};
-  const auto all = calibration_parameters(proto, calibration_groups());
+  const auto all = calibration_parameters(proto, calibration_default_groups());
   std::printf("\n## 3. The prototype: %zu parameters, 2 PSFs, two steps on the model's pixels; seconds per step and "
               "PSF (each step: a trial without derivatives, then the derivatives)\n",
               all.size());

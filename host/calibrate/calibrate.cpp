@@ -17,6 +17,7 @@
 #include <unordered_map>
 
 #include "engine/forward.h"
+#include "host/calibrate/source_blur.h"
 #include "host/dictionary/store.h"                  // bin_level
 #include "host/util/format.h"
 #include "host/util/image_io.h"
@@ -43,6 +44,7 @@ std::string CalibrationParameter::name() const {
     case Param::sensor_offset_y: return "sensor.offset_y_mm";
     case Param::sensor_tilt_x: return "sensor.tilt_x_deg";
     case Param::sensor_tilt_y: return "sensor.tilt_y_deg";
+    case Param::source_sigma: return "effects.source_extent.sigma_mm";
     default: return "source";  // the source's position is never a calibration parameter
   }
 }
@@ -62,13 +64,17 @@ template <class System> auto& field(System& s, const CalibrationParameter& p) {
     case Param::sensor_offset_y: return s.sensor_pose.offset_y_mm;
     case Param::sensor_tilt_x: return s.sensor_pose.tilt_x_deg;
     case Param::sensor_tilt_y: return s.sensor_pose.tilt_y_deg;
+    case Param::source_sigma: return s.effects.source_sigma_mm;
     default: throw std::logic_error("calibration: the source's position is not a scene parameter");
   }
 }
 }  // namespace
 
 double CalibrationParameter::get(const OpticalSystem& s) const { return field(s, *this); }
-void CalibrationParameter::set(OpticalSystem& s, double value) const { field(s, *this) = value; }
+void CalibrationParameter::set(OpticalSystem& s, double value) const {
+  field(s, *this) = value;
+  if (param == Param::source_sigma) s.effects.source_extent = true;  // a fitted extent is one the scene has
+}
 
 std::pair<double, double> CalibrationParameter::bounds(const OpticalSystem& nominal) const {
   const double v = get(nominal);
@@ -83,6 +89,7 @@ std::pair<double, double> CalibrationParameter::bounds(const OpticalSystem& nomi
     case Param::lens_tilt_y:
     case Param::sensor_tilt_x:
     case Param::sensor_tilt_y: return {-defaults::max_tilt_deg, defaults::max_tilt_deg};
+    case Param::source_sigma: return {defaults::calibration_min_source_sigma_mm, defaults::calibration_max_source_sigma_mm};
     default: return {v - defaults::calibration_max_distance_mm, v + defaults::calibration_max_distance_mm};
   }
 }
@@ -101,6 +108,7 @@ const std::vector<Group>& groups() {
       {"working_distance", {Param::working_distance}},
       {"sensor_offset", {Param::sensor_offset_x, Param::sensor_offset_y}},
       {"sensor_tilt", {Param::sensor_tilt_x, Param::sensor_tilt_y}},
+      {"source_extent", {Param::source_sigma}},
   };
   return g;
 }
@@ -109,6 +117,12 @@ const std::vector<Group>& groups() {
 std::vector<std::string> calibration_groups() {
   std::vector<std::string> out;
   for (const auto& g : groups()) out.push_back(g.name);
+  return out;
+}
+
+std::vector<std::string> calibration_default_groups() {
+  std::vector<std::string> out = calibration_groups();
+  out.erase(std::find(out.begin(), out.end(), "source_extent"));
   return out;
 }
 
@@ -163,33 +177,88 @@ using Model = std::unordered_map<int64_t, ModelPixel>;
 using PixelVisitor = std::function<void(int64_t, const std::array<double, 4>&)>;
 using RenderPass = std::function<void(const Tangents&, int only_lens, bool derivatives, const PixelVisitor&)>;
 
-// A PSF's model from `render`: the whole image at once when no derivative is
-// wanted, else lenslet by lenslet with each one's own parameters and the
-// global ones as tangents, three a pass.
-Model assemble(size_t lenses, const std::vector<CalibrationParameter>& free, bool derivatives, const RenderPass& render) {
+// Effect source_extent in the model: each lenslet's point image, rendered
+// on pixels `supersample` times finer than the model's, blurred smoothly
+// (source_blur.h) and binned; off where sigma is 0.
+struct SourceBlurModel {
+  double sigma_mm = 0;
+  int width = 0, height = 0;  // the grid rendered on
+  unsigned supersample = 1;
+  int model_width = 0, model_height = 0;
+};
+
+// `img` summed over f x f pixels onto the width x height grid.
+LensImage binned(const LensImage& img, unsigned f, int width, int height) {
+  if (f == 1) return img;
+  LensImage out{width, height, img.channels, {}, {}};
+  std::unordered_map<int64_t, size_t> row_of;
+  for (size_t i = 0; i < img.keys.size(); ++i) {
+    const int64_t col = img.keys[i] % img.width / f, row = img.keys[i] / img.width / f;
+    if (col >= width || row >= height) continue;
+    const auto [it, fresh] = row_of.try_emplace(row * width + col, out.keys.size());
+    if (fresh) out.keys.push_back(row * width + col), out.values.resize(out.values.size() + img.channels, 0.0);
+    for (size_t c = 0; c < img.channels; ++c) out.values[it->second * img.channels + c] += img.values[i * img.channels + c];
+  }
+  return out;
+}
+
+// A PSF's model from `render`: the whole image at once when no derivative
+// and no blur is wanted, else lenslet by lenslet with each one's own
+// parameters and the global ones as tangents, three a pass; with the blur,
+// one pass more by the source's position (its kernel's shape), and the
+// derivative by sigma from the kernel.
+Model assemble(size_t lenses, const std::vector<CalibrationParameter>& free, bool derivatives, const RenderPass& render,
+               const SourceBlurModel& blur) {
   Model model;
-  if (!derivatives) {
+  const bool blurred = blur.sigma_mm > 0;
+  if (!derivatives && !blurred) {
     render(source_tangents, -1, false, [&](int64_t key, const std::array<double, 4>& v) { model[key].b = v[0]; });
     return model;
   }
+  int sigma_slot = -1;
+  for (uint32_t j = 0; j < free.size() && derivatives; ++j)
+    if (free[j].param == Param::source_sigma) sigma_slot = int(j);
   for (size_t l = 0; l < lenses; ++l) {
-    std::vector<uint32_t> slots;
-    for (uint32_t j = 0; j < free.size(); ++j)
-      if (!free[j].per_lens() || size_t(free[j].lens) == l) slots.push_back(j);
-    const size_t passes = std::max<size_t>(1, (slots.size() + 2) / 3);
+    std::vector<uint32_t> slots;  // rendered as tangents; sigma is the blur's
+    for (uint32_t j = 0; j < free.size() && derivatives; ++j)
+      if (free[j].param != Param::source_sigma && (!free[j].per_lens() || size_t(free[j].lens) == l))
+        slots.push_back(j);
+    // Channels: b, db/d(source x, y, depth) (the blur's), then one per slot.
+    LensImage img{blur.width, blur.height, 4 + slots.size(), {}, {}};
+    std::unordered_map<int64_t, size_t> row_of;
+    auto values_of = [&](int64_t key) {
+      const auto [it, fresh] = row_of.try_emplace(key, img.keys.size());
+      if (fresh) img.keys.push_back(key), img.values.resize(img.values.size() + img.channels, 0.0);
+      return &img.values[it->second * img.channels];
+    };
+    if (blurred)
+      render(source_tangents, int(l), true, [&](int64_t key, const std::array<double, 4>& v) {
+        std::copy(v.begin(), v.end(), values_of(key));
+      });
+    const size_t slot_passes = (slots.size() + 2) / 3;
+    const size_t passes = !derivatives ? 0 : blurred ? slot_passes : std::max<size_t>(1, slot_passes);
     for (size_t pass = 0; pass < passes; ++pass) {
       Tangents tangents = source_tangents;  // slots left over: ignored
       const size_t first = 3 * pass, n = std::min<size_t>(3, slots.size() - std::min(slots.size(), first));
       for (size_t k = 0; k < n; ++k) tangents[k] = {free[slots[first + k]].param, free[slots[first + k]].lens};
       render(tangents, int(l), true, [&](int64_t key, const std::array<double, 4>& v) {
-        ModelPixel& m = model[key];
-        if (pass == 0) {
-          m.b += v[0];
-          if (v[0] > m.lens_b) m.lens_b = v[0], m.lens = int(l);
-        }
-        for (size_t k = 0; k < n; ++k)
-          if (v[1 + k] != 0) m.add(slots[first + k], v[1 + k]);
+        double* o = values_of(key);
+        if (!blurred && pass == 0) o[0] = v[0];
+        for (size_t k = 0; k < n; ++k) o[4 + first + k] = v[1 + k];
       });
+    }
+    if (blurred) {
+      img = prism::blur(img, source_blur_kernel(centroid_jacobian(img), blur.sigma_mm), sigma_slot >= 0);
+      img = binned(img, blur.supersample, blur.model_width, blur.model_height);
+    }
+    for (size_t i = 0; i < img.keys.size(); ++i) {
+      const double* v = &img.values[i * img.channels];
+      ModelPixel& m = model[img.keys[i]];
+      m.b += v[0];
+      if (v[0] > m.lens_b) m.lens_b = v[0], m.lens = int(l);
+      for (size_t k = 0; k < slots.size(); ++k)
+        if (v[4 + k] != 0) m.add(slots[k], v[4 + k]);
+      if (blurred && sigma_slot >= 0 && v[4 + slots.size()] != 0) m.add(uint32_t(sigma_slot), v[4 + slots.size()]);
     }
   }
   return model;
@@ -200,17 +269,30 @@ Model assemble(size_t lenses, const std::vector<CalibrationParameter>& free, boo
 // double-precision CPU reference (several PSFs at once, options.threads).
 class Renderer {
  public:
-  Renderer(const OpticalSystem& start, const CalibrationOptions& o) : settings_(o.settings) {
+  // `extended`: the scenes it renders may have a source_extent (the start
+  // has one, or sigma is fitted): it renders on finer pixels.
+  Renderer(const OpticalSystem& start, const CalibrationOptions& o, bool extended)
+      : model_settings_(o.settings), settings_(o.settings) {
+    if (extended) {
+      supersample_ = std::min(o.blur_supersample, o.settings.binning);
+      settings_.binning = o.settings.binning / supersample_;
+    }
     if (o.device)
-      fw_ = std::make_unique<ForwardVulkan>(*o.device, start, o.settings, ForwardVulkan::default_image_budget_bytes,
-                                            ForwardVulkan::Derivatives::scene);
+      fw_ = std::make_unique<ForwardVulkan>(*o.device, point_source(start), settings_,
+                                            ForwardVulkan::default_image_budget_bytes, ForwardVulkan::Derivatives::scene);
   }
   // PSFs rendered at once: the device renders one at a time.
   unsigned threads(unsigned wanted) const { return fw_ ? 1u : std::max(1u, wanted); }
   // Every PSF until the next call is of `sys`.
   void set_scene(const OpticalSystem& sys) {
-    sys_ = sys;
-    if (fw_) fw_->set_scene(sys);
+    sys_ = point_source(sys);
+    const AnalysisGrid grid = AnalysisGrid::of(sys, settings_.binning),
+                       model = AnalysisGrid::of(sys, model_settings_.binning);
+    blur_ = {sys.effects.source_extent ? sys.effects.source_sigma_mm : 0.0, grid.width, grid.height, supersample_,
+             model.width, model.height};
+    if (!(blur_.sigma_mm > 0) && supersample_ > 1)
+      throw std::logic_error("calibration: a renderer made for an extended source given a point source");
+    if (fw_) fw_->set_scene(sys_);
   }
   Model operator()(const glm::dvec3& theta, const std::vector<CalibrationParameter>& free, bool derivatives) {
     return assemble(sys_.lenslets.size(), free, derivatives,
@@ -220,7 +302,7 @@ class Renderer {
                                                           : ref::psf(sys_, settings_, theta);
                       for (const auto& [key, px] : img.pixels)
                         visit(key, with_d ? img.value(key) : std::array<double, 4>{px[0], 0, 0, 0});
-                    });
+                    }, blur_);
   }
 
  private:
@@ -239,8 +321,19 @@ class Renderer {
     }
   }
 
-  TraceSettings settings_;
-  OpticalSystem sys_;
+  // The renders are of a point source, the blur (an extended source) the
+  // model's own: the engine's source_extent samples it per footprint cell,
+  // speckled at the pixel scale (source_blur.h).
+  static OpticalSystem point_source(OpticalSystem s) {
+    s.effects.source_extent = false;
+    return s;
+  }
+
+  TraceSettings model_settings_;
+  TraceSettings settings_;  // as rendered: the model's, or finer pixels for the blur
+  unsigned supersample_ = 1;
+  OpticalSystem sys_;  // as rendered: a point source
+  SourceBlurModel blur_;
   std::unique_ptr<ForwardVulkan> fw_;
 };
 
@@ -400,11 +493,17 @@ PsfTerms psf_terms(const MeasuredPsf& psf, const Model& model, double weight_flo
   return out;
 }
 
+// Whether a fit's scenes have an extended source: the start's, or a fitted one.
+bool extended(const OpticalSystem& start, const std::vector<CalibrationParameter>& free) {
+  return start.effects.source_extent ||
+         std::any_of(free.begin(), free.end(), [](const auto& p) { return p.param == Param::source_sigma; });
+}
+
 class Fitter {
  public:
   Fitter(const OpticalSystem& start, const std::vector<MeasuredPsf>& psfs, const std::vector<CalibrationParameter>& free,
          const CalibrationOptions& o)
-      : start_(start), psfs_(psfs), free_(free), o_(o), render_(std::make_unique<Renderer>(start, o)) {}
+      : start_(start), psfs_(psfs), free_(free), o_(o), render_(std::make_unique<Renderer>(start, o, extended(start, free))) {}
 
   OpticalSystem system(const std::vector<double>& x) const {
     OpticalSystem s = start_;
@@ -476,6 +575,9 @@ void check_inputs(const OpticalSystem& start, const std::vector<MeasuredPsf>& ps
   if (psfs.empty()) throw std::invalid_argument("calibration: no PSF to fit");
   if (free.empty()) throw std::invalid_argument("calibration: no parameter to fit (--fit names none)");
   if (!(o.weight_floor > 0)) throw std::invalid_argument("calibration: the weight floor must be > 0");
+  if (!std::has_single_bit(o.blur_supersample))
+    throw std::invalid_argument("calibration: the blur's supersampling " + std::to_string(o.blur_supersample) +
+                                " is not a power of two");
   const AnalysisGrid grid = AnalysisGrid::of(start, o.settings.binning);
   for (const auto& p : psfs)
     if (p.p.size() != size_t(grid.width) * size_t(grid.height))
@@ -661,7 +763,7 @@ CalibrationResult calibrate(const OpticalSystem& start, const std::vector<Measur
 void calibration_residuals(const OpticalSystem& sys, const std::vector<MeasuredPsf>& psfs,
                            const CalibrationOptions& options,
                            const std::function<void(size_t, const std::vector<float>&)>& each) {
-  Renderer render(sys, options);
+  Renderer render(sys, options, sys.effects.source_extent);
   render.set_scene(sys);
   for (size_t k = 0; k < psfs.size(); ++k) {
     const MeasuredPsf& psf = psfs[k];

@@ -65,8 +65,12 @@ struct CalibrationParameter {
 
 // The groups `prism calibrate --fit` names, each a set of parameters:
 // lens_xy, lens_focal, lens_tilt (every lenslet's own), lens_to_sensor,
-// working_distance, sensor_offset, sensor_tilt.
+// working_distance, sensor_offset, sensor_tilt, source_extent (the blur
+// term: effect source_extent's sigma, source_blur.h).
 std::vector<std::string> calibration_groups();
+// Those `--fit` frees by default: all but source_extent (a point source,
+// or the start scene's extent held, unless asked).
+std::vector<std::string> calibration_default_groups();
 // The parameters of `groups` for system `s`, in a fixed order (per-lenslet
 // ones lenslet by lenslet, then the global ones). Throws
 // std::invalid_argument naming an unknown group and the choices.
@@ -112,6 +116,10 @@ struct CalibrationOptions {
   int coarse_levels = defaults::calibration_coarse_levels;  // fitted first on pixels 2^k larger, k = this .. 1
   double weight_floor = defaults::calibration_weight_floor;  // relative to each PSF's brightest pixel; > 0
   unsigned threads = 2;                                      // PSFs rendered at once (CPU reference)
+  // With an extended source (source_extent): each lenslet's image is
+  // rendered on pixels this many times finer (a power of two, at most the
+  // binning), blurred there and binned (source_blur.h, defaults.h).
+  unsigned blur_supersample = defaults::calibration_blur_supersample;
   // The calibrate kernels on this device (engine/forward.h,
   // Derivatives::scene); null: the double-precision CPU reference.
   vk::Context* device = nullptr;

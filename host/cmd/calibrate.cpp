@@ -30,13 +30,14 @@ struct CalibrateArgs {
   std::string merged;
   std::string scene;  // empty: the dictionary's own
   std::string out;
-  std::string fit = "lens_xy,lens_focal,lens_tilt,lens_to_sensor,working_distance,sensor_offset,sensor_tilt";
+  std::string fit = join(calibration_default_groups(), ",");
   int level = -1;
   unsigned rays = 0;
   unsigned every = 1;
   int max_steps = defaults::calibration_max_steps;
   double weight_floor = defaults::calibration_weight_floor;
   unsigned threads = std::max(1u, std::thread::hardware_concurrency());
+  unsigned blur_supersample = defaults::calibration_blur_supersample;
   std::string backend = "auto";
   std::string device;
   std::string csv;
@@ -142,6 +143,7 @@ void run(const CalibrateArgs& a) {
   o.max_steps = a.max_steps;
   o.weight_floor = a.weight_floor;
   o.threads = a.threads;
+  o.blur_supersample = std::min(a.blur_supersample, in.binning);
   // auto: the calibrate kernels on a GPU; on a CPU device (lavapipe) the
   // reference on --threads cores is as fast (bench_calibrate, README).
   std::unique_ptr<vk::Context> ctx;
@@ -258,7 +260,8 @@ void add_calibrate(CLI::App& app) {
   c->add_option("--out", a->out, "the fitted scene (JSON)")->required();
   c->add_option("--fit", a->fit,
                 "comma-separated parameter groups to free: " + join(calibration_groups(), ", ") + " (per lenslet: "
-                "lens_xy, lens_focal, lens_tilt)")
+                "lens_xy, lens_focal, lens_tilt; source_extent: the blur term, a Gaussian source's sigma per axis, "
+                "starting from the scene's or " + format_number(defaults::source_sigma_mm) + " mm)")
       ->capture_default_str();
   c->add_option("--level", a->level,
                 "with --dictionary: the level to fit (default: the finest with pixels of at least " +
@@ -287,6 +290,12 @@ void add_calibrate(CLI::App& app) {
   c->add_option("--device", a->device, device_help);
   c->add_option("--threads", a->threads, "CPU reference: PSFs rendered at once (default: the CPU's cores)")
       ->check(CLI::Range(1u, 1024u));
+  c->add_option("--blur-supersample", a->blur_supersample,
+                "with an extended source (source_extent fitted, or in the scene): blur each lenslet's image on "
+                "pixels this many times finer (1, 2, 4, ...; at most the binning). Finer is more accurate and "
+                "costs about its fourth power in time (README \"Calibration\")")
+      ->check(CLI::IsMember({1u, 2u, 4u, 8u}))
+      ->capture_default_str();
   c->add_option("--csv", a->csv, "the parameters' table: start, fitted, sigma, change / sigma");
   c->add_option("--residuals", a->residuals,
                 "a folder for the residual maps (residual-NNNN.png: (p - s b) / sigma per PSF, red above the model, "

@@ -1,0 +1,61 @@
+// The calibration's blur term: a Gaussian source of sigma per axis (effect
+// source_extent), modelled smoothly.
+//
+// To first order in the source's offset delta, a lenslet's image of a moved
+// source is its image moved rigidly by J delta, J = d(image centroid) /
+// d(source x, y, depth) (for a thin lens exactly so sideways: the chief ray
+// moves, the defocus disc keeps its shape). So the lenslet's image of the
+// Gaussian source is its point image convolved with a Gaussian of covariance
+// sigma^2 J J^T: smooth in sigma and in every other parameter, and its
+// derivative by sigma is that of the kernel. The engine's own source_extent
+// samples a random offset per footprint cell instead: right on average, but
+// speckled at the pixel scale, and a fit cannot tell that speckle from the
+// measurement's noise (README "Calibration", the blur term).
+//
+// What first order leaves out: a deeper or shallower source changes a
+// defocus disc's size, not only where it lies (for a near-face source the
+// disc's edge moves by a pixel over 0.3 mm of depth), and the kernel is
+// sampled at pixel centres, so a sub-pixel image blurred by about a pixel is
+// modelled coarsely. The kernel's shape J holds still where derivatives by
+// the other parameters are taken (it changes with the magnification, by
+// well under 1% over the fit's range); chi2 itself uses the exact kernel.
+#pragma once
+#include <array>
+#include <cstddef>
+#include <cstdint>
+#include <vector>
+
+namespace prism {
+
+// One lenslet's image on a grid of width x height pixels, sparse: keys
+// (row * width + column) and, per key, `channels` values; channel 0 the
+// image b, channels 1..3 db/d(source x, y, depth) per mm, the rest whatever
+// derivative images ride along (blurred as b is).
+struct LensImage {
+  int width = 0, height = 0;
+  std::size_t channels = 4;
+  std::vector<int64_t> keys;
+  std::vector<double> values;  // keys.size() x channels
+};
+
+// J: the image centroid's derivative by the source (x, y, depth), in pixels
+// per mm, row-major 2 x 3 (from channels 0..3). Zero for an empty image.
+std::array<double, 6> centroid_jacobian(const LensImage& image);
+
+// The Gaussian kernel of covariance sigma^2 J J^T (pixels^2), sampled at
+// integer offsets within `radius` and normalised to sum 1, and its exact
+// derivative by sigma: (2 radius + 1)^2 values each, row by row from
+// offset (-radius, -radius).
+struct BlurKernel {
+  int radius = 0;
+  std::vector<double> g, dg_dsigma;
+};
+BlurKernel source_blur_kernel(const std::array<double, 6>& jacobian, double sigma_mm);
+
+// `image` convolved with `kernel` (every channel), light blurred beyond the
+// grid lost as the sensor's edge loses it; with `sigma_channel`, one more
+// channel last: d(blurred b)/d sigma. Keys in the same form, only pixels
+// with some value.
+LensImage blur(const LensImage& image, const BlurKernel& kernel, bool sigma_channel);
+
+}  // namespace prism
