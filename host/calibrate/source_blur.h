@@ -2,9 +2,11 @@
 // source_extent), modelled smoothly.
 //
 // To first order in the source's offset delta, a lenslet's image of a moved
-// source is its image moved rigidly by J delta, J = d(image centroid) /
-// d(source x, y, depth) (for a thin lens exactly so sideways: the chief ray
-// moves, the defocus disc keeps its shape). So the lenslet's image of the
+// source is its image moved rigidly by J delta, J the image's motion by the
+// source (x, y, depth) (for a thin lens exactly so sideways: the defocus disc
+// keeps its shape and moves with the chief ray; the calibration takes J from
+// the chief ray, calibrate.cpp, or from the centroid where it has none, below).
+// So the lenslet's image of the
 // Gaussian source is its point image convolved with a Gaussian of covariance
 // sigma^2 J J^T: smooth in sigma and in every other parameter, and its
 // derivative by sigma is that of the kernel. The engine's own source_extent
@@ -38,8 +40,11 @@ struct LensImage {
   std::vector<double> values;  // keys.size() x channels
 };
 
-// J: the image centroid's derivative by the source (x, y, depth), in pixels
-// per mm, row-major 2 x 3 (from channels 0..3). Zero for an empty image.
+// J as the image centroid's derivative by the source (x, y, depth), in
+// pixels per mm, row-major 2 x 3 (from channels 0..3); zero for an empty
+// image. A noisy measure of the motion for a large disc rendered with few
+// cells (its edges' lever arm): the calibration uses it only where the chief
+// ray misses.
 std::array<double, 6> centroid_jacobian(const LensImage& image);
 
 // The Gaussian kernel of covariance sigma^2 J J^T (pixels^2), sampled at

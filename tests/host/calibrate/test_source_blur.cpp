@@ -44,6 +44,16 @@ prism::LensImage point_image(const prism::OpticalSystem& s, const glm::dvec3& th
   return out;
 }
 
+// The lenslet's image motion as the calibration takes it: its chief ray's,
+// in 110 um pixels per mm.
+std::array<double, 6> chief_ray_motion(const prism::OpticalSystem& s, const glm::dvec3& theta) {
+  const prism::ref::SampleHit h =
+      prism::ref::trace_point(s, settings(1024, 0), theta, glm::dvec3(0.0), 0, glm::dvec2(0.0), 1.0);
+  REQUIRE(h.ok);
+  const double px = prism::AnalysisGrid::of(s, 16).pixel_mm;
+  return {h.dx.x / px, h.dx.y / px, h.dx.z / px, h.dy.x / px, h.dy.y / px, h.dy.z / px};
+}
+
 std::vector<double> dense(const prism::LensImage& img, size_t channel) {
   std::vector<double> out(size_t(img.width) * size_t(img.height), 0.0);
   for (size_t i = 0; i < img.keys.size(); ++i) out[size_t(img.keys[i])] += img.values[i * img.channels + channel];
@@ -78,7 +88,7 @@ TEST_CASE("blur term: a lenslet's image of a Gaussian source is its point image 
     extended.effects.source_extent = true;
     extended.effects.source_sigma_mm = sigma;
     const prism::LensImage img = point_image(point, c.theta);
-    const std::array<double, 6> J = prism::centroid_jacobian(img);
+    const std::array<double, 6> J = chief_ray_motion(point, c.theta);
     const std::vector<double> model = dense(prism::blur(img, prism::source_blur_kernel(J, sigma), false), 0);
     // The engine's extended source, averaged over stratifications: `truth`
     // and an independent `again`, whose difference is its own noise.
@@ -106,6 +116,11 @@ TEST_CASE("blur term: the blurred image's derivative by sigma is the kernel's, e
   const prism::OpticalSystem s = one_lens(4);
   const prism::LensImage img = point_image(s, {-3, 1, 30});
   const std::array<double, 6> J = prism::centroid_jacobian(img);
+  // A sharp image's centroid moves as its chief ray does (the calibration's
+  // fallback where the chief ray misses).
+  const std::array<double, 6> chief = chief_ray_motion(s, {-3, 1, 30});
+  CHECK(J[0] == doctest::Approx(chief[0]).epsilon(0.05));
+  CHECK(J[4] == doctest::Approx(chief[4]).epsilon(0.05));
   for (double sigma : {0.05, 0.25, 0.8}) {
     CAPTURE(sigma);
     const prism::LensImage at = prism::blur(img, prism::source_blur_kernel(J, sigma), true);
@@ -178,6 +193,10 @@ TEST_CASE("blur term: the calibrate kernels and the CPU reference give the same 
   o.device = &prism::test::gpu();
   const prism::CalibrationResult device = prism::calibrate(s, psfs, free, o);
   CHECK(device.chi2_start == doctest::Approx(cpu.chi2_start).epsilon(1e-3));
+  // The same model with derivatives (the result's chi2) and without (the
+  // start's, as a step's trial is evaluated).
+  CHECK(cpu.chi2 == doctest::Approx(cpu.chi2_start).epsilon(1e-9));
+  CHECK(device.chi2 == doctest::Approx(device.chi2_start).epsilon(1e-3));
   REQUIRE(device.estimates.size() == cpu.estimates.size());
   for (size_t j = 0; j < cpu.estimates.size(); ++j) {
     CAPTURE(cpu.estimates[j].parameter.name());
