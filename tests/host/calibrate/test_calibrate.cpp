@@ -190,15 +190,16 @@ TEST_CASE("calibration: the blur term (an extended source's sigma) is found and 
   // "Calibration", the blur term).
   CHECK(std::abs(sigma.value - 0.25) < 0.05 * 0.25);
   // At the truth, the blur on 2x finer pixels (calibrate --blur-supersample)
-  // explains the PSFs at least as well as on the model's (0.07% better).
+  // explains the PSFs as well as on the model's (0.07% better): the finer
+  // pixels bin back onto the model's (a grid off by a fine pixel, or light
+  // lost at the edges, would not).
   o.max_steps = 0, o.coarse_levels = 0;
   const auto only_sigma = prism::calibration_parameters(truth, {"source_extent"});
   const double chi2_1 = prism::calibrate(truth, psfs, only_sigma, o).chi2;
   o.blur_supersample = 2;
   const double chi2_2 = prism::calibrate(truth, psfs, only_sigma, o).chi2;
   MESSAGE("chi2 at the truth: " << chi2_1 << " blurred on the model's pixels, " << chi2_2 << " on 2x finer");
-  CHECK(chi2_2 <= chi2_1);
-  CHECK(chi2_2 < 1.5 * blurred.chi2);
+  CHECK(chi2_2 == doctest::Approx(chi2_1).epsilon(0.02));
 }
 
 TEST_CASE("calibration: light the model puts where the merged PSF is dark counts against it") {
