@@ -179,6 +179,10 @@ void run(const CalibrateArgs& a) {
   Scene fitted = scene;
   fitted.optics = r.fitted;
   fitted.name = scene.name + "-calibrated";
+  // A fitted source extent is the calibration source's (an LED's die), not
+  // the optics': events are point sources. The scene keeps the start's effects.
+  const bool source_only = r.fitted.effects.source_extent && !scene.optics.effects.source_extent;
+  if (source_only) fitted.optics.effects = scene.optics.effects;
   write_text(a.out, to_json(fitted).dump(2) + "\n");
 
   std::string table = "parameter,start,fitted,sigma,change_over_sigma,at_bound\n";
@@ -240,6 +244,10 @@ void run(const CalibrateArgs& a) {
   std::printf("chi2 %.6g -> %.6g over %zu pixels of %zu PSFs, chi2 / dof %.4g, %d steps%s, %.1f s\n", r.chi2_start,
               r.chi2, r.pixels, psfs.size(), r.reduced_chi2(), r.steps,
               r.converged ? " (converged)" : " (step limit reached)", r.seconds);
+  if (source_only)
+    std::printf("The calibration source's extent (sigma %.4g mm) is in the table, not in %s: events are point "
+                "sources. To simulate the calibration source, add the effect source_extent with that sigma.\n",
+                r.fitted.effects.source_sigma_mm, a.out.c_str());
 }
 
 }  // namespace
@@ -260,8 +268,8 @@ void add_calibrate(CLI::App& app) {
   c->add_option("--out", a->out, "the fitted scene (JSON)")->required();
   c->add_option("--fit", a->fit,
                 "comma-separated parameter groups to free: " + join(calibration_groups(), ", ") + " (per lenslet: "
-                "lens_xy, lens_focal, lens_tilt; source_extent: the blur term, a Gaussian source's sigma per axis, "
-                "starting from the scene's or " + format_number(defaults::source_sigma_mm) + " mm)")
+                "lens_xy, lens_focal, lens_tilt; source_extent: the blur term, the calibration source's Gaussian sigma "
+                "per axis, starting from the scene's or " + format_number(defaults::source_sigma_mm) + " mm)")
       ->capture_default_str();
   c->add_option("--level", a->level,
                 "with --dictionary: the level to fit (default: the finest with pixels of at least " +
@@ -291,9 +299,10 @@ void add_calibrate(CLI::App& app) {
   c->add_option("--threads", a->threads, "CPU reference: PSFs rendered at once (default: the CPU's cores)")
       ->check(CLI::Range(1u, 1024u));
   c->add_option("--blur-supersample", a->blur_supersample,
-                "with an extended source (source_extent fitted, or in the scene): blur each lenslet's image on "
-                "pixels this many times finer (1, 2, 4, ...; at most the binning). Finer is more accurate and "
-                "costs about its fourth power in time (README \"Calibration\")")
+                "with an extended source (source_extent fitted, or in the scene; a fitted one is the calibration "
+                "source's and stays out of --out unless the scene had it): blur each lenslet's image on "
+                "pixels this many times finer (1, 2, 4, ...; at most the binning), at about its fourth power in time; "
+                "on the README's test it gained little (README \"Calibration\")")
       ->check(CLI::IsMember({1u, 2u, 4u, 8u}))
       ->capture_default_str();
   c->add_option("--csv", a->csv, "the parameters' table: start, fitted, sigma, change / sigma");

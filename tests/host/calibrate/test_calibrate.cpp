@@ -318,6 +318,20 @@ TEST_CASE("prism calibrate: a dictionary of HDR-merged PSFs in, a scene every co
   for (const char* file : {"residual-0000.png", "residual-0005.png", "psfs.csv", "lenslets.csv", "lenslets.png"})
     CHECK_MESSAGE(fs::exists(dir / "residuals" / file), file);
 
+  // A fitted source extent is the calibration source's: in the table, not
+  // in the scene written (events are point sources).
+  const std::string out2 = (dir / "fitted-extent.json").string(), csv2 = (dir / "params-extent.csv").string();
+  run = prism::test::run_prism("calibrate --dictionary " + (dir / "dict").string() + " --out " + out2 + " --csv " +
+                               csv2 + " --fit lens_xy,source_extent --max-steps 2 --backend cpu");
+  INFO(run.output);
+  REQUIRE(run.status == 0);
+  CHECK(run.output.find("The calibration source's extent (sigma ") != std::string::npos);
+  CHECK_FALSE(prism::load_scene(out2).optics.effects.source_extent);
+  std::ifstream table(csv2);
+  std::string line, last;
+  while (std::getline(table, line)) last = line;
+  CHECK(last.rfind("effects.source_extent.sigma_mm,0.3,", 0) == 0);
+
   // Errors name what is wrong.
   auto bad = prism::test::run_prism("calibrate --dictionary " + (dir / "dict").string() + " --out " + out +
                                     " --fit lens_zoom");
