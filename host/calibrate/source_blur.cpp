@@ -38,8 +38,10 @@ BlurKernel source_blur_kernel(const std::array<double, 6>& J, double sigma_mm) {
   const double det = a * c - b * b;
   const double largest = 0.5 * (a + c) + std::sqrt(0.25 * (a - c) * (a - c) + b * b);  // px^2 / mm^2
   BlurKernel k;
-  // Four standard deviations hold all but 3e-4 of the light; 64 pixels is
-  // beyond any source a calibration images (sigma 2 mm at 5 px / mm: 40).
+  // Four standard deviations hold all but 3e-4 of the light. The cap of 64
+  // pixels bounds the work: a 0.3 mm source imaged at 8 px / mm needs 10;
+  // a sigma near its 2 mm bound on supersampled pixels is cut (the kernel
+  // still normalised, its derivative that of the cut kernel).
   k.radius = std::min(64, int(std::ceil(4.0 * sigma_mm * std::sqrt(largest))));
   const int n = 2 * k.radius + 1;
   std::vector<double> e(size_t(n) * n), de(size_t(n) * n);

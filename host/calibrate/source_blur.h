@@ -19,8 +19,9 @@
 // disc's edge moves by a pixel over 0.3 mm of depth), and the kernel is
 // sampled at pixel centres, so a sub-pixel image blurred by about a pixel is
 // modelled coarsely. The kernel's shape J holds still where derivatives by
-// the other parameters are taken (it changes with the magnification, by
-// well under 1% over the fit's range); chi2 itself uses the exact kernel.
+// the other parameters are taken (it changes with the magnification: about
+// 1% for 0.2 mm of lens-to-sensor distance); chi2 itself uses the exact
+// kernel.
 #pragma once
 #include <array>
 #include <cstddef>
