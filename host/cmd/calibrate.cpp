@@ -301,7 +301,7 @@ void add_calibrate(CLI::App& app) {
   c->add_option("--blur-supersample", a->blur_supersample,
                 "with an extended source (source_extent fitted, or in the scene; a fitted one is the calibration "
                 "source's and stays out of --out unless the scene had it): blur each lenslet's image on "
-                "pixels this many times finer (1, 2, 4, ...; at most the binning), at about its fourth power in time; "
+                "pixels this many times finer (1, 2, 4 or 8; at most the binning), at about its fourth power in time; "
                 "on the README's test it gained little (README \"Calibration\")")
       ->check(CLI::IsMember({1u, 2u, 4u, 8u}))
       ->capture_default_str();
