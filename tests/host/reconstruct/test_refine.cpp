@@ -4,7 +4,7 @@
 // refinement starts off the truth, and the Vulkan model must agree with the
 // double CPU reference. Hard cases: a start on the depth bound, a source
 // outside the field, a start on a lattice alias, a start at the wrong depth
-// near the face, a near-face local optimum the ladder must leave, two
+// near the face, near-face local optima the ladder must leave, two
 // vertices (one of them left far off by the search), and the goodness of
 // fit on events the model does and does not explain.
 #include <cmath>
@@ -350,37 +350,51 @@ TEST_CASE("refinement hazards with several vertices: 0.5 mm apart, a lattice ali
   prism::test::check_validation_clean();
 }
 
-TEST_CASE("refinement: the ladder's rungs, moved by whole pixels, take a near-face local optimum to a better one") {
-  // A start 0.76 mm off converges 0.3 mm from the source at depth 4 in a
-  // local optimum ~100 worse in NLL than the truth's; the ladder, its rungs
-  // scored with their images moved by up to 2 pixels, must leave it for a
-  // better one nearer the source. Where it lands is not fixed on this thin
-  // row: the truth's basin in most runs, in others an optimum 0.1-0.24 mm
-  // off (the stuck one then 0.18-0.28 mm), better by more than 20 in NLL
-  // but not always by half in distance (the renders' float sums come in
-  // another order each run, and the path forks at the likelihood's cliffs;
-  // README "Reconstruction"). On the real lenses the moved rungs
-  // reached the truth for three events of the acceptance run where the
-  // unmoved ones did not (README "Reconstruction", defaults::refine_ladder_reach_px).
+TEST_CASE("refinement: the ladder's rungs, moved by whole pixels, take near-face local optima to better ones") {
+  // Ten starts 0.76-1.0 mm off a source at depth 4: without the ladder, some
+  // converge in local optima worse than the truth's by more than 10 in NLL
+  // (0.05-1.6 mm off), the rest in the truth's basin. The ladder, its rungs
+  // scored with their images moved by up to 2 pixels, must take at least one
+  // of those to a better optimum (10 or more lower, nearer the source) and
+  // never leave a fit worse. Which starts get stuck, and which the ladder
+  // frees, is not fixed: the event's clicks and the renders' float sums
+  // differ between machines and compilers, and the path forks at the
+  // likelihood's cliffs. Over eight events here, 1-5 of the ten were stuck
+  // and the ladder freed 20 of 27; one start alone, as this test once had,
+  // failed on CI when its start reached a shallower optimum. On the real
+  // lenses the moved rungs reached the truth for three events of the
+  // acceptance run where the unmoved ones did not (README "Reconstruction",
+  // defaults::refine_ladder_reach_px).
+  constexpr double worse_nll = 10;  // a likelihood ratio of e^10: another optimum, not the truth's
   const glm::dvec3 at(0.6, 0.3, 4.0);
-  auto e = make_event({{at, 100}}, 102);
+  const auto e = make_event({{at, 100}}, 102);
   const prism::RefineSettings none{.aliases = false, .rescue = false, .lattice_scan = false, .ladder_starts = 0,
                                    .continuation = false};
-  auto from_truth = refine(e, {row(at, 100)}, true, none);
-  auto stuck = refine(e, {row(at + glm::dvec3(0.3, 0, -0.7), 100)}, true, none);
-  prism::RefineSettings rs = none;
-  rs.ladder_starts = prism::defaults::refine_ladder_starts;
-  rs.ladder_reach_px = prism::defaults::refine_ladder_reach_px;
-  const auto& v = stuck[0];
-  const auto moved = refine(e, {row({v.x_mm, v.y_mm, v.depth_mm}, v.alpha)}, true, rs)[0];
-  CAPTURE(from_truth[0].nll);
-  CAPTURE(stuck[0].nll);
-  CAPTURE(moved.nll);
-  CAPTURE(error_mm(stuck[0], at));
-  CAPTURE(error_mm(moved, at));
-  CHECK(stuck[0].nll > from_truth[0].nll + 20);  // the start's own optimum is a worse one
-  CHECK(moved.nll < stuck[0].nll - 20);          // the ladder leaves it for a better one
-  CHECK(error_mm(moved, at) < error_mm(stuck[0], at));
+  prism::RefineSettings ladder = none;
+  ladder.ladder_starts = prism::defaults::refine_ladder_starts;
+  ladder.ladder_reach_px = prism::defaults::refine_ladder_reach_px;
+  const double truth_nll = refine(e, {row(at, 100)}, true, none)[0].nll;
+  int stuck = 0, freed = 0;
+  for (glm::dvec3 off : {glm::dvec3(0.3, 0, -0.7), glm::dvec3(-0.3, 0, -0.7), glm::dvec3(0, 0.3, -0.7),
+                         glm::dvec3(0, -0.3, -0.7), glm::dvec3(0.3, 0, 0.7), glm::dvec3(-0.3, 0, 0.7),
+                         glm::dvec3(0, 0.3, 0.7), glm::dvec3(0, -0.3, 0.7), glm::dvec3(0.2, 0.2, -1.0),
+                         glm::dvec3(-0.2, -0.2, 1.0)}) {
+    const auto v = refine(e, {row(at + off, 100)}, true, none)[0];
+    if (v.nll < truth_nll + worse_nll) continue;  // in the truth's basin: nothing for the ladder to do
+    ++stuck;
+    const auto moved = refine(e, {row({v.x_mm, v.y_mm, v.depth_mm}, v.alpha)}, true, ladder)[0];
+    CAPTURE(off);
+    CAPTURE(truth_nll);
+    CAPTURE(v.nll);
+    CAPTURE(moved.nll);
+    CAPTURE(error_mm(v, at));
+    CAPTURE(error_mm(moved, at));
+    CHECK(moved.nll < v.nll + 0.1);  // the ladder keeps the best it has seen
+    if (moved.nll < v.nll - worse_nll && error_mm(moved, at) < error_mm(v, at)) ++freed;
+  }
+  CAPTURE(stuck);
+  REQUIRE(stuck >= 1);  // the premise: near the face, starts this far off do get stuck
+  CHECK(freed >= 1);
   prism::test::check_validation_clean();
 }
 
