@@ -20,18 +20,25 @@ vk::Context& gpu() {
   return ctx;
 }
 
-const std::filesystem::path& scratch_dir() {
+namespace {
+unsigned g_test_case = 0;  // the test case this process is running, counted from 1
+}
+
+void begin_test_case() { ++g_test_case; }
+
+std::filesystem::path scratch_dir() {
   struct Scratch {
     std::filesystem::path path =
         std::filesystem::temp_directory_path() / ("prism-test-" + std::to_string(::getpid()));
-    Scratch() { std::filesystem::create_directories(path); }
     ~Scratch() {
       std::error_code ignored;  // nothing to report from an exiting process
       std::filesystem::remove_all(path, ignored);
     }
   };
-  static const Scratch scratch;
-  return scratch.path;
+  static const Scratch process;
+  auto dir = process.path / ("case-" + std::to_string(g_test_case));
+  std::filesystem::create_directories(dir);
+  return dir;
 }
 
 size_t validation_message_count() { return created ? created->validation_messages().size() : 0; }

@@ -32,10 +32,13 @@ vk::Context& gpu();
 void check_validation_clean();
 // Messages the validation layer printed in this process (0 if no GPU test ran).
 size_t validation_message_count();
-// This test process's own folder, prism-test-PID under the system's temp
-// directory: made on first use and removed with its contents when the process
-// exits, so that the suite leaves nothing behind.
-const std::filesystem::path& scratch_dir();
+// The running test case's own folder, prism-test-PID/case-N under the system's
+// temp directory (a process runs a whole file's test cases, and one case's
+// files must not meet the next's): made on first use, and removed with the
+// process's folder when it exits, so that the suite leaves nothing behind.
+std::filesystem::path scratch_dir();
+// Called by the test runner (main.cpp) as each test case starts.
+void begin_test_case();
 
 // A scene small enough for exhaustive CPU-reference comparisons.
 OpticalSystem small_system(LensModel model);
