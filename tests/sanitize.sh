@@ -4,7 +4,7 @@
 # out), then ctest with a test per core. Any sanitizer report, a leak at exit
 # included, fails its test (tests/sanitizer_defaults.cpp holds the runtime's
 # options). .ci/run runs it after the normal suite.
-#   tests/sanitize.sh [CTEST ARGS ...]     e.g. -R 'HDR' to run a few
+#   tests/sanitize.sh [CTEST ARGS ...]     e.g. -R hdr to run the files named so
 set -euo pipefail
 cd "$(dirname "$0")/.."
 tools/ensure-packages.sh clang-16 libclang-rt-16-dev
