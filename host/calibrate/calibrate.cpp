@@ -314,7 +314,7 @@ class Renderer {
                                                                        : ref::psf(sys_, settings_, theta);
                       for (const auto& [key, px] : img.pixels)
                         visit(key, with_d ? img.value(key) : std::array<double, 4>{px[0], 0, 0, 0});
-                    }, blur_, [&](size_t lens) { return chief_ray_motion(theta, lens); });
+                    }, blur_, [&](size_t lens) { return chief_ray_motion(sys_, settings_, theta, lens); });
   }
 
  private:
@@ -331,20 +331,6 @@ class Renderer {
       const float* q = &img.data[4 * i];
       if (q[0] != 0 || q[1] != 0 || q[2] != 0 || q[3] != 0) visit(int64_t(i), {q[0], q[1], q[2], q[3]});
     }
-  }
-
-  // The blur's J: the motion of lenslet `lens`'s chief ray (through its
-  // entrance disk's centre) on the sensor, from the double reference. A thin
-  // lens's image moves with it exactly (source_blur.h); the image centroid's
-  // motion, taken from the derivative images, was not a steady measure of it:
-  // for the defocus disc of an f = 12 mm lens, source 15 mm deep, it came out
-  // 7.4 and 9.6 px / mm along x and y on 110 um pixels, 10.3 and 8.7 (per
-  // 110 um) on 55 um pixels; the chief ray's is 8.3 and 8.3 on both.
-  std::optional<std::array<double, 6>> chief_ray_motion(const glm::dvec3& theta, size_t lens) const {
-    const ref::SampleHit h = ref::trace_point(sys_, settings_, theta, glm::dvec3(0.0), lens, glm::dvec2(0.0), 1.0);
-    if (!h.ok) return std::nullopt;
-    const double px = AnalysisGrid::of(sys_, settings_.binning).pixel_mm;
-    return std::array<double, 6>{h.dx.x / px, h.dx.y / px, h.dx.z / px, h.dy.x / px, h.dy.y / px, h.dy.z / px};
   }
 
   // The renders are of a point source, the blur (an extended source) the

@@ -3,7 +3,17 @@
 #include <algorithm>
 #include <cmath>
 
+#include "engine/ref/forward_ref.h"
+
 namespace prism {
+
+std::optional<std::array<double, 6>> chief_ray_motion(const OpticalSystem& sys, const TraceSettings& settings,
+                                                      const glm::dvec3& theta, std::size_t lens) {
+  const ref::SampleHit h = ref::trace_point(sys, settings, theta, glm::dvec3(0.0), lens, glm::dvec2(0.0), 1.0);
+  if (!h.ok) return std::nullopt;
+  const double px = AnalysisGrid::of(sys, settings.binning).pixel_mm;
+  return std::array<double, 6>{h.dx.x / px, h.dx.y / px, h.dx.z / px, h.dy.x / px, h.dy.y / px, h.dy.z / px};
+}
 
 std::array<double, 6> centroid_jacobian(const LensImage& image) {
   const size_t C = image.channels;

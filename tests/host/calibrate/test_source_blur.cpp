@@ -47,11 +47,9 @@ prism::LensImage point_image(const prism::OpticalSystem& s, const glm::dvec3& th
 // The lenslet's image motion as the calibration takes it: its chief ray's,
 // in 110 um pixels per mm.
 std::array<double, 6> chief_ray_motion(const prism::OpticalSystem& s, const glm::dvec3& theta) {
-  const prism::ref::SampleHit h =
-      prism::ref::trace_point(s, settings(1024, 0), theta, glm::dvec3(0.0), 0, glm::dvec2(0.0), 1.0);
-  REQUIRE(h.ok);
-  const double px = prism::AnalysisGrid::of(s, 16).pixel_mm;
-  return {h.dx.x / px, h.dx.y / px, h.dx.z / px, h.dy.x / px, h.dy.y / px, h.dy.z / px};
+  const auto J = prism::chief_ray_motion(s, settings(1024, 0), theta, 0);
+  REQUIRE(J.has_value());
+  return *J;
 }
 
 std::vector<double> dense(const prism::LensImage& img, size_t channel) {
