@@ -199,6 +199,53 @@ py::dict crlb(const std::vector<Scene>& scenes_in, const py::array_t<double, py:
   return out;
 }
 
+// The global ambiguity at given positions and detected photons, as `prism
+// evaluate --ambiguity` computes it for each event (the scene's model at the
+// clicks' binning; one model for every position).
+py::dict ambiguity_at(const Scene& scene_in, const py::array_t<double, py::array::c_style>& positions_in,
+                      const py::array_t<double, py::array::c_style>& photons_in, const py::dict& forward,
+                      double separation_mm) {
+  if (positions_in.ndim() != 2 || positions_in.shape(1) != 3)
+    throw std::invalid_argument("positions: an (N, 3) array of x_mm, y_mm, depth_mm");
+  if (photons_in.ndim() != 1 || photons_in.shape(0) != positions_in.shape(0))
+    throw std::invalid_argument("photons: one count per position");
+  const Forward fw = forward_from(forward);
+  Scene scene = scene_in;
+  override_lens_model(scene, fw.lens_model, "lens_model");
+  auto p = positions_in.unchecked<2>();
+  auto ph = photons_in.unchecked<1>();
+  std::vector<glm::dvec3> positions;
+  for (py::ssize_t i = 0; i < p.shape(0); ++i) {
+    positions.push_back({p(i, 0), p(i, 1), p(i, 2)});
+    require_in_front(scene, p(i, 2), "depth_mm");
+    if (!(std::isfinite(ph(i)) && ph(i) > 0)) throw std::invalid_argument("photons: each must be a finite number > 0");
+  }
+  Device* device = fw.backend_kind() == Backend::vulkan ? &device_for(fw.device) : nullptr;
+  AmbiguitySettings as;
+  as.min_separation_mm = separation_mm;
+  std::vector<Ambiguity> out(positions.size());
+  {
+    py::gil_scoped_release release;
+    std::unique_lock<std::mutex> lock;
+    if (device) lock = std::unique_lock<std::mutex>(device->busy);
+    auto model = make_scene_model(scene, refine_trace_settings(fw.binning), device ? device->ctx.get() : nullptr);
+    for (size_t i = 0; i < positions.size(); ++i) out[i] = ambiguity(*model, scene, positions[i], ph(py::ssize_t(i)), as);
+  }
+  const size_t n = out.size();
+  auto column = [&](auto get) {
+    std::vector<double> v(n);
+    for (size_t i = 0; i < n; ++i) v[i] = get(out[i]);
+    return to_numpy(std::move(v), {py::ssize_t(n)});
+  };
+  py::dict d;
+  d["alias_kl"] = column([](const Ambiguity& a) { return a.kl; });
+  d["alias_x_mm"] = column([](const Ambiguity& a) { return a.impostor_mm.x; });
+  d["alias_y_mm"] = column([](const Ambiguity& a) { return a.impostor_mm.y; });
+  d["alias_depth_mm"] = column([](const Ambiguity& a) { return a.impostor_mm.z; });
+  d["p_confusion"] = column([](const Ambiguity& a) { return a.p_confusion; });
+  return d;
+}
+
 // (height, width, 4) float32: b, db/dx, db/dy, db/ddepth per pixel; and the pixel pitch.
 py::tuple psf(const Scene& scene_in, double x_mm, double y_mm, double depth_mm, const py::dict& forward,
               bool derivatives) {
@@ -557,6 +604,7 @@ PYBIND11_MODULE(_core, m) {
   m.def("release_devices", [] { devices().clear(); });
   py::module_::import("atexit").attr("register")(m.attr("release_devices"));
   m.def("crlb", &crlb);
+  m.def("ambiguity", &ambiguity_at);
   m.def("psf", &psf);
   m.def("read_exr", &read_exr);
 

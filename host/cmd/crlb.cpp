@@ -96,8 +96,9 @@ void run(const CrlbArgs& a) {
   as.min_separation_mm = a.separation_mm;
   if (a.ambiguity)
     std::printf("# ambiguity: binary sensor (dark rate %s per pixel), the closest impostor at least %s mm away "
-                "(lattice aliases to 2 pitches, depth moves, the best %d refined; photons fitted), scene model at %u "
-                "cells per lenslet; alias_kl in nats at the row's photons, p_confusion per event "
+                "(lattice aliases to 2 pitches, depth moves and the CRLB's weakest direction, the best %d refined; photons "
+                "fitted), scene model at %u cells per lenslet; alias_kl in nats at the row's photons, p_confusion "
+                "per event (an estimate that far or farther) "
                 "(host/reconstruct/ambiguity.h)\n",
                 format_number(as.dark_rate).c_str(), format_number(as.min_separation_mm).c_str(), as.refined,
                 refine_trace_settings(t0.binning).rays_per_lenslet);
@@ -211,8 +212,8 @@ void run(const CrlbArgs& a) {
       for (const auto& k : order) cs.push_back(conf[k]);
       const std::string path = ambiguity_plot_path(a.plot);
       plot_lines(path,
-                 {"Predicted confusion with an impostor >= " + format_number(as.min_separation_mm) +
-                      " mm away (binary sensor; floor " + format_number(kConfusionFloor) + ")",
+                 {"Predicted probability of an estimate >= " + format_number(as.min_separation_mm) +
+                      " mm off (binary sensor; floor " + format_number(kConfusionFloor) + ")",
                   "depth from scintillator face (mm)", "p_confusion per event", true},
                  cs);
       std::fprintf(stderr, "prism crlb: wrote %s\n", path.c_str());
@@ -244,7 +245,7 @@ void add_crlb(CLI::App& app) {
   c->add_flag("--ambiguity", a->ambiguity,
               "also the global figure per row: the closest impostor source at least --separation-mm away on the "
               "binary sensor (KL divergence in nats at the row's photons, its position) and the predicted "
-              "probability that the reconstruction confuses the two (columns alias_kl, alias_x_mm, alias_y_mm, "
+              "probability per event that the estimate lands --separation-mm or more away (columns alias_kl, alias_x_mm, alias_y_mm, "
               "alias_depth_mm, p_confusion; with --plot also PLOT-ambiguity.png)");
   c->add_option("--separation-mm", a->separation_mm, "with --ambiguity: the least distance of an impostor (3D)")
       ->capture_default_str()->check(positive_number);

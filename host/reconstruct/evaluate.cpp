@@ -551,7 +551,8 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
     // Only when asked for, so that journals made before the option resume.
     if (o.volume_ambiguity)
       header["ambiguity"] = {{"min_separation_mm", o.ambiguity.min_separation_mm},
-                             {"refined", o.ambiguity.refined}, {"iterations", o.ambiguity.iterations}};
+                             {"refined", o.ambiguity.refined}, {"iterations", o.ambiguity.iterations},
+                             {"p_confusion", confusion_model}};
     header["field_mm"] = {{field.x.x, field.x.y}, {field.y.x, field.y.y}, {field.depth.x, field.depth.y}};
     volume_journal = open_event_journal(
         o, "volume-journal", header,

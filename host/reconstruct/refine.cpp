@@ -204,6 +204,19 @@ RefineBounds RefineBounds::of(const Scene& scene) {
   return {{v.x_min_mm, v.y_min_mm, v.depth_min_mm}, {v.x_max_mm, v.y_max_mm, v.depth_max_mm}};
 }
 
+// The unit eigenvector of the largest eigenvalue of symmetric `c` (power
+// iteration from the depth axis, where the prototype's weakest direction lies).
+glm::dvec3 largest_eigenvector(const glm::dmat3& c) {
+  glm::dvec3 u(0, 0, 1);
+  for (int i = 0; i < 100; ++i) {
+    const glm::dvec3 v = c * u;
+    const double len = glm::length(v);
+    if (!(len > 0)) return glm::dvec3(0, 0, 1);
+    u = v / len;
+  }
+  return u;
+}
+
 std::vector<glm::dvec2> lattice_vectors(const OpticalSystem& sys, double max_pitches) {
   const auto& ls = sys.lenslets;
   double nearest = std::numeric_limits<double>::infinity();
@@ -360,19 +373,6 @@ glm::dmat3 inverse_position_block(const std::vector<double>& A, size_t n, size_t
     for (int j = 0; j < 3; ++j) c[i][j] = e[4 * k + size_t(j)];
   }
   return c;
-}
-
-// The unit eigenvector of the largest eigenvalue of symmetric `c` (power
-// iteration from the depth axis, where the prototype's weakest direction lies).
-glm::dvec3 largest_eigenvector(const glm::dmat3& c) {
-  glm::dvec3 u(0, 0, 1);
-  for (int i = 0; i < 100; ++i) {
-    const glm::dvec3 v = c * u;
-    const double len = glm::length(v);
-    if (!(len > 0)) return glm::dvec3(0, 0, 1);
-    u = v / len;
-  }
-  return u;
 }
 
 }  // namespace

@@ -191,4 +191,10 @@ double binary_fit_pvalue(const std::unordered_map<uint32_t, double>& rates, std:
 // vectors of the 4 mm pitch; 2 adds the six of sqrt(3) and the six of 2 pitches.
 std::vector<glm::dvec2> lattice_vectors(const OpticalSystem& sys, double max_pitches = 1.0);
 
+// The unit eigenvector of the largest eigenvalue of symmetric `c` (power
+// iteration from the depth axis, where the prototype's weakest direction
+// lies): for a position covariance, the direction the position is worst
+// determined in.
+glm::dvec3 largest_eigenvector(const glm::dmat3& c);
+
 }  // namespace prism

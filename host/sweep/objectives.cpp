@@ -165,6 +165,7 @@ nlohmann::json AmbiguityScoring::to_json() const {
           {"dark_rate", settings.dark_rate},
           {"refined", settings.refined},
           {"iterations", settings.iterations},
+          {"p_confusion", confusion_model},
           {"rays_per_lenslet", refine_trace_settings(binning).rays()}};
 }
 

@@ -44,7 +44,7 @@ struct Objectives {
   std::vector<double> crlb_3d_by_depth_mm;  // mean over the lateral samples, per depth plane
   // Global ambiguity over the space's ambiguity samples (host/reconstruct/
   // ambiguity.h); NaN where not computed (see AmbiguityScoring).
-  double mean_p_confusion = NAN;   // predicted probability per event that an impostor wins: a catastrophic rate
+  double mean_p_confusion = NAN;   // predicted probability per event of an estimate r or more away: a catastrophic rate
   double worst_p_confusion = NAN;  // largest over the samples
   double min_alias_kl = NAN;       // nats, the closest impostor over the samples (maximised)
 };

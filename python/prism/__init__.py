@@ -27,7 +27,7 @@ from ._core import DeviceError, ResourceError, Scene, SceneError
 
 __all__ = [
     "Scene", "SceneError", "ResourceError", "DeviceError", "scene", "builtin_scenes", "devices", "device_name",
-    "validation_messages", "crlb", "psf", "read_exr", "set_max_memory", "max_memory_bytes", "Event", "EventFile",
+    "validation_messages", "crlb", "ambiguity", "psf", "read_exr", "set_max_memory", "max_memory_bytes", "Event", "EventFile",
     "simulate", "Dictionary", "build_dictionary", "reconstruct",
 ]
 
@@ -146,7 +146,7 @@ def crlb(scene="prototype", depth_mm=25.0, x_mm=0.0, y_mm=0.0, *, sensor="poisso
         the closest impostor source at least separation_mm away on the binary
         sensor (alias_kl in nats at the row's photons, alias_*_mm its
         position) and p_confusion, the predicted probability per event that
-        the reconstruction confuses the two.
+        the estimate lands separation_mm or more away (ambiguity()).
 
     Returns a dict of arrays, one entry per row, named as the CSV columns of
     `prism crlb --csv`: scene, x_mm, y_mm, depth_mm, photons (expected
@@ -173,6 +173,38 @@ def crlb(scene="prototype", depth_mm=25.0, x_mm=0.0, y_mm=0.0, *, sensor="poisso
         out[key] = _np.array(out[key], dtype=str)
     out["rays_per_lenslet"] = out["rays_per_lenslet"].astype(_np.int64)
     return out
+
+
+def ambiguity(scene="prototype", depth_mm=25.0, x_mm=0.0, y_mm=0.0, *, photons=100.0,
+              separation_mm=_core.min_separation_mm, binning=_core.analysis_binning, lens_model=None,
+              backend="vulkan", device=None):
+    """The global ambiguity of source positions at a given count of detected
+    photons, as `prism evaluate --ambiguity` computes it for each event (crlb()
+    gives it at the photons the scene's emission yields).
+
+    depth_mm, x_mm, y_mm, photons: scalars or arrays, broadcast against each
+        other; photons: expected detected photons of the source.
+    separation_mm: the least distance of an impostor, and the error that
+        p_confusion predicts (a catastrophic one).
+    binning: the clicks' binning; the model is the scene's at it.
+    lens_model, backend, device: as crlb().
+
+    Returns a dict of arrays, one entry per position: alias_kl (nats),
+    alias_x_mm, alias_y_mm, alias_depth_mm (the closest impostor) and
+    p_confusion (the predicted probability per event that the estimate lands
+    separation_mm or more away).
+    """
+    sc = globals()["scene"](scene)
+    x, y, d, n = _np.broadcast_arrays(*(_np.asarray(v, float) for v in (x_mm, y_mm, depth_mm, photons)))
+    positions = _np.ascontiguousarray(_np.stack([x.ravel(), y.ravel(), d.ravel()], axis=1))
+    if positions.shape[0] == 0:
+        raise ValueError("depth_mm: no positions given")
+    if not _np.all(_np.isfinite(positions)):
+        raise ValueError("x_mm, y_mm, depth_mm: every position must be finite")
+    if not separation_mm > 0:
+        raise ValueError(f"separation_mm: {separation_mm} must be > 0")
+    forward = _forward(0, binning, "footprint", 0, lens_model, None, backend, device, "auto")
+    return _core.ambiguity(sc, positions, _np.ascontiguousarray(n.ravel()), forward, float(separation_mm))
 
 
 @_doc

@@ -1,6 +1,7 @@
 """`prism.crlb` against `prism crlb` on the same scenes and positions: the
 same numbers as the CSV writes them."""
 import numpy as np
+import pytest
 
 import prism
 from conftest import run_prism, read_csv, check_rows_equal, CRLB_COLUMNS
@@ -32,6 +33,21 @@ def test_crlb_ambiguity_equals_the_command(tmp_path):
     check_rows_equal(read_csv(out), table,
                      CRLB_COLUMNS + ["alias_kl", "alias_x_mm", "alias_y_mm", "alias_depth_mm", "p_confusion"])
     assert np.isfinite(table["alias_kl"][0]) and table["alias_kl"][0] > 0
+
+
+def test_ambiguity_at_given_photons_is_crlbs_at_the_rows_photons():
+    # crlb(ambiguity=True) computes the figure at the photons each row's
+    # emission yields; ambiguity() at those photons must give the same.
+    rows = prism.crlb("prototype", depth_mm=[12.0, 40.0], lens_model="thin", rays=256, binning=32, ambiguity=True)
+    direct = prism.ambiguity("prototype", depth_mm=[12.0, 40.0], photons=rows["photons"], lens_model="thin",
+                             binning=32)
+    for key in ("alias_kl", "alias_x_mm", "alias_y_mm", "alias_depth_mm", "p_confusion"):
+        np.testing.assert_allclose(direct[key], rows[key], rtol=1e-6, err_msg=key)
+    fewer = prism.ambiguity("prototype", depth_mm=[12.0, 40.0], photons=rows["photons"] / 4, lens_model="thin",
+                            binning=32)
+    assert np.all(fewer["alias_kl"] < direct["alias_kl"])  # fewer photons, closer impostors
+    with pytest.raises(ValueError, match="photons: each must be a finite number > 0"):
+        prism.ambiguity("prototype", photons=0.0)
 
 
 def test_positions_broadcast_as_numpy_does():

@@ -133,3 +133,144 @@ TEST_CASE("ambiguity: more photons, larger divergence, rarer confusion, and the 
   CHECK(dev.p_confusion == doctest::Approx(ref.p_confusion).epsilon(0.1));
   prism::test::check_validation_clean();
 }
+
+namespace {
+
+// P(S >= 0) by drawing events: S, the log-likelihood ratio of impostor over
+// truth, summed over every pixel of the 20 x 20 grid with clicks drawn from the truth.
+double drawn_wins(const prism::SourceImage& a, double alpha0, const prism::SourceImage& b, double alpha1,
+                  double dark, int draws) {
+  std::vector<double> q0(400), click(400), no_click(400);
+  for (uint32_t i = 0; i < 400; ++i) {
+    const auto* pa = a.find(i);
+    const auto* pb = b.find(i);
+    const double l0 = dark + alpha0 * (pa ? pa->p : 0), l1 = dark + alpha1 * (pb ? pb->p : 0);
+    q0[i] = -std::expm1(-l0);
+    click[i] = std::log(-std::expm1(-l1) / q0[i]);
+    no_click[i] = l0 - l1;
+  }
+  std::mt19937_64 rng(7);
+  std::uniform_real_distribution<double> u(0, 1);
+  int wins = 0;
+  for (int n = 0; n < draws; ++n) {
+    double s = 0;
+    for (int i = 0; i < 400; ++i) s += u(rng) < q0[i] ? click[i] : no_click[i];
+    wins += s >= 0;
+  }
+  return double(wins) / draws;
+}
+
+// The CRLB covariance of (x, y, depth) on the binary sensor, the photons a
+// nuisance: the inverse of sum_i w_i grad(lambda_i) grad(lambda_i)^T over
+// (x, y, depth, alpha), w = (1 - q) / q, its position block.
+glm::dmat3 crlb_covariance(const prism::SourceImage& img, double alpha, double dark) {
+  double f[4][4] = {};
+  for (const auto& m : img.pixels) {
+    const double l = dark + alpha * m.p, w = std::exp(-l) / -std::expm1(-l);
+    const double d[4] = {alpha * m.g.x, alpha * m.g.y, alpha * m.g.z, m.p};
+    for (int r = 0; r < 4; ++r)
+      for (int c = 0; c < 4; ++c) f[r][c] += w * d[r] * d[c];
+  }
+  // Schur complement of the photons, then its inverse.
+  glm::dmat3 schur;
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c) schur[c][r] = f[r][c] - f[r][3] * f[3][c] / f[3][3];
+  return glm::inverse(schur);
+}
+
+}  // namespace
+
+TEST_CASE("ambiguity: the probability that an impostor wins, saddlepoint against drawn events") {
+  // Few photons and a small shift: a handful of pixels decide, S is skewed,
+  // and the Gaussian Phi(-D / sqrt(V)) is off where the saddlepoint is not.
+  const double dark = 1e-6;
+  const auto a = spot(8.0, 9.0, 1.2);
+  for (auto [shift, alpha] : {std::pair{1.0, 6.0}, std::pair{1.5, 8.0}, std::pair{2.5, 5.0}}) {
+    CAPTURE(shift);
+    CAPTURE(alpha);
+    const auto b = spot(8.0 + shift, 9.0, 1.2);
+    double alpha1 = alpha;
+    const auto d = prism::divergence(a, alpha, b, alpha1, dark);
+    const double drawn = drawn_wins(a, alpha, b, alpha1, dark, 200000);
+    const double gaussian = 0.5 * std::erfc(d.kl / std::sqrt(2 * d.variance));
+    CAPTURE(d.kl);
+    CAPTURE(drawn);
+    CAPTURE(gaussian);
+    CAPTURE(d.p_wins);
+    REQUIRE(drawn > 2e-3);  // enough drawn wins (> 400) for a 10% comparison
+    CHECK(std::abs(d.p_wins / drawn - 1) < 0.1);
+    // The skewed case: the Gaussian overstates the probability by 1.7x.
+    if (shift == 2.5) CHECK(gaussian > 1.4 * drawn);
+  }
+}
+
+namespace {
+
+// A smooth stand-in for the scene's model: a dim Gaussian blob on an 80 x 80
+// grid that moves with (x, y) and widens with depth. It moves slowly with x
+// (1 px per mm, its width 6 px), so x is the one worst direction, and over
+// the shifts tested its log-likelihood is close to quadratic; no pixel
+// saturates.
+class BlobModel : public prism::SourceModel {
+  std::vector<prism::ModelPixel> render_raw(const glm::dvec3& t) override {
+    const double kx = 1, ky = 20;  // pixels per mm
+    const double cx = 40 + kx * t.x, cy = 40 + ky * t.y, s = 6 * std::exp((t.z - 5) / 3), ds_dz = s / 3;
+    std::vector<prism::ModelPixel> out;
+    for (uint32_t i = 0; i < 80 * 80; ++i) {
+      const double dx = double(i % 80) - cx, dy = double(i / 80) - cy, r2 = dx * dx + dy * dy;
+      const double b = std::exp(-r2 / (2 * s * s));
+      if (b < 1e-9) continue;
+      out.push_back({i, b, b * glm::dvec3(kx * dx / (s * s), ky * dy / (s * s), ds_dz * r2 / (s * s * s))});
+    }
+    return out;
+  }
+};
+
+}  // namespace
+
+TEST_CASE("ambiguity: where the likelihood is quadratic, p_confusion is the CRLB's Gaussian tail beyond r") {
+  // A source whose closest impostors are no basins but the slopes of its
+  // own, at a separation r of 2.5 CRLB standard deviations along the worst
+  // direction: the estimate is r away when the error passes r, not r / 2
+  // (the impostor held at r wins when it passes r / 2), ambiguity.h.
+  const glm::dvec3 at(0.1, -0.1, 5.0);
+  const double photons = 100, dark = prism::AmbiguitySettings{}.dark_rate;
+  const auto scene = row_scene(false);  // its volume bounds the impostors
+  BlobModel model;
+  const glm::dvec3 source[] = {at};
+  const auto truth = model.render(source)[0];
+  const glm::dmat3 cov = crlb_covariance(truth, photons, dark);
+  const double sigma = std::sqrt(cov[0][0]);  // x, the worst direction by construction
+  REQUIRE(cov[0][0] > 4 * std::max(cov[1][1], cov[2][2]));
+  prism::AmbiguitySettings settings;
+  settings.min_separation_mm = 2.5 * sigma;
+  const auto a = prism::ambiguity(model, scene, at, photons, settings);
+  // P(|e| > r) for e ~ N(0, cov), drawn.
+  const glm::dmat3 chol = [&] {
+    glm::dmat3 l(0.0);  // lower triangular, l[c][r]
+    for (int r = 0; r < 3; ++r)
+      for (int c = 0; c <= r; ++c) {
+        double s = cov[c][r];
+        for (int k = 0; k < c; ++k) s -= l[k][r] * l[k][c];
+        l[c][r] = r == c ? std::sqrt(s) : s / l[c][c];
+      }
+    return l;
+  }();
+  std::mt19937_64 rng(11);
+  std::normal_distribution<double> n01;
+  int beyond = 0;
+  const int draws = 400000;
+  for (int n = 0; n < draws; ++n) {
+    const glm::dvec3 e = chol * glm::dvec3(n01(rng), n01(rng), n01(rng));
+    beyond += glm::length(e) > settings.min_separation_mm;
+  }
+  const double tail = double(beyond) / draws;
+  CAPTURE(sigma);
+  CAPTURE(a.kl);
+  CAPTURE(a.impostors);
+  CAPTURE(tail);
+  CAPTURE(a.p_confusion);
+  // 2 Phi(-2.5) = 0.0124 along the worst direction alone; counting the
+  // impostors held at r would give about 2 Phi(-1.25) = 0.21.
+  CHECK(std::abs(a.p_confusion / tail - 1) < 0.25);
+}

@@ -216,11 +216,14 @@ TEST_CASE("sweep: the ambiguity objectives are scored when named, as ambiguity()
       const prism::Ambiguity a = prism::ambiguity(*model, scene, {0, 0, 8}, scoring.photons, scoring.settings);
       REQUIRE(std::isfinite(a.kl));
       // Device renders differ between runs by ~1e-9 (float atomics), which
-      // can stop the impostor's refinement a step earlier or later: it stops
-      // on a gain below 1e-4 of D, so D agrees to 1e-3 and its Gaussian
-      // tail, whose log is ~D^2 / 2V, to a few per cent.
-      CHECK(e.objectives.min_alias_kl == doctest::Approx(a.kl).epsilon(1e-3));
-      CHECK(e.objectives.mean_p_confusion == doctest::Approx(a.p_confusion).epsilon(0.05).scale(1e-30));
+      // can send the impostor's refinement along another path. Its closest
+      // impostor here lies 7.6 mm deeper in a flat valley (D changes by a
+      // nat over 0.3 mm), where 20 steps end within about a nat of each
+      // other: D agrees to 1%, and p_confusion (1e-16 here, about e^-D)
+      // within a factor 3.
+      CHECK(e.objectives.min_alias_kl == doctest::Approx(a.kl).epsilon(0.01));
+      const double tiny = 1e-300;  // both may underflow to 0 at a larger D
+      CHECK(std::abs(std::log((e.objectives.mean_p_confusion + tiny) / (a.p_confusion + tiny))) < std::log(3.0));
       CHECK(e.objectives.worst_p_confusion == e.objectives.mean_p_confusion);
     }
     auto ranked = sweep.ranked();
