@@ -238,7 +238,7 @@ void add_evaluate(CLI::App& app) {
   c->add_flag("--ambiguity", a->options.volume_ambiguity,
               "volume: also each event's global ambiguity at its true position, as `prism crlb --ambiguity` "
               "(columns alias_kl, alias_*_mm, p_confusion in volume-events.csv), and per depth band the "
-              "catastrophic rate it predicts (mean p_confusion) beside the rate measured; about 100 renders per event");
+              "catastrophic rate it predicts (mean p_confusion) beside the rate measured; about 80 renders per event");
   c->add_option("--separation-mm", a->options.ambiguity.min_separation_mm,
                 "with --ambiguity: the least distance of an impostor (3D)")
       ->capture_default_str()->check(positive_number);
