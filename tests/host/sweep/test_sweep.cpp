@@ -46,7 +46,7 @@ prism::DesignSpace row_space(const TempDir& dir) {
                 {"focal_mm", {4.5, 9, 15}},
                 {"assignment", "free"},
                 {"samples", {{"x_mm", {0}}, {"y_mm", {0}}, {"depth_mm", {5, 25}}}},
-                {"ambiguity_samples", {{"x_mm", {0}}, {"y_mm", {0}}, {"depth_mm", {8}}}}};
+                {"ambiguity_samples", {{"x_mm", {0}}, {"y_mm", {0}}, {"depth_mm", {20}}}}};
   return prism::DesignSpace::parse(space, "row3-space.json", dir.path.string());
 }
 
@@ -213,14 +213,15 @@ TEST_CASE("sweep: the ambiguity objectives are scored when named, as ambiguity()
       // scene's model at the clicks' pixels and the volume experiment's photons.
       prism::Scene scene = space.scene_of(e.design, "check");
       auto model = prism::make_scene_model(scene, prism::refine_trace_settings(scoring.binning), &prism::test::gpu());
-      const prism::Ambiguity a = prism::ambiguity(*model, scene, {0, 0, 8}, scoring.photons, scoring.settings);
+      const prism::Ambiguity a = prism::ambiguity(*model, scene, {0, 0, 20}, scoring.photons, scoring.settings);
       REQUIRE(std::isfinite(a.kl));
       // Device renders differ between runs by ~1e-9 (float atomics), which
-      // can send the impostor's refinement along another path. Its closest
-      // impostor here lies 7.6 mm deeper in a flat valley (D changes by a
-      // nat over 0.3 mm), where 20 steps end within about a nat of each
-      // other: D agrees to 1%, and p_confusion (1e-16 here, about e^-D)
-      // within a factor 3.
+      // can send the impostor's refinement along another path where D has
+      // near-equal optima: at depth 8 on this row, two on the 3 mm sphere,
+      // 104 and 202 nats, each found in some runs. At depth 20 the closest
+      // impostor is the depth slope, found alike to 2e-3 of D (11.39 and
+      // 11.41 nats); p_confusion, a sum over the impostors found, moved by
+      // a factor of up to 1.6 between runs (ambiguity.h).
       CHECK(e.objectives.min_alias_kl == doctest::Approx(a.kl).epsilon(0.01));
       const double tiny = 1e-300;  // both may underflow to 0 at a larger D
       CHECK(std::abs(std::log((e.objectives.mean_p_confusion + tiny) / (a.p_confusion + tiny))) < std::log(3.0));
