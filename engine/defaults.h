@@ -3,6 +3,7 @@
 // and the paper (Sec. II, III.A). Where DESIGN.md fixes what the paper leaves
 // open (lenslet arrangement, centre thickness), the comment says so.
 #pragma once
+#include <limits>
 
 namespace prism::defaults {
 
@@ -126,16 +127,22 @@ inline constexpr double refine_rescue_alias_pitches = 2.0;
 // ordinary events fall below it at most 5% of the time (the p-value is
 // conservative): 6 of 500 thin-lens and 0 of 60 real-lens volume events.
 inline constexpr double refine_lattice_scan_pvalue = 0.05;
-// Near the face: an estimate shallower than this gets the lattice scan
-// whatever its fit, and the continuation. There a source put on a wrong site
-// 2-4 pitches away fits as well as the model expects (p 0.14-0.79): in the
-// volume runs (500 thin-lens, 355 real-lens events) such failures had
-// estimates at depths 3.3-8.6 mm, but for one put at 27 mm. And there the
-// images are sharpest and the CRLB smallest (~0.01 mm), so the cliffs that
-// their hard edges make in the likelihood hold a local fit several CRLBs
-// off; on ten events deeper than 10 mm the continuation changed no NLL by
-// 0.1 and cost 25-65 renders each (README "Reconstruction").
-inline constexpr double refine_near_face_mm = 10.0;
+// An estimate shallower than this gets the lattice scan whatever its fit,
+// its sites scored and first fitted blurred, and the continuation: every
+// depth. Near the face a source put on a wrong site 2-4 pitches away fits as
+// well as the model expects (p 0.14-0.79 in the volume runs of 500 thin-lens
+// and 355 real-lens events at 100 photons), and there the images are
+// sharpest, so the cliffs that their hard edges make in the likelihood hold
+// a local fit several CRLBs off. Deeper the same holds at few photons: at 20
+// photons (about 17 clicks) 6 of unifocal-f15's 7 and 6 of unifocal-f9's 12
+// estimates beyond 3 mm, at depths 11-34 mm, lay where the likelihood has a
+// better optimum by the truth (12-43 nats; evaluate's truth fit), most a
+// lattice pitch over, with p 0.16-0.54, and the first fit from the search
+// stuck 0.5 mm from that optimum; with the scan and the continuation at
+// every depth 5 of f15's 6 were found. The cost at 100 photons deeper than
+// 10 mm: about 90 more renders per event (README "Reconstruction"). Until
+// 2026-11-29 this was 10 mm.
+inline constexpr double refine_always_scan_below_mm = std::numeric_limits<double>::infinity();
 inline constexpr int refine_lattice_scan_depths = 3;  // the best voted depths tried, while the fit stays below it and improves
 // The ladder: after the other starts, points every 0.75 mm up to 3 mm along
 // the estimate's weakest direction and along depth, the best 2 probed. On 60

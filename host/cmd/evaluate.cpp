@@ -168,10 +168,18 @@ void run(EvaluateArgs a) {
                   r.axes.median_ratio.x, r.axes.median_ratio.y, r.axes.median_ratio.z);
   for (const auto& r : result.rows)
     if (r.experiment == "volume" && !std::isnan(r.p_confusion_mean))
+    {
       std::printf("volume %s %.0f-%.0f mm: predicted catastrophic rate (mean p_confusion) %.3g%%, measured %.3g%% "
-                  "(%d events)\n",
+                  "(%d events)",
                   r.series == "all" ? "all" : "band", r.depth_lo_mm, r.depth_hi_mm, 100 * r.p_confusion_mean,
                   100 * r.axes.catastrophic_rate, r.axes.events);
+      // What p_confusion predicts is the likelihood's share.
+      if (r.catastrophic_classified > 0)
+        std::printf("; of %d catastrophic with the truth fitted, %d the search's (the fit from the truth stays "
+                    "there and scores better), %d the likelihood's",
+                    r.catastrophic_classified, r.search_failures, r.catastrophic_classified - r.search_failures);
+      std::printf("\n");
+    }
   if (result.resumed)
     std::printf("%zu events read from the journals in %s (reconstructed by an earlier run; not in the cost below)\n",
                 result.resumed, a.out.c_str());
@@ -238,7 +246,11 @@ void add_evaluate(CLI::App& app) {
   c->add_flag("--ambiguity", a->options.volume_ambiguity,
               "volume: also each event's global ambiguity at its true position, as `prism crlb --ambiguity` "
               "(columns alias_kl, alias_*_mm, p_confusion in volume-events.csv), and per depth band the "
-              "catastrophic rate it predicts (mean p_confusion) beside the rate measured; about 80 renders per event");
+              "catastrophic rate it predicts (mean p_confusion) beside the rate measured; about 80 renders per event. "
+              "With a refinement, also the refinement's model fitted from the truth on each event's clicks "
+              "(columns truth_fit_*): a catastrophic estimate is the search's failure (column search_failure) when "
+              "that fit stays within 3 mm of the truth with a lower NLL than the estimate's, and otherwise the "
+              "likelihood's, which is what p_confusion predicts");
   c->add_option("--separation-mm", a->options.ambiguity.min_separation_mm,
                 "with --ambiguity: the least distance of an impostor (3D)")
       ->capture_default_str()->check(positive_number);

@@ -355,6 +355,8 @@ json to_json(const VolumeEvent& v) {
                       {"alias_mm", {number_or_null(v.alias_mm.x), number_or_null(v.alias_mm.y),
                                     number_or_null(v.alias_mm.z)}},
                       {"p_confusion", v.p_confusion}};
+  if (!std::isnan(v.truth_fit_nll))
+    j["truth_fit"] = {{"mm", {v.truth_fit_mm.x, v.truth_fit_mm.y, v.truth_fit_mm.z}}, {"nll", v.truth_fit_nll}};
   return j;
 }
 
@@ -374,10 +376,20 @@ VolumeEvent volume_event_from_json(const json& j) {
     for (int k = 0; k < 3; ++k) v.alias_mm[k] = number_of(a.at("alias_mm").at(size_t(k)));
     v.p_confusion = a.at("p_confusion").get<double>();
   }
+  if (j.contains("truth_fit")) {  // absent in journals before 2026-11-29
+    const json& t = j.at("truth_fit");
+    for (int k = 0; k < 3; ++k) v.truth_fit_mm[k] = t.at("mm").at(size_t(k)).get<double>();
+    v.truth_fit_nll = t.at("nll").get<double>();
+  }
   return v;
 }
 
 }  // namespace
+
+bool VolumeEvent::search_failure() const {
+  return error_3d_mm(estimate, truth_mm) > defaults::catastrophic_error_mm &&
+         glm::length(truth_fit_mm - truth_mm) <= defaults::catastrophic_error_mm && estimate.nll > truth_fit_nll;
+}
 
 const std::vector<std::string>& evaluation_experiments() {
   static const std::vector<std::string> names{"single-lines", "photons", "double", "volume"};
@@ -493,7 +505,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
                   {"alpha_max", s.alpha_max}, {"min_clicks", s.min_clicks}, {"scan_step_px", s.scan_step_px}}},
       {"refine", {{"model", describe(o.model, scene)}, {"iterations", rs.iterations}, {"aliases", rs.aliases},
                   {"search_starts", rs.search_starts}, {"alias_starts", rs.alias_starts}, {"rescue", rs.rescue},
-                  {"lattice_scan", rs.lattice_scan}, {"reseed", rs.reseed}, {"near_face_mm", rs.near_face_mm},
+                  {"lattice_scan", rs.lattice_scan}, {"reseed", rs.reseed}, {"always_scan_below_mm", std::isfinite(rs.always_scan_below_mm) ? json(rs.always_scan_below_mm) : json("every depth")},
                   {"ladder_starts", rs.ladder_starts},
                   {"ladder_reach_px", rs.ladder_reach_px}, {"continuation", rs.continuation}, {"site_blur_px", rs.site_blur_px},
                   {"pvalue_draws", rs.pvalue_draws}}}};
@@ -538,7 +550,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   std::vector<std::optional<VolumeEvent>> volume_done(volume_positions.size());
   auto take_volume_event = [&](const json& j, const std::string& from) {
     VolumeEvent v = read_record(j, from, volume_event_from_json);
-    if (!o.volume_ambiguity) v.alias_kl = v.p_confusion = NAN, v.alias_mm = glm::dvec3(NAN);  // not asked for
+    if (!o.volume_ambiguity) v.alias_kl = v.p_confusion = v.truth_fit_nll = NAN, v.alias_mm = v.truth_fit_mm = glm::dvec3(NAN);  // not asked for
     if (v.index >= volume_done.size()) return false;
     const bool first = !volume_done[v.index];
     volume_done[v.index] = v;
@@ -595,6 +607,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
 
   EvaluationCost& spent = result.cost;
   size_t done = 0;
+  uint64_t truth_fit_renders = 0;  // the refinement model's renders of the fits from the truth (not the estimator's)
   // The search, then the refinement, of a batch of K-vertex events.
   // `each(i, estimate, seconds, renders)` is called as event i is done, with
   // its share of the batch's search and its own refinement.
@@ -626,7 +639,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
     spent.reconstruct_s += std::chrono::duration<double>(end - start).count() - each_s;
     spent.refine_s += std::chrono::duration<double>(end - searched).count() - each_s;
     spent.events += events.size();
-    if (source_model) spent.renders = source_model->renders();
+    if (source_model) spent.renders = source_model->renders() - truth_fit_renders;
   };
   // What this process did, for the leader when there are others.
   json my_trial_records = json::array(), my_volume_records = json::array();
@@ -693,6 +706,13 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
         v.p_confusion = a.p_confusion;
         spent.ambiguity_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - ambiguity_start).count();
         spent.ambiguity_renders = ambiguity_model->renders();
+        if (refiner) {
+          const uint64_t before = source_model->renders();
+          const Refiner::LocalFit fit = refiner->local_fit(events[i], v.truth_mm, o.volume_photons);
+          v.truth_fit_mm = fit.position_mm;
+          v.truth_fit_nll = fit.nll;
+          truth_fit_renders += source_model->renders() - before;
+        }
       }
       const json record = to_json(v);
       if (volume_journal) volume_journal->append(record);
@@ -790,6 +810,10 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
         crlb.push_back(v.crlb_mm);
         crlb3_sq += glm::dot(v.crlb_mm, v.crlb_mm);
         r.flagged += v.estimate.flags != vertex_ok;
+        if (error_3d_mm(v.estimate, v.truth_mm) > defaults::catastrophic_error_mm && !std::isnan(v.truth_fit_nll)) {
+          ++r.catastrophic_classified;
+          r.search_failures += v.search_failure();
+        }
       }
       r.experiment = "volume";
       r.series = whole ? "all" : "";
@@ -851,7 +875,8 @@ void write_csv(const std::string& path, const std::function<void(std::ostream&)>
 void write_volume_events(const std::string& path, const std::vector<VolumeEvent>& events) {
   write_csv(path, [&](std::ostream& out) {
     out << "event,x_mm,y_mm,depth_mm,est_x_mm,est_y_mm,est_depth_mm,alpha,err3d_mm,crlb_x_mm,crlb_y_mm,crlb_z_mm,"
-           "flags,fit_pvalue,seconds,renders,alias_kl,alias_x_mm,alias_y_mm,alias_depth_mm,p_confusion\n";
+           "flags,fit_pvalue,seconds,renders,alias_kl,alias_x_mm,alias_y_mm,alias_depth_mm,p_confusion,nll,truth_fit_x_mm,"
+           "truth_fit_y_mm,truth_fit_depth_mm,truth_fit_nll,search_failure\n";
     for (const auto& v : events) {
       const auto& e = v.estimate;
       out << v.index << ',' << format_number(v.truth_mm.x) << ',' << format_number(v.truth_mm.y) << ','
@@ -861,7 +886,10 @@ void write_volume_events(const std::string& path, const std::vector<VolumeEvent>
           << format_number(v.crlb_mm.y) << ',' << format_number(v.crlb_mm.z) << ',' << flags_to_string(e.flags) << ','
           << csv_number(e.fit_pvalue) << ',' << csv_number(v.seconds) << ',' << csv_number(v.renders);
       for (double x : {v.alias_kl, v.alias_mm.x, v.alias_mm.y, v.alias_mm.z, v.p_confusion}) out << ',' << csv_number(x);
-      out << '\n';
+      for (double x : {e.nll, v.truth_fit_mm.x, v.truth_fit_mm.y, v.truth_fit_mm.z, v.truth_fit_nll})
+        out << ',' << csv_number(x);
+      out << ','
+          << (std::isnan(v.truth_fit_nll) ? "" : v.search_failure() ? "1" : "0") << '\n';
     }
   });
 }
@@ -872,6 +900,10 @@ void plot_volume(const std::string& dir, const std::vector<const EvaluationRow*>
   std::vector<Series> errors;
   Series mean{"3D error (mean)", {}, {}, false, true}, catastrophic{"measured: events > 3 mm", {}, {}, false, true};
   Series predicted{"predicted: mean p_confusion", {}, {}, true, true};
+  // The likelihood's share: catastrophic events less the search's failures
+  // (only where every catastrophic event was classified).
+  Series confused{"measured, the likelihood's: search failures left out", {}, {}, false, true};
+  bool any_classified = false;
   std::vector<Series> rmse(3), crlb(3);
   for (int k = 0; k < 3; ++k) {
     rmse[k] = {std::string("RMSE ") + axis[k], {}, {}, false, true};
@@ -886,6 +918,12 @@ void plot_volume(const std::string& dir, const std::vector<const EvaluationRow*>
     if (!std::isnan(r->p_confusion_mean)) {
       predicted.x.push_back(r->varied);
       predicted.y.push_back(100 * r->p_confusion_mean);
+    }
+    const int catastrophic_events = int(std::lround(r->axes.catastrophic_rate * r->axes.events));
+    any_classified = any_classified || r->catastrophic_classified > 0;
+    if (r->catastrophic_classified == catastrophic_events) {
+      confused.x.push_back(r->varied);
+      confused.y.push_back(100.0 * (catastrophic_events - r->search_failures) / r->axes.events);
     }
     for (int k = 0; k < 3; ++k)
       if (!std::isnan(r->axes.rmse_mm[k])) {
@@ -905,7 +943,9 @@ void plot_volume(const std::string& dir, const std::vector<const EvaluationRow*>
   plot_lines(dir + "/volume-catastrophic.png",
              {"volume: catastrophic estimates (3D error > 3 mm) by depth band", "depth (mm, band centre)",
               "events > 3 mm (%)", false},
-             predicted.x.empty() ? std::vector<Series>{catastrophic} : std::vector<Series>{catastrophic, predicted});
+             predicted.x.empty()                    ? std::vector<Series>{catastrophic}
+             : confused.x.empty() || !any_classified ? std::vector<Series>{catastrophic, predicted}
+                                  : std::vector<Series>{catastrophic, confused, predicted});
 }
 
 }  // namespace
@@ -921,12 +961,14 @@ std::vector<std::string> write_evaluation(const std::string& dir, const Evaluati
     const std::string csv = dir + "/" + name + ".csv", png = dir + "/" + name + ".png";
     if (name == "volume") {
       write_csv(csv, [&](std::ostream& out) {
-        out << "experiment,series,depth_lo_mm,depth_hi_mm,photons," << kStatsHeader << ",p_confusion_mean\n";
+        out << "experiment,series,depth_lo_mm,depth_hi_mm,photons," << kStatsHeader
+            << ",p_confusion_mean,catastrophic_classified,search_failures\n";
         for (const auto* r : mine) {
           out << r->experiment << ',' << r->series << ',' << format_number(r->depth_lo_mm) << ','
               << format_number(r->depth_hi_mm) << ',' << format_number(r->photons) << ',';
           write_stats(out, *r);
-          out << ',' << csv_number(r->p_confusion_mean) << '\n';
+          out << ',' << csv_number(r->p_confusion_mean) << ',' << r->catastrophic_classified << ','
+              << r->search_failures << '\n';
         }
       });
       write_volume_events(dir + "/volume-events.csv", evaluation.volume);

@@ -176,6 +176,9 @@ struct EvaluationRow {
   int flagged = 0;         // trials whose vertex carried a flag
   double crlb_3d_mm = 0;   // volume: RMS over the band's events
   double p_confusion_mean = NAN;  // volume with ambiguity: the predicted catastrophic rate, mean over events
+  // Volume with ambiguity and a refinement: catastrophic events whose truth
+  // was fitted (VolumeEvent::truth_fit_nll), and of them the search's failures.
+  int catastrophic_classified = 0, search_failures = 0;
 };
 
 // One event of the volume experiment.
@@ -192,6 +195,17 @@ struct VolumeEvent {
   // and the predicted probability of a confusion.
   double alias_kl = NAN, p_confusion = NAN;
   glm::dvec3 alias_mm{NAN};
+  // With the ambiguity and a refinement: the refinement's model fitted from
+  // the truth alone on the event's clicks (Refiner::local_fit), where it
+  // ended and its NLL, beside the estimate's NLL; NaN when not recorded.
+  // A catastrophic estimate is the search's failure when that fit stayed
+  // within defaults::catastrophic_error_mm of the truth with a lower NLL
+  // (the likelihood has a better optimum by the truth, which the search
+  // missed), and otherwise the likelihood's own confusion, which is what
+  // p_confusion predicts.
+  glm::dvec3 truth_fit_mm{NAN};
+  double truth_fit_nll = NAN;
+  bool search_failure() const;
 };
 
 struct Evaluation {

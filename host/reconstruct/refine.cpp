@@ -441,6 +441,14 @@ double Refiner::fit_pvalue(const Fit& f, uint64_t event_id) const {
                            0x9e3779b97f4a7c15ull ^ event_id);
 }
 
+Refiner::LocalFit Refiner::local_fit(const Event& event, const glm::dvec3& at, double alpha) {
+  if (event.clicks.empty()) return {};
+  Fit f{this, event.clicks, 1, {glm::clamp(at, bounds_.lo, bounds_.hi)}, {std::clamp(alpha, 0.0, s_.alpha_max)}, {}, {}, 0};
+  f.render();
+  levenberg_marquardt(f, s_.iterations);
+  return {f.theta[0], f.alpha[0], f.nll};
+}
+
 std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector<ReconstructedVertex> rows) {
   constexpr int kProbeSteps = 4;            // LM steps before a start is judged
   constexpr double kDistinctStartMm = 1.0;  // starts closer than this to one tried are skipped
@@ -496,17 +504,17 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
   // -shift / magnification, near enough), and the candidate moved with the
   // best: sites predicted a few tenths of a mm off, where sharp images
   // near the face score as badly as wrong ones.
-  // With near_face_blur_px > 0 the images of candidates nearer the face
-  // than near_face_mm are scored blurred by it, and the best of them fitted
-  // blurred first (try_start).
-  auto blur_at = [&](const glm::dvec3& at, double near_face_blur_px) {
-    return at.z < s_.near_face_mm ? near_face_blur_px : 0.0;
+  // With blur_px > 0 the images of candidates shallower than
+  // always_scan_below_mm are scored blurred by it, and the best of them
+  // fitted blurred first (try_start).
+  auto blur_at = [&](const glm::dvec3& at, double blur_px) {
+    return at.z < s_.always_scan_below_mm ? blur_px : 0.0;
   };
-  auto probe_best = [&](size_t k, std::vector<glm::dvec3> cand, int n, int reach_px = 0, double near_face_blur_px = 0) {
+  auto probe_best = [&](size_t k, std::vector<glm::dvec3> cand, int n, int reach_px = 0, double blur_px = 0) {
     if (cand.empty() || n <= 0) return;
     auto imgs = model_.render(cand);
     for (size_t j = 0; j < cand.size(); ++j)
-      if (const double b = blur_at(cand[j], near_face_blur_px); b > 0) imgs[j] = blurred(imgs[j], b, grid_);
+      if (const double b = blur_at(cand[j], blur_px); b > 0) imgs[j] = blurred(imgs[j], b, grid_);
     Fit others = f;
     others.alpha[k] = 0;
     const auto background = others.click_rates();
@@ -539,7 +547,7 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
     }
     std::sort(scored.begin(), scored.end());
     for (size_t t = 0; t < scored.size() && t < size_t(n); ++t)
-      try_start(k, cand[std::get<1>(scored[t])], std::get<2>(scored[t]), blur_at(cand[std::get<1>(scored[t])], near_face_blur_px));
+      try_start(k, cand[std::get<1>(scored[t])], std::get<2>(scored[t]), blur_at(cand[std::get<1>(scored[t])], blur_px));
   };
   auto inside = [&](glm::dvec3 a) {
     return glm::all(glm::greaterThanEqual(a, bounds_.lo)) && glm::all(glm::lessThanEqual(a, bounds_.hi));
@@ -626,9 +634,9 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
       probe_best(k, aliases(k, rescue_lattice_mm_, [](glm::dvec3) { return true; }), s_.alias_starts);
     pvalue = fit_pvalue(f, event.id);
   }
-  auto near_face = [&] {
+  auto scan_always = [&] {  // a vertex shallower than always_scan_below_mm
     bool any = false;
-    for (size_t k = 0; k < f.K; ++k) any = any || f.theta[k].z < s_.near_face_mm;
+    for (size_t k = 0; k < f.K; ++k) any = any || f.theta[k].z < s_.always_scan_below_mm;
     return any;
   };
   // Vertex k moved to `at` (a voted position, a few tenths of a mm off a
@@ -674,7 +682,7 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
       if (const int who = f.owner(c); who < 0 || size_t(who) == k) out.push_back(c);
     return out;
   };
-  if ((pvalue < defaults::refine_lattice_scan_pvalue || near_face()) && s_.lattice_scan && !lattice_mm_.empty()) {
+  if ((pvalue < defaults::refine_lattice_scan_pvalue || scan_always()) && s_.lattice_scan && !lattice_mm_.empty()) {
     // The lattice scan: near the face the search can miss the source's
     // depth altogether (click_geometry.h). The votes of the clicks vertex k
     // may claim give a depth and one site of the alias lattice: the vertex
@@ -685,8 +693,10 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
     // while the fit stays poor or marginal and the depth before it
     // improved the fit: a fit that is poor for another reason (a biased
     // model, clicks the model does not expect) costs one depth. An
-    // estimate near the face gets the best voted depth whatever its fit:
-    // there a wrong site can fit as well as the model expects.
+    // estimate shallower than always_scan_below_mm (by default any) gets
+    // the best voted depth whatever its fit: near the face, and at any
+    // depth with few clicks, a wrong site can fit as well as the model
+    // expects (defaults.h).
     ++stats_.lattice_scans;
     // Vertex k's q-th voted position, from the clicks the others leave now.
     auto voted = [&](size_t k, size_t q) -> std::optional<glm::dvec3> {
@@ -727,11 +737,11 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
   }
   // The continuation: the geometric images have hard edges, so a click
   // that an image's edge leaves costs up to -log(dark_rate) at once, and the
-  // likelihood near the face is a staircase of such cliffs thousandths to
-  // hundredths of a mm apart, which a local step cannot see across. Fitted again with
+  // likelihood near the face (and with few clicks at any depth) is a
+  // staircase of such cliffs, which a local step cannot see across. Fitted again with
   // the images blurred (the cliffs become slopes), then less, then not, from
   // the estimate; kept if the unblurred NLL is lower.
-  if (s_.continuation && near_face()) {
+  if (s_.continuation && scan_always()) {
     Fit g = f;
     for (double sigma : defaults::refine_continuation_blur_px) {
       g.blur_px = sigma;

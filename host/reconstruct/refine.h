@@ -8,11 +8,12 @@
 // starting from the search's answer, its runners-up, the lenslet-lattice
 // aliases and a ladder along the weakest direction, keeping the best, and by
 // trying the aliases out to 2 pitches when the fit is still poor, and every
-// site of the lattice the clicks vote for (click_geometry.h) when it is
-// poor or marginal (near the face those sites are scored and first fitted
-// with blurred images: the search's wrong answer there is an alias at
-// another depth, and the source's own site lies a little off the lattice
-// built from it). With K > 1 each vertex is also tried at every vertex's
+// site of the lattice the clicks vote for (click_geometry.h), those sites
+// scored and first fitted with blurred images (near the face the search's
+// wrong answer is an alias at another depth, and the source's own site lies
+// a little off the lattice built from it; with few clicks the sharp images'
+// cliffs hold a fit anywhere), and last refitting the estimate blurred, then
+// sharp (the continuation). With K > 1 each vertex is also tried at every vertex's
 // runners-up (the re-seed), and votes only with the clicks the others
 // leave: a source the greedy search left unclaimed is found that way.
 //
@@ -122,14 +123,15 @@ struct RefineSettings {
   bool rescue = true;  // a poor fit also tries the aliases out to defaults::refine_rescue_alias_pitches
   bool lattice_scan = true;  // p < defaults::refine_lattice_scan_pvalue: also the sites the clicks vote for
   bool reseed = true;  // K > 1: each vertex also tried where the clicks the others leave vote for
-  double near_face_mm = defaults::refine_near_face_mm;  // a vertex shallower gets the lattice scan whatever
-                                                       // its fit, and the continuation
+  // A vertex shallower gets the lattice scan whatever its fit (sites blurred)
+  // and the continuation; by default every depth.
+  double always_scan_below_mm = defaults::refine_always_scan_below_mm;
   int ladder_starts = defaults::refine_ladder_starts;  // ladder points probed per vertex (0: no ladder)
   int ladder_reach_px = defaults::refine_ladder_reach_px;  // each rung's image also scored moved by up to this
                                                           // many click-grid pixels
-  bool continuation = true;  // near the face: refit from the estimate with blurred images, then sharp (refine.cpp)
-  double site_blur_px = defaults::refine_site_blur_px;  // near the face: the lattice scan's sites scored and first
-                                                      // fitted with images blurred by this sigma (0: sharp)
+  bool continuation = true;  // refit from the estimate with blurred images, then sharp (refine.cpp)
+  double site_blur_px = defaults::refine_site_blur_px;  // the lattice scan's sites scored and first fitted with
+                                                      // images blurred by this sigma (0: sharp)
   int pvalue_draws = defaults::fit_pvalue_draws; // Monte Carlo events per goodness-of-fit p-value
   double dark_rate = ReconstructionSettings{}.dark_rate;
   double alpha_max = ReconstructionSettings{}.alpha_max;
@@ -160,6 +162,17 @@ class Refiner {
   // latter get no CRLB).
   std::vector<ReconstructedVertex> refine(const Event& event, std::vector<ReconstructedVertex> start);
   const RefineStats& stats() const { return stats_; }
+  // One vertex fitted from `at` with weight `alpha` on `event`'s clicks and
+  // followed to convergence, no other start tried: where it ends and its NLL
+  // (refine()'s, ReconstructedVertex::nll; NaN without clicks). From the
+  // truth it is the likelihood's own optimum there, which tells a search
+  // that missed it from a likelihood that prefers the wrong answer
+  // (evaluate's volume experiment). Leaves stats() alone.
+  struct LocalFit {
+    glm::dvec3 position_mm{NAN};
+    double alpha = NAN, nll = NAN;
+  };
+  LocalFit local_fit(const Event& event, const glm::dvec3& at, double alpha);
 
  private:
   struct Fit;
