@@ -238,6 +238,11 @@ void add_evaluate(CLI::App& app) {
                 "dictionary was synthesised from a scene or --scene is given), dictionary (its PSFs interpolated; "
                 "the default for calibrated ones) or none (the search alone)")
       ->check(CLI::IsMember({"scene", "dictionary", "none"}));
+  c->add_option("--always-scan-below-mm", a->options.refine.always_scan_below_mm,
+                "the refinement's lattice scan (sites blurred) and continuation for every estimate shallower than this, "
+                "whatever its fit; 0: only where the fit is poor or marginal (default: every depth; README \"What accuracy costs in time\": at 100 photons "
+                "10 mm, the default until 2026-11-29, costs about half the renders)")
+      ->check(non_negative_number);
   c->add_option("--volume-events", a->options.volume_events, "volume: events, each at its own position")
       ->capture_default_str()->check(CLI::Range(1, 10000000));
   c->add_option("--volume-photons", a->options.volume_photons,

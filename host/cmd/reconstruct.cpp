@@ -183,6 +183,11 @@ void add_reconstruct(CLI::App& app) {
                  "default for synthesised dictionaries), dictionary (the dictionary's PSFs interpolated, default for "
                  "calibrated ones) or none (the search's grid positions alone)")
       ->check(CLI::IsMember({"scene", "dictionary", "none"}));
+  c->add_option("--always-scan-below-mm", a->session.always_scan_below_mm,
+                "the refinement's lattice scan (sites blurred) and continuation for every estimate shallower than this, "
+                "whatever its fit; 0: only where the fit is poor or marginal (default: every depth; README \"What accuracy costs in time\": at 100 photons "
+                "10 mm, the default until 2026-11-29, costs about half the renders)")
+      ->check(non_negative_number);
   c->add_option("--scene", a->session.scene, "scene for --model scene (default: the one the dictionary was built from)");
   c->add_option("--backend", a->session.backend,
                  "vulkan: sparse scan on the device; dense: the paper's dense correlation on the device (baseline); "

@@ -46,6 +46,7 @@ ReconstructionSession::ReconstructionSession(const std::string& dictionary, cons
     RefineSettings rs;
     rs.dark_rate = s.dark_rate;
     rs.alpha_max = s.alpha_max;
+    rs.always_scan_below_mm = o.always_scan_below_mm;
     refiner_ = std::make_unique<Refiner>(*source_model_, scene_, m.level_grid(click_level_), rs);
   }
 }

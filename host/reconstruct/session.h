@@ -28,6 +28,7 @@ struct SessionOptions {
   double budget_mib = 1024;         // host memory of the search's tables, tiles and files
   unsigned threads = 1;             // workers of the cpu backend
   bool serial_scans = false;        // scan, then the host's work, instead of side by side
+  double always_scan_below_mm = defaults::refine_always_scan_below_mm;  // RefineSettings'
   ReconstructionSettings settings;  // vertices (K) and the search's settings
 };
 

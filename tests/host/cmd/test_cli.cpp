@@ -212,6 +212,8 @@ TEST_CASE("bad numbers, sources behind the lenses and unwritable outputs are ref
           "--carry-margin: 'inf' is not a finite number");
   refused("reconstruct --dictionary " + dir + " --events x --level -1 --out " + dir + "/v.csv", "--level: -1 must be >= 0");
   refused("evaluate --dictionary " + dir + " --level -2 --out " + dir + "/e", "--level: -2 must be >= 0");
+  refused("evaluate --dictionary " + dir + " --always-scan-below-mm=-1 --out " + dir + "/e",
+          "--always-scan-below-mm: -1 must be >= 0");
   refused("crlb --depth-mm=-10", "--depth-mm: depth -10 mm is not in front of prototype's lenses");
   refused("psf --source-mm 0,0,-5 --out " + dir + "/p.exr", "--source-mm: depth -5 mm is not in front");
   refused("simulate --vertex 0,0,1 --jitter-mm 7 --out " + dir + "/e.events", "--vertex less --jitter-mm");
