@@ -3,7 +3,6 @@
 // and the paper (Sec. II, III.A). Where DESIGN.md fixes what the paper leaves
 // open (lenslet arrangement, centre thickness), the comment says so.
 #pragma once
-#include <limits>
 
 namespace prism::defaults {
 
@@ -127,22 +126,28 @@ inline constexpr double refine_rescue_alias_pitches = 2.0;
 // ordinary events fall below it at most 5% of the time (the p-value is
 // conservative): 6 of 500 thin-lens and 0 of 60 real-lens volume events.
 inline constexpr double refine_lattice_scan_pvalue = 0.05;
-// An estimate shallower than this gets the lattice scan whatever its fit,
-// its sites scored and first fitted blurred, and the continuation: every
-// depth. Near the face a source put on a wrong site 2-4 pitches away fits as
-// well as the model expects (p 0.14-0.79 in the volume runs of 500 thin-lens
-// and 355 real-lens events at 100 photons), and there the images are
-// sharpest, so the cliffs that their hard edges make in the likelihood hold
-// a local fit several CRLBs off. Deeper the same holds at few photons: at 20
-// photons (about 17 clicks) 6 of unifocal-f15's 7 and 6 of unifocal-f9's 12
-// estimates beyond 3 mm, at depths 11-34 mm, lay where the likelihood has a
-// better optimum by the truth (12-43 nats; evaluate's truth fit), most a
-// lattice pitch over, with p 0.16-0.54, and the first fit from the search
-// stuck 0.5 mm from that optimum; with the scan and the continuation at
-// every depth 5 of f15's 6 were found. The cost at 100 photons deeper than
-// 10 mm: about 90 more renders per event (README "Reconstruction"). Until
-// 2026-11-29 this was 10 mm.
-inline constexpr double refine_always_scan_below_mm = std::numeric_limits<double>::infinity();
+// An estimate shallower than this, or an event with fewer clicks than the
+// next, gets the lattice scan whatever its fit, its sites scored and first
+// fitted blurred, and the continuation.
+// Near the face a source put on a wrong site 2-4 pitches away fits as well
+// as the model expects (p 0.14-0.79 in the volume runs of 500 thin-lens and
+// 355 real-lens events at 100 photons), and there the images are sharpest,
+// so the cliffs that their hard edges make in the likelihood hold a local
+// fit several CRLBs off.
+inline constexpr double refine_always_scan_below_mm = 10.0;
+// With few clicks the same holds at every depth. At 20 photons (about 17
+// clicks) 6 of unifocal-f15's 7 estimates beyond 3 mm over 80 events, at
+// depths 11-34 mm, lay where the likelihood has a better optimum by the
+// truth (12-43 nats lower; evaluate's truth fit), most a lattice pitch
+// over, with p 0.16-0.54: the first fit from the search had stopped 0.5 mm
+// from that optimum at a cliff. With the scan and the continuation at every
+// depth 5 of the 6 were found. At 50 photons (about 43 clicks) no deep
+// search failure was seen (unifocal-f9, 300 events; unifocal-f15, 30), and
+// at 100 photons deeper than 10 mm the scan changed no estimate by a CRLB
+// for 3.1x the renders (12 prototype events: median 285 against 90). So
+// events with fewer clicks than this get it; between 17 and 43 clicks the
+// need is not measured (README "Reconstruction").
+inline constexpr int refine_always_scan_below_clicks = 30;
 inline constexpr int refine_lattice_scan_depths = 3;  // the best voted depths tried, while the fit stays below it and improves
 // The ladder: after the other starts, points every 0.75 mm up to 3 mm along
 // the estimate's weakest direction and along depth, the best 2 probed. On 60

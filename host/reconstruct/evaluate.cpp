@@ -505,7 +505,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
                   {"alpha_max", s.alpha_max}, {"min_clicks", s.min_clicks}, {"scan_step_px", s.scan_step_px}}},
       {"refine", {{"model", describe(o.model, scene)}, {"iterations", rs.iterations}, {"aliases", rs.aliases},
                   {"search_starts", rs.search_starts}, {"alias_starts", rs.alias_starts}, {"rescue", rs.rescue},
-                  {"lattice_scan", rs.lattice_scan}, {"reseed", rs.reseed}, {"always_scan_below_mm", std::isfinite(rs.always_scan_below_mm) ? json(rs.always_scan_below_mm) : json("every depth")},
+                  {"lattice_scan", rs.lattice_scan}, {"reseed", rs.reseed}, {"always_scan_below_mm", rs.always_scan_below_mm}, {"always_scan_below_clicks", rs.always_scan_below_clicks},
                   {"ladder_starts", rs.ladder_starts},
                   {"ladder_reach_px", rs.ladder_reach_px}, {"continuation", rs.continuation}, {"site_blur_px", rs.site_blur_px},
                   {"pvalue_draws", rs.pvalue_draws}}}};

@@ -505,10 +505,11 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
   // best: sites predicted a few tenths of a mm off, where sharp images
   // near the face score as badly as wrong ones.
   // With blur_px > 0 the images of candidates shallower than
-  // always_scan_below_mm are scored blurred by it, and the best of them
-  // fitted blurred first (try_start).
+  // always_scan_below_mm, or of any candidate in an event of few clicks, are scored
+  // blurred by it, and the best of them fitted blurred first (try_start).
+  const bool few_clicks = event.clicks.size() < size_t(std::max(0, s_.always_scan_below_clicks));
   auto blur_at = [&](const glm::dvec3& at, double blur_px) {
-    return at.z < s_.always_scan_below_mm ? blur_px : 0.0;
+    return at.z < s_.always_scan_below_mm || few_clicks ? blur_px : 0.0;
   };
   auto probe_best = [&](size_t k, std::vector<glm::dvec3> cand, int n, int reach_px = 0, double blur_px = 0) {
     if (cand.empty() || n <= 0) return;
@@ -634,8 +635,8 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
       probe_best(k, aliases(k, rescue_lattice_mm_, [](glm::dvec3) { return true; }), s_.alias_starts);
     pvalue = fit_pvalue(f, event.id);
   }
-  auto scan_always = [&] {  // a vertex shallower than always_scan_below_mm
-    bool any = false;
+  auto scan_always = [&] {  // a vertex shallower than always_scan_below_mm, or an event of few clicks
+    bool any = few_clicks;
     for (size_t k = 0; k < f.K; ++k) any = any || f.theta[k].z < s_.always_scan_below_mm;
     return any;
   };
@@ -693,10 +694,10 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
     // while the fit stays poor or marginal and the depth before it
     // improved the fit: a fit that is poor for another reason (a biased
     // model, clicks the model does not expect) costs one depth. An
-    // estimate shallower than always_scan_below_mm (by default any) gets
-    // the best voted depth whatever its fit: near the face, and at any
-    // depth with few clicks, a wrong site can fit as well as the model
-    // expects (defaults.h).
+    // estimate shallower than always_scan_below_mm, or with fewer clicks
+    // than always_scan_below_clicks, gets the best voted depth whatever its
+    // fit: near the face, and at any depth with few clicks, a wrong site can
+    // fit as well as the model expects (defaults.h).
     ++stats_.lattice_scans;
     // Vertex k's q-th voted position, from the clicks the others leave now.
     auto voted = [&](size_t k, size_t q) -> std::optional<glm::dvec3> {

@@ -123,9 +123,10 @@ struct RefineSettings {
   bool rescue = true;  // a poor fit also tries the aliases out to defaults::refine_rescue_alias_pitches
   bool lattice_scan = true;  // p < defaults::refine_lattice_scan_pvalue: also the sites the clicks vote for
   bool reseed = true;  // K > 1: each vertex also tried where the clicks the others leave vote for
-  // A vertex shallower gets the lattice scan whatever its fit (sites blurred)
-  // and the continuation; by default every depth.
+  // A vertex shallower, or an event with fewer clicks, gets the lattice scan
+  // whatever its fit (sites blurred) and the continuation (defaults.h).
   double always_scan_below_mm = defaults::refine_always_scan_below_mm;
+  int always_scan_below_clicks = defaults::refine_always_scan_below_clicks;
   int ladder_starts = defaults::refine_ladder_starts;  // ladder points probed per vertex (0: no ladder)
   int ladder_reach_px = defaults::refine_ladder_reach_px;  // each rung's image also scored moved by up to this
                                                           // many click-grid pixels

@@ -47,6 +47,7 @@ ReconstructionSession::ReconstructionSession(const std::string& dictionary, cons
     rs.dark_rate = s.dark_rate;
     rs.alpha_max = s.alpha_max;
     rs.always_scan_below_mm = o.always_scan_below_mm;
+    rs.always_scan_below_clicks = o.always_scan_below_clicks;
     refiner_ = std::make_unique<Refiner>(*source_model_, scene_, m.level_grid(click_level_), rs);
   }
 }

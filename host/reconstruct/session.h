@@ -29,6 +29,7 @@ struct SessionOptions {
   unsigned threads = 1;             // workers of the cpu backend
   bool serial_scans = false;        // scan, then the host's work, instead of side by side
   double always_scan_below_mm = defaults::refine_always_scan_below_mm;  // RefineSettings'
+  int always_scan_below_clicks = defaults::refine_always_scan_below_clicks;
   ReconstructionSettings settings;  // vertices (K) and the search's settings
 };
 

@@ -412,6 +412,7 @@ TEST_CASE("refinement: a shallow estimate on a wrong site that fits as well as e
   auto e = make_event({{at, 40}}, 101);
   prism::RefineSettings by_pvalue{.rescue = false};
   by_pvalue.always_scan_below_mm = 0;
+  by_pvalue.always_scan_below_clicks = 0;
   const auto stuck = refine(e, {row(alias, 40)}, true, by_pvalue)[0];
   const auto found = refine(e, {row(alias, 40)}, true, {.rescue = false})[0];
   CAPTURE(error_mm(stuck, at));
@@ -429,6 +430,27 @@ TEST_CASE("refinement: a shallow estimate on a wrong site that fits as well as e
   CHECK(glm::length(from_truth.position_mm - at) < 5 * found.crlb_3d_mm);
   CHECK(from_truth.nll < stuck.nll - 20);
   CHECK(from_truth.nll == doctest::Approx(found.nll).epsilon(1e-3));
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("refinement: an event of few clicks gets the lattice scan and the continuation at any depth, one of many not") {
+  // Depth 20, past always_scan_below_mm: what decides is the clicks.
+  const glm::dvec3 at(0.4, -0.2, 20.0);
+  for (double photons : {15.0, 300.0}) {
+    CAPTURE(photons);
+    auto e = make_event({{at, photons}}, 7);
+    const bool few = e.clicks.size() < size_t(prism::defaults::refine_always_scan_below_clicks);
+    CAPTURE(e.clicks.size());
+    CHECK(few == (photons < 100));  // the premise
+    prism::Refiner by_default = refiner(true);
+    const auto v = by_default.refine(e, {row(at + glm::dvec3(0.2, 0.1, 0.5), photons)})[0];
+    CHECK(by_default.stats().continuations == (few ? 1u : 0u));
+    if (few) CHECK(by_default.stats().lattice_scans == 1);
+    prism::Refiner never = refiner(true, {.always_scan_below_clicks = 0});
+    never.refine(e, {row(at + glm::dvec3(0.2, 0.1, 0.5), photons)});
+    CHECK(never.stats().continuations == 0);
+    CHECK(glm::length(glm::dvec3(v.x_mm, v.y_mm, v.depth_mm) - at) < 3);
+  }
   prism::test::check_validation_clean();
 }
 
