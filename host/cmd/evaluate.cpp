@@ -238,17 +238,7 @@ void add_evaluate(CLI::App& app) {
                 "dictionary was synthesised from a scene or --scene is given), dictionary (its PSFs interpolated; "
                 "the default for calibrated ones) or none (the search alone)")
       ->check(CLI::IsMember({"scene", "dictionary", "none"}));
-  c->add_option("--always-scan-below-mm", a->options.refine.always_scan_below_mm,
-                "the refinement's lattice scan (sites blurred) and continuation for every estimate shallower than this, "
-                "whatever its fit (engine/defaults.h says why; 0: none by depth)")
-      ->capture_default_str()
-      ->check(non_negative_number);
-  c->add_option("--always-scan-below-clicks", a->options.refine.always_scan_below_clicks,
-                "the same for every event with fewer clicks: with few clicks the hard edges of the images hold a "
-                "fit at any depth (at 20 photons 5 of 80 unifocal-f15 events; at 100 photons the scan at every "
-                "depth cost 3x the renders and moved no estimate by a CRLB; 0: none by clicks)")
-      ->capture_default_str()
-      ->check(non_negative_number);
+  add_always_scan_options(c, a->options.refine.always_scan_below_mm, a->options.refine.always_scan_below_clicks);
   c->add_option("--volume-events", a->options.volume_events, "volume: events, each at its own position")
       ->capture_default_str()->check(CLI::Range(1, 10000000));
   c->add_option("--volume-photons", a->options.volume_photons,

@@ -74,6 +74,9 @@ glm::dvec3 parse_point(const std::string& text, const std::string& option);
 // range up to the largest double; both refuse NaN and infinities.
 extern const CLI::Validator positive_number;
 extern const CLI::Validator non_negative_number;
+// --always-scan-below-mm and --always-scan-below-clicks (RefineSettings'),
+// for the commands that refine.
+void add_always_scan_options(CLI::App* c, double& below_mm, int& below_clicks);
 // A number no larger than `limit` ("'1e300' is more than 1e+12 photons").
 CLI::Validator at_most(double limit, const std::string& unit);
 

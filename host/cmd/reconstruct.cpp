@@ -183,17 +183,7 @@ void add_reconstruct(CLI::App& app) {
                  "default for synthesised dictionaries), dictionary (the dictionary's PSFs interpolated, default for "
                  "calibrated ones) or none (the search's grid positions alone)")
       ->check(CLI::IsMember({"scene", "dictionary", "none"}));
-  c->add_option("--always-scan-below-mm", a->session.always_scan_below_mm,
-                "the refinement's lattice scan (sites blurred) and continuation for every estimate shallower than this, "
-                "whatever its fit (engine/defaults.h says why; 0: none by depth)")
-      ->capture_default_str()
-      ->check(non_negative_number);
-  c->add_option("--always-scan-below-clicks", a->session.always_scan_below_clicks,
-                "the same for every event with fewer clicks: with few clicks the hard edges of the images hold a "
-                "fit at any depth (at 20 photons 5 of 80 unifocal-f15 events; at 100 photons the scan at every "
-                "depth cost 3x the renders and moved no estimate by a CRLB; 0: none by clicks)")
-      ->capture_default_str()
-      ->check(non_negative_number);
+  add_always_scan_options(c, a->session.always_scan_below_mm, a->session.always_scan_below_clicks);
   c->add_option("--scene", a->session.scene, "scene for --model scene (default: the one the dictionary was built from)");
   c->add_option("--backend", a->session.backend,
                  "vulkan: sparse scan on the device; dense: the paper's dense correlation on the device (baseline); "
