@@ -1,6 +1,7 @@
 #include "engine/forward.h"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <memory>
 
@@ -9,17 +10,29 @@
 #include "spv/fisher_reduce.spv.h"
 #include "spv/landing_points.spv.h"
 #include "spv/psf_footprint.spv.h"
+#include "spv/psf_footprint_blur.spv.h"
 #include "spv/psf_footprint_as_built.spv.h"
+#include "spv/psf_footprint_as_built_blur.spv.h"
 #include "spv/psf_footprint_calibrate.spv.h"
+#include "spv/psf_footprint_calibrate_blur.spv.h"
 #include "spv/psf_footprint_cut.spv.h"
+#include "spv/psf_footprint_cut_blur.spv.h"
 #include "spv/psf_footprint_cut_as_built.spv.h"
+#include "spv/psf_footprint_cut_as_built_blur.spv.h"
 #include "spv/psf_footprint_cut_calibrate.spv.h"
+#include "spv/psf_footprint_cut_calibrate_blur.spv.h"
 #include "spv/psf_footprint_split.spv.h"
+#include "spv/psf_footprint_split_blur.spv.h"
 #include "spv/psf_footprint_split_as_built.spv.h"
+#include "spv/psf_footprint_split_as_built_blur.spv.h"
 #include "spv/psf_footprint_split_calibrate.spv.h"
+#include "spv/psf_footprint_split_calibrate_blur.spv.h"
 #include "spv/psf_splat.spv.h"
+#include "spv/psf_splat_blur.spv.h"
 #include "spv/psf_splat_as_built.spv.h"
+#include "spv/psf_splat_as_built_blur.spv.h"
 #include "spv/psf_splat_calibrate.spv.h"
+#include "spv/psf_splat_calibrate_blur.spv.h"
 
 namespace prism {
 
@@ -70,27 +83,34 @@ double PixelImage::photons() const {
 // (shaders/CMakeLists.txt): the plain one, the as-built one when a design
 // traced is as built, the calibrate one for derivatives by scene parameters.
 enum class Variant { plain, as_built, calibrate };
-template <size_t A, size_t B, size_t C>
-std::span<const uint32_t> pick_variant(Variant v, const uint32_t (&plain)[A], const uint32_t (&as_built)[B],
-                                  const uint32_t (&calibrate)[C]) {
-  return v == Variant::calibrate ? spirv(calibrate) : v == Variant::as_built ? spirv(as_built) : spirv(plain);
+// Each variant is built twice, with the Airy blur's code (effect
+// diffraction) and without it: lavapipe inlines every call when it creates
+// a pipeline, dead or not, and the blur was most of a footprint kernel.
+using KernelBuilds = std::array<std::span<const uint32_t>, 6>;  // by Variant, then the same with the blur
+#define PRISM_KERNEL_BUILDS(k)                                                                                      \
+  KernelBuilds {                                                                                                   \
+    spirv(spv_##k), spirv(spv_##k##_as_built), spirv(spv_##k##_calibrate), spirv(spv_##k##_blur),                  \
+        spirv(spv_##k##_as_built_blur), spirv(spv_##k##_calibrate_blur)                                            \
+  }
+std::span<const uint32_t> pick_build(const KernelBuilds& builds, Variant v, const OpticalSystem& sys) {
+  return builds[size_t(v) + (sys.effects.diffraction ? 3 : 0)];
 }
 // The splat kernel of the settings (both take the same buffers and constants).
-std::span<const uint32_t> splat_spirv(const TraceSettings& t, Variant v) {
-  if (t.splat == Splat::footprint)
-    return pick_variant(v, spv_psf_footprint, spv_psf_footprint_as_built, spv_psf_footprint_calibrate);
-  return pick_variant(v, spv_psf_splat, spv_psf_splat_as_built, spv_psf_splat_calibrate);
+std::span<const uint32_t> splat_spirv(const TraceSettings& t, Variant v, const OpticalSystem& sys) {
+  static const KernelBuilds footprint = PRISM_KERNEL_BUILDS(psf_footprint), point = PRISM_KERNEL_BUILDS(psf_splat);
+  return pick_build(t.splat == Splat::footprint ? footprint : point, v, sys);
 }
 uint32_t splat_buffers(const TraceSettings& t) { return t.splat == Splat::footprint ? 7 : 5; }
 std::string kernel_name(const TraceSettings& t, bool values_only) {
   return std::string(t.splat == Splat::footprint ? "psf_footprint" : "psf_splat") + (values_only ? " (values)" : "");
 }
 
-// psf_splat.comp's specialisation constants: lens model, effects, derivatives.
+// The splat kernels' specialisation constants (splat_image.glsl): lens
+// model, effects, derivatives. (Diffraction picks the build: pick_build.)
 std::vector<uint32_t> specialisation(const OpticalSystem& s, bool derivatives) {
   return {uint32_t(s.lens_model == LensModel::real ? shared::LENS_REAL : shared::LENS_THIN),
           uint32_t(s.effects.scintillator_refraction), uint32_t(s.effects.holder_vignetting), uint32_t(derivatives),
-          uint32_t(s.effects.source_extent), uint32_t(s.effects.diffraction)};
+          uint32_t(s.effects.source_extent)};
 }
 
 bool any_as_built(const std::vector<OpticalSystem>& designs) {
@@ -195,18 +215,21 @@ struct ForwardVulkan::Impl {
     vk::Kernel split, split_values, cut, cut_values;
     List splits, cuts;
     uint32_t chunks = 1;  // the first pass over the cells in this many chunks (record_splat)
-    static std::span<const uint32_t> split_spirv(Variant v) {
-      return pick_variant(v, spv_psf_footprint_split, spv_psf_footprint_split_as_built, spv_psf_footprint_split_calibrate);
+    static std::span<const uint32_t> split_spirv(Variant v, const OpticalSystem& sys) {
+      static const KernelBuilds builds = PRISM_KERNEL_BUILDS(psf_footprint_split);
+      return pick_build(builds, v, sys);
     }
-    static std::span<const uint32_t> cut_spirv(Variant v) {
-      return pick_variant(v, spv_psf_footprint_cut, spv_psf_footprint_cut_as_built, spv_psf_footprint_cut_calibrate);
+    static std::span<const uint32_t> cut_spirv(Variant v, const OpticalSystem& sys) {
+      static const KernelBuilds builds = PRISM_KERNEL_BUILDS(psf_footprint_cut);
+      return pick_build(builds, v, sys);
     }
     Footprint(vk::Context& c, const OpticalSystem& sys, Variant v, uint32_t first_capacity)
-        : split(c, "psf_footprint_split", split_spirv(v), 7, sizeof(shared::TraceParams), specialisation(sys, true)),
-          split_values(c, "psf_footprint_split (values)", split_spirv(v), 7, sizeof(shared::TraceParams),
+        : split(c, "psf_footprint_split", split_spirv(v, sys), 7, sizeof(shared::TraceParams),
+                specialisation(sys, true)),
+          split_values(c, "psf_footprint_split (values)", split_spirv(v, sys), 7, sizeof(shared::TraceParams),
                        specialisation(sys, false)),
-          cut(c, "psf_footprint_cut", cut_spirv(v), 7, sizeof(shared::TraceParams), specialisation(sys, true)),
-          cut_values(c, "psf_footprint_cut (values)", cut_spirv(v), 7, sizeof(shared::TraceParams),
+          cut(c, "psf_footprint_cut", cut_spirv(v, sys), 7, sizeof(shared::TraceParams), specialisation(sys, true)),
+          cut_values(c, "psf_footprint_cut (values)", cut_spirv(v, sys), 7, sizeof(shared::TraceParams),
                      specialisation(sys, false)) {
       splits.grow(c, first_capacity);
       cuts.grow(c, first_capacity);
@@ -239,10 +262,10 @@ struct ForwardVulkan::Impl {
         lenses(c, layout.lenses.size() * sizeof(shared::Lenslet)),
         designs(c, layout.ranges.size() * sizeof(shared::DesignRange)),
         design_zero(c, sizeof(uint32_t)),
-        splat(c, kernel_name(t, false), splat_spirv(t, variant), splat_buffers(t), sizeof(shared::TraceParams),
+        splat(c, kernel_name(t, false), splat_spirv(t, variant, sys), splat_buffers(t), sizeof(shared::TraceParams),
               specialisation(sys, true)),
-        splat_values(c, kernel_name(t, true), splat_spirv(t, variant), splat_buffers(t), sizeof(shared::TraceParams),
-                     specialisation(sys, false)),
+        splat_values(c, kernel_name(t, true), splat_spirv(t, variant, sys), splat_buffers(t),
+                     sizeof(shared::TraceParams), specialisation(sys, false)),
         reduce(c, "fisher_reduce", spirv(spv_fisher_reduce), 2, 3 * sizeof(uint32_t),
                {uint32_t(t.estimator == FisherEstimator::split ? shared::FISHER_SPLIT : shared::FISHER_NAIVE)}) {
     const OpticalSystem& s = sys;

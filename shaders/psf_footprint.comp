@@ -38,11 +38,11 @@ void main() {
     uint j = cell / n;
     float turn = strata_turn(in_design, P.stratification);
     CellSource from = cell_source(theta, in_design, cell);
+    // The cell's corners (i + c % 2, j + c / 2), from one call site in a loop
+    // (the compiler inlines each call; every copy of trace_corner cost lavapipe
+    // pipeline-creation time in every process).
     Corner k[4];
-    k[0] = trace_corner(from, lens, aperture_corner(i, j, n, turn));
-    k[1] = trace_corner(from, lens, aperture_corner(i + 1u, j, n, turn));
-    k[2] = trace_corner(from, lens, aperture_corner(i, j + 1u, n, turn));
-    k[3] = trace_corner(from, lens, aperture_corner(i + 1u, j + 1u, n, turn));
+    for (uint c = 0u; c < 4u; ++c) k[c] = trace_corner(from, lens, aperture_corner(i + (c & 1u), j + (c >> 1u), n, turn));
     float half_area = half_cell_area_mm2(lens.radius_mm, n);
     uint half_offset = 1u + 3u * ((i + j) & 1u);  // checkerboard halves, as ray_half
     float blur_half_px = DIFFRACTION ? airy_half_side_px(lens) : 0.0f;

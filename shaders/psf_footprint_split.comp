@@ -42,19 +42,18 @@ void main() {
     float blur_half_px;
     listed_piece(entry, t, from, lens, image_base, half_offset, blur_half_px);
     uint depth = piece_depth(entry.w);
-    if (!is_split(t, int(depth))) {  // over the far edge only
-      give_piece(entry, t, image_base, blur_half_px, half_offset);
-      continue;
-    }
-    Corner ab = trace_corner(from, lens, 0.5f * (t.pa + t.pb));
-    Corner bc = trace_corner(from, lens, 0.5f * (t.pb + t.pc));
-    Corner ca = trace_corner(from, lens, 0.5f * (t.pc + t.pa));
+    // A piece not split (listed for the far edge only) is given as it is;
+    // one split gives four children. One give_piece call site for both (the
+    // compiler inlines each).
+    bool whole = !is_split(t, int(depth));
+    Corner ab = t.a, bc = t.b, ca = t.c;
+    if (!whole) trace_three(from, lens, 0.5f * (t.pa + t.pb), 0.5f * (t.pb + t.pc), 0.5f * (t.pc + t.pa), ab, bc, ca);
     uint tri = piece_triangle(entry.w);
     uint path = piece_path(entry.w);
-    for (uint k = 0u; k < 4u; ++k) {
-      Piece child = child_piece(t, ab, bc, ca, k);
-      uvec4 child_entry = uvec4(entry.xyz, piece_code(tri, path | (k << (2u * depth)), depth + 1u));
-      if (is_split(child, int(depth) + 1)) {
+    for (uint k = 0u; k < (whole ? 1u : 4u); ++k) {
+      Piece child = whole ? t : child_piece(t, ab, bc, ca, k);
+      uvec4 child_entry = whole ? entry : uvec4(entry.xyz, piece_code(tri, path | (k << (2u * depth)), depth + 1u));
+      if (!whole && is_split(child, int(depth) + 1)) {
         uint at = atomicAdd(split_count, 1u);
         if (at < split_capacity) splits[at] = child_entry;
       } else {

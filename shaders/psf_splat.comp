@@ -31,16 +31,16 @@ void main() {
     Hit hit = trace_sample(theta, lenses[lens_index], lens_index - design.first_lens, sample_index, P, LENS_MODEL,
                            SCINT_REFRACTION, HOLDER, SOURCE_EXTENT, AS_BUILT);
     uint half_offset = 1u + 3u * ray_half(sample_index, lenses[lens_index].strata);
-    if (DIFFRACTION) {
-      // Effect diffraction: the ray's light blurred by its lenslet's Airy
-      // square over box pixels (blur.glsl; the sensor's far edges bound it).
-      if (!hit.ok) continue;
-      float inv_px = 1.0f / P.pixel_mm;
-      Dual u = d_scale(d_addc(hit.x_mm, P.sensor_half_w_mm), inv_px);
-      Dual v = d_scale(d_addc(hit.y_mm, P.sensor_half_h_mm), inv_px);
-      deposit_blurred_point(image_base, u, v, airy_half_side_px(lenses[lens_index]), hit.weight, half_offset);
-      continue;
-    }
+#if PRISM_BLUR
+    // Effect diffraction: the ray's light blurred by its lenslet's Airy
+    // square over box pixels (blur.glsl; the sensor's far edges bound it).
+    if (!hit.ok) continue;
+    float inv_px = 1.0f / P.pixel_mm;
+    Dual u = d_scale(d_addc(hit.x_mm, P.sensor_half_w_mm), inv_px);
+    Dual v = d_scale(d_addc(hit.y_mm, P.sensor_half_h_mm), inv_px);
+    deposit_blurred_point(image_base, u, v, airy_half_side_px(lenses[lens_index]), hit.weight, half_offset);
+    continue;
+#endif
     Splat sp = splat_bilinear(hit, P);
     if (!sp.ok) continue;
     add_tap(image_base, sp.base, sp.tap00, half_offset);

@@ -24,10 +24,10 @@ void rasterise_clipped(uint image_base, Corner a, Corner b, Corner c, Dual weigh
     deposit_at_centroid(image_base, a, b, c, weight, blur_half_px, half_offset);
     return;
   }
-  if (DIFFRACTION) {  // the blurred pixels end at the far edges themselves
-    blur_triangle(image_base, a, b, c, weight, blur_half_px, half_offset);
-    return;
-  }
+#if PRISM_BLUR  // the blurred pixels end at the far edges themselves
+  blur_triangle(image_base, a, b, c, weight, blur_half_px, half_offset);
+  return;
+#endif
   Dual area = triangle_area(a.u, a.v, b.u, b.v, c.u, c.v);
   if (is_thin(a, b, c, area)) {
     rasterise_thin(image_base, a, b, c, weight, sensor_u_max(), sensor_v_max(), 0.0f, half_offset);
@@ -118,19 +118,21 @@ void rasterise_cut(uint image_base, CellSource from, Lenslet lens, Corner a, Cor
   }
   float whole = twice_area(pa, pb, pc);
   if (!(whole > 0.0f)) return;
-  if (odd_ok) {
-    float part = area_mm2 * twice_area(pa, cut_p0, cut_p1) / whole;
-    rasterise_clipped(image_base, a, cut0, cut1, d_scale(d_add(d_add(a.w, cut0.w), cut1.w), part / 3.0f), blur_half_px,
+  // The part that passes: triangle a, cut0, cut1; or quad cut0, b, c, cut1
+  // as two triangles, each with its own aperture area. One call site in a
+  // loop, not one per triangle: the compiler inlines every call, and each
+  // copy of rasterise_clipped cost lavapipe a second of pipeline creation.
+  for (int q = 0; q < (odd_ok ? 1 : 2); ++q) {
+    Corner p0 = odd_ok ? a : cut0;
+    Corner p1 = odd_ok ? cut0 : (q == 0 ? b : c);
+    Corner p2 = odd_ok ? cut1 : (q == 0 ? c : cut1);
+    vec2 q0 = odd_ok ? pa : cut_p0;
+    vec2 q1 = odd_ok ? cut_p0 : (q == 0 ? pb : pc);
+    vec2 q2 = odd_ok ? cut_p1 : (q == 0 ? pc : cut_p1);
+    float part = area_mm2 * twice_area(q0, q1, q2) / whole;
+    rasterise_clipped(image_base, p0, p1, p2, d_scale(d_add(d_add(p0.w, p1.w), p2.w), part / 3.0f), blur_half_px,
                       half_offset);
-    return;
   }
-  // Quad cut0, b, c, cut1 as two triangles, each with its own aperture area.
-  float part1 = area_mm2 * twice_area(cut_p0, pb, pc) / whole;
-  float part2 = area_mm2 * twice_area(cut_p0, pc, cut_p1) / whole;
-  rasterise_clipped(image_base, cut0, b, c, d_scale(d_add(d_add(cut0.w, b.w), c.w), part1 / 3.0f), blur_half_px,
-                    half_offset);
-  rasterise_clipped(image_base, cut0, c, cut1, d_scale(d_add(d_add(cut0.w, c.w), cut1.w), part2 / 3.0f), blur_half_px,
-                    half_offset);
 }
 
 // A triangle of the split: aperture points, traced corners, the aperture
@@ -163,6 +165,18 @@ bool is_split(Piece t, int depth) {
   return depth < SPLIT_DEPTH && (t.a.ok || t.b.ok || t.c.ok) && is_large(t.a, t.b, t.c);
 }
 
+// Corners traced at aperture points qa, qb, qc. A loop around one call: the
+// compiler inlines every call site, and each copy of trace_corner cost
+// lavapipe pipeline-creation time in every process.
+void trace_three(CellSource from, Lenslet lens, vec2 qa, vec2 qb, vec2 qc, out Corner a, out Corner b, out Corner c) {
+  vec2 at[3] = vec2[3](qa, qb, qc);
+  Corner k[3];
+  for (int q = 0; q < 3; ++q) k[q] = trace_corner(from, lens, at[q]);
+  a = k[0];
+  b = k[1];
+  c = k[2];
+}
+
 // The piece of list entry `entry` (footprint_raster.glsl): its triangle
 // split along the entry's path (piece_code); `from` is the cell's source
 // point.
@@ -187,16 +201,24 @@ void listed_piece(uvec4 entry, out Piece t, out CellSource from, out Lenslet len
   t.pa = aperture_corner(i + tri.ab.x, j + tri.ab.y, n, turn);
   t.pb = aperture_corner(i + tri.ab.z, j + tri.ab.w, n, turn);
   t.pc = aperture_corner(i + tri.c.x, j + tri.c.y, n, turn);
-  t.a = trace_corner(from, lens, t.pa);
-  t.b = trace_corner(from, lens, t.pb);
-  t.c = trace_corner(from, lens, t.pc);
   t.area_mm2 = half_cell_area_mm2(lens.radius_mm, n);
-  for (uint d = 0u; d < depth; ++d) {
-    Corner ab = trace_corner(from, lens, 0.5f * (t.pa + t.pb));
-    Corner bc = trace_corner(from, lens, 0.5f * (t.pb + t.pc));
-    Corner ca = trace_corner(from, lens, 0.5f * (t.pc + t.pa));
-    t = child_piece(t, ab, bc, ca, path & 3u);
-    path >>= 2u;
+  // Level 0 traces the triangle's corners, each level after it the midpoints
+  // of the piece's edges (one call site for both).
+  vec2 qa = t.pa, qb = t.pb, qc = t.pc;
+  for (uint d = 0u; d <= depth; ++d) {
+    Corner a, b, c;
+    trace_three(from, lens, qa, qb, qc, a, b, c);
+    if (d == 0u) {
+      t.a = a;
+      t.b = b;
+      t.c = c;
+    } else {
+      t = child_piece(t, a, b, c, path & 3u);
+      path >>= 2u;
+    }
+    qa = 0.5f * (t.pa + t.pb);
+    qb = 0.5f * (t.pb + t.pc);
+    qc = 0.5f * (t.pc + t.pa);
   }
 }
 

@@ -372,8 +372,11 @@ void rasterise_thin(uint image_base, Corner a, Corner b, Corner c, Dual weight, 
     p = bc >= ca ? b : c;
     q = bc >= ca ? c : a;
   }
-  if (DIFFRACTION) blur_segment(image_base, p.u, p.v, q.u, q.v, weight, blur_half_px, half_offset);
-  else rasterise_segment(image_base, p.u, p.v, q.u, q.v, weight, u_max, v_max, half_offset);
+#if PRISM_BLUR
+  blur_segment(image_base, p.u, p.v, q.u, q.v, weight, blur_half_px, half_offset);
+#else
+  rasterise_segment(image_base, p.u, p.v, q.u, q.v, weight, u_max, v_max, half_offset);
+#endif
 }
 
 // Whether the image of triangle (a, b, c), over its corners that got through,
@@ -395,10 +398,10 @@ void deposit_at_centroid(uint image_base, Corner a, Corner b, Corner c, Dual wei
                          uint half_offset) {
   float cu = (a.u.v + b.u.v + c.u.v) / 3.0f;
   float cv = (a.v.v + b.v.v + c.v.v) / 3.0f;
-  if (DIFFRACTION) {
-    deposit_blurred_point(image_base, d_const(cu), d_const(cv), blur_half_px, weight, half_offset);
-    return;
-  }
+#if PRISM_BLUR
+  deposit_blurred_point(image_base, d_const(cu), d_const(cv), blur_half_px, weight, half_offset);
+  return;
+#endif
   if (cu >= 0.0f && cv >= 0.0f && cu < sensor_u_max() && cv < sensor_v_max())
     deposit(image_base, int(floor(cu)), int(floor(cv)), weight, half_offset);
 }
@@ -452,10 +455,10 @@ void blur_triangle(uint image_base, Corner a, Corner b, Corner c, Dual weight, f
 // or with diffraction blurred (blur_half_px, blur_triangle).
 void rasterise_triangle(uint image_base, Corner a, Corner b, Corner c, Dual weight, float blur_half_px,
                         uint half_offset) {
-  if (DIFFRACTION) {
-    blur_triangle(image_base, a, b, c, weight, blur_half_px, half_offset);
-    return;
-  }
+#if PRISM_BLUR
+  blur_triangle(image_base, a, b, c, weight, blur_half_px, half_offset);
+  return;
+#endif
   int col = int(floor(a.u.v));
   int row = int(floor(a.v.v));
   bool one_pixel = int(floor(b.u.v)) == col && int(floor(c.u.v)) == col && int(floor(b.v.v)) == row &&
