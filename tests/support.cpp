@@ -4,6 +4,8 @@
 #include <unistd.h>
 
 #include <array>
+#include <chrono>
+#include <cstdlib>
 #include <cstdio>
 #include <memory>
 #include <sstream>
@@ -59,6 +61,8 @@ OpticalSystem small_system(LensModel model) {
 }
 
 CommandResult run_prism(const std::string& args, const std::string& env) {
+  using clock = std::chrono::steady_clock;
+  const auto start = clock::now();
   std::string cmd = env + " " + std::string(PRISM_BINARY) + " " + args + " 2>&1";
   std::unique_ptr<FILE, int (*)(FILE*)> pipe(popen(cmd.c_str(), "r"), &pclose);
   REQUIRE(pipe);
@@ -67,6 +71,11 @@ CommandResult run_prism(const std::string& args, const std::string& env) {
   size_t n;
   while ((n = fread(buf.data(), 1, buf.size(), pipe.get())) > 0) out.append(buf.data(), n);
   int status = pclose(pipe.release());
+  // PRISM_TEST_TIMES=1: each command's seconds on stderr, for finding where a
+  // slow test file spends its time (doctest -d times only whole cases).
+  if (const char* times = std::getenv("PRISM_TEST_TIMES"); times && *times == '1')
+    std::fprintf(stderr, "[%.1f s] prism %s\n", std::chrono::duration<double>(clock::now() - start).count(),
+                 args.substr(0, 160).c_str());
   return {WEXITSTATUS(status), out};
 }
 
