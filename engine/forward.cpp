@@ -84,8 +84,7 @@ double PixelImage::photons() const {
 // traced is as built, the calibrate one for derivatives by scene parameters.
 enum class Variant { plain, as_built, calibrate };
 // Each variant is built twice, with the Airy blur's code (effect
-// diffraction) and without it: lavapipe inlines every call when it creates
-// a pipeline, dead or not, and the blur was most of a footprint kernel.
+// diffraction) and without it (why: shaders/CMakeLists.txt).
 using KernelBuilds = std::array<std::span<const uint32_t>, 6>;  // by Variant, then the same with the blur
 #define PRISM_KERNEL_BUILDS(k)                                                                                      \
   KernelBuilds {                                                                                                   \

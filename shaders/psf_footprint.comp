@@ -39,8 +39,7 @@ void main() {
     float turn = strata_turn(in_design, P.stratification);
     CellSource from = cell_source(theta, in_design, cell);
     // The cell's corners (i + c % 2, j + c / 2), from one call site in a loop
-    // (the compiler inlines each call; every copy of trace_corner cost lavapipe
-    // pipeline-creation time in every process).
+    // (why: shaders/CMakeLists.txt).
     Corner k[4];
     for (uint c = 0u; c < 4u; ++c) k[c] = trace_corner(from, lens, aperture_corner(i + (c & 1u), j + (c >> 1u), n, turn));
     float half_area = half_cell_area_mm2(lens.radius_mm, n);

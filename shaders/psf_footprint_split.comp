@@ -43,8 +43,8 @@ void main() {
     listed_piece(entry, t, from, lens, image_base, half_offset, blur_half_px);
     uint depth = piece_depth(entry.w);
     // A piece not split (listed for the far edge only) is given as it is;
-    // one split gives four children. One give_piece call site for both (the
-    // compiler inlines each).
+    // one split gives four children. One give_piece call site for both (why:
+    // shaders/CMakeLists.txt).
     bool whole = !is_split(t, int(depth));
     Corner ab = t.a, bc = t.b, ca = t.c;
     if (!whole) trace_three(from, lens, 0.5f * (t.pa + t.pb), 0.5f * (t.pb + t.pc), 0.5f * (t.pc + t.pa), ab, bc, ca);

@@ -120,8 +120,7 @@ void rasterise_cut(uint image_base, CellSource from, Lenslet lens, Corner a, Cor
   if (!(whole > 0.0f)) return;
   // The part that passes: triangle a, cut0, cut1; or quad cut0, b, c, cut1
   // as two triangles, each with its own aperture area. One call site in a
-  // loop, not one per triangle: the compiler inlines every call, and each
-  // copy of rasterise_clipped cost lavapipe a second of pipeline creation.
+  // loop (why: shaders/CMakeLists.txt).
   for (int q = 0; q < (odd_ok ? 1 : 2); ++q) {
     Corner p0 = odd_ok ? a : cut0;
     Corner p1 = odd_ok ? cut0 : (q == 0 ? b : c);
@@ -165,9 +164,8 @@ bool is_split(Piece t, int depth) {
   return depth < SPLIT_DEPTH && (t.a.ok || t.b.ok || t.c.ok) && is_large(t.a, t.b, t.c);
 }
 
-// Corners traced at aperture points qa, qb, qc. A loop around one call: the
-// compiler inlines every call site, and each copy of trace_corner cost
-// lavapipe pipeline-creation time in every process.
+// Corners traced at aperture points qa, qb, qc: a loop around one call site
+// (why: shaders/CMakeLists.txt).
 void trace_three(CellSource from, Lenslet lens, vec2 qa, vec2 qb, vec2 qc, out Corner a, out Corner b, out Corner c) {
   vec2 at[3] = vec2[3](qa, qb, qc);
   Corner k[3];

@@ -16,10 +16,8 @@ layout(constant_id = 2) const bool HOLDER = false;
 // Without derivatives a pixel is just b (dictionary synthesis, event simulation).
 layout(constant_id = 3) const bool DERIVATIVES = true;
 layout(constant_id = 4) const bool SOURCE_EXTENT = false;
-// Effect diffraction is the kernels' blur builds (PRISM_BLUR=1,
-// shaders/CMakeLists.txt), not a constant: lavapipe inlines every call when
-// it creates a pipeline, even one a constant turns off, and the blur's code
-// was most of each footprint kernel. Calls into blur.glsl sit in #if PRISM_BLUR.
+// Effect diffraction is the kernels' blur builds (PRISM_BLUR=1, why:
+// shaders/CMakeLists.txt), not a constant. Calls into blur.glsl sit in #if PRISM_BLUR.
 const bool DIFFRACTION = PRISM_BLUR != 0;
 // Tilted lenslets or a sensor off its nominal pose (optics.glsl,
 // trace_as_built): the kernels' as-built variants, compiled apart.
