@@ -7,9 +7,12 @@
 //      real lenses, with and without the diffraction effect, against the
 //      footprint at 4x the largest cell count; each row also against 4x its
 //      own rays (the acceptance's measure of the defaults);
-//   3. the cost of each optional effect per ray.
+//   3. the cost of each optional effect per ray;
+//   4. where a render of the refinement's model spends its time: the
+//      footprint's passes, one by one.
 // Prints tables; every figure names the machine and the device. Times are
 // medians over repeats (these machines are noisy).
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <cstring>
@@ -44,6 +47,7 @@ struct Options {
   unsigned max_rays_native = defaults::rays_per_lenslet;
   int repeats = 3;
   bool skip_convergence = false;
+  std::vector<std::string> sections{"throughput", "effects", "convergence", "passes"};
   std::vector<unsigned> binnings{16, 4, 1};
   std::vector<Variant> variants{Variant::thin, Variant::real, Variant::real_diffraction};
 };
@@ -216,6 +220,52 @@ void effects(vk::Context& ctx, const Options& o) {
   }
 }
 
+// Section 4: the refinement renders the scene's model (footprint, 1024
+// cells per lenslet, with derivatives) dozens of times per event. Each
+// dispatch's device time, by pass: the first over the cells, the split
+// levels (the real lenses' rim cells and their large pieces, retraced and
+// rasterised), the cut cells.
+void passes(vk::Context& ctx, const Options& o) {
+  Scene scene = builtin_scene("prototype");
+  TraceSettings t = TraceSettings::defaults_for(Splat::footprint);
+  t.rays_per_lenslet = defaults::refine_rays_per_lenslet;
+  t.binning = 16;
+  ForwardVulkan fw(ctx, scene.optics, t);
+  std::printf("\n## 4. Where a refinement render's time goes: prototype (real lenses), %u cells/lenslet, 110 um, "
+              "with derivatives; device ms per pass\n",
+              t.rays());
+  for (glm::dvec3 theta : {glm::dvec3(4.0, -6.0, 2.0), glm::dvec3(7.2, 12.3, 35.5), glm::dvec3(3.0, 7.0, 45.0)}) {
+    fw.psf(theta);  // warm up: compilation, the lists grown to fit
+    std::vector<std::string> names;
+    std::vector<std::vector<double>> ms;
+    for (int r = 0; r < o.repeats + 2; ++r) {
+      fw.psf(theta);
+      std::vector<std::string> seen;
+      std::vector<double> row;
+      for (const auto& k : fw.last_kernel_times()) {
+        // A kernel's n-th dispatch in the call: the split's levels.
+        int n = int(std::count(seen.begin(), seen.end(), k.kernel));
+        seen.push_back(k.kernel);
+        row.push_back(k.ms);
+        if (r == 0) names.push_back(k.kernel + (n > 0 || k.kernel.find("split") != std::string::npos ? " #" + std::to_string(n) : ""));
+      }
+      if (row.size() != names.size()) continue;  // a list overflowed and the call started again
+      ms.push_back(row);
+    }
+    std::printf("source (%.1f, %.1f, %.1f) mm:\n", theta.x, theta.y, theta.z);
+    double total = 0;
+    std::vector<double> med(names.size());
+    for (size_t i = 0; i < names.size(); ++i) {
+      std::vector<double> v;
+      for (const auto& row : ms) v.push_back(row[i]);
+      total += med[i] = bench::median(v);
+    }
+    for (size_t i = 0; i < names.size(); ++i)
+      std::printf("  %-36s %8.1f ms %6.1f%%\n", names[i].c_str(), med[i], 100 * med[i] / total);
+    std::printf("  %-36s %8.1f ms\n", "all passes", total);
+  }
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -251,17 +301,30 @@ int main(int argc, char** argv) {
     }
     else if (a == "--repeats") o.repeats = std::stoi(next());
     else if (a == "--skip-convergence") o.skip_convergence = true;
+    else if (a == "--sections") {
+      o.sections.clear();
+      std::string list = next() + ",";
+      for (size_t at = 0, end; (end = list.find(',', at)) != std::string::npos; at = end + 1) {
+        std::string v = list.substr(at, end - at);
+        if (v != "throughput" && v != "effects" && v != "convergence" && v != "passes")
+          throw std::runtime_error("--sections: unknown '" + v + "' (throughput, effects, convergence, passes)");
+        o.sections.push_back(v);
+      }
+    }
     else {
       std::printf("usage: bench_forward [--device D] [--max-rays N] [--max-rays-native N] [--binnings 16,4,1] "
-                  "[--variants thin,real,real+diffraction] [--repeats R] [--skip-convergence]\n");
+                  "[--variants thin,real,real+diffraction] [--repeats R] [--skip-convergence] "
+                  "[--sections throughput,effects,convergence,passes]\n");
       return a == "--help" ? 0 : 2;
     }
   }
   vk::Context ctx(vk::ContextOptions{o.device});
   std::printf("# bench_forward\n# machine: %s\n# device: %s\n# times: median of %d repeats\n",
               bench::machine_line().c_str(), ctx.describe().c_str(), o.repeats);
-  throughput(ctx, o);
-  effects(ctx, o);
-  if (!o.skip_convergence) convergence(ctx, o);
+  auto wanted = [&](const char* name) { return std::find(o.sections.begin(), o.sections.end(), name) != o.sections.end(); };
+  if (wanted("throughput")) throughput(ctx, o);
+  if (wanted("effects")) effects(ctx, o);
+  if (wanted("convergence") && !o.skip_convergence) convergence(ctx, o);
+  if (wanted("passes")) passes(ctx, o);
   return 0;
 }

@@ -338,12 +338,12 @@ struct ForwardVulkan::Impl {
         shared::TraceParams q = p;
         q.cell_first = first;
         q.cell_count = std::min(per_chunk, end - first);
-        if (first > begin) ms += stream.submit();  // the previous chunk's cut pass before the lists are reset
+        if (first > begin) ms += submit(stream);  // the previous chunk's cut pass before the lists are reset
         stream.fill_zero(*f.splits.buffer, 0, 4);
         stream.fill_zero(*f.cuts.buffer, 0, 4);
         stream.barrier();
         dispatch(main, q, splat_groups(q.cell_count), p.source_count);
-        ms += stream.submit();
+        ms += submit(stream);
         // The split, a level per pass: each pass takes the entries the one
         // before it listed and lists the large children after them.
         uint32_t split_count = f.splits.count();
@@ -355,7 +355,7 @@ struct ForwardVulkan::Impl {
           q.split_end = split_count;
           stream.barrier();
           dispatch(derivatives ? f.split : f.split_values, q, groups(q.split_end - q.split_first), 1);
-          ms += stream.submit();
+          ms += submit(stream);
           q.split_first = q.split_end;
           split_count = f.splits.count();
           cut_count = f.cuts.count();  // with the split pieces' cuts
@@ -386,6 +386,14 @@ struct ForwardVulkan::Impl {
   }
 
   uint64_t max_list_entries() const { return (list_limit_bytes - 16) / 16; }
+
+  // The dispatches of the current call, each with its time (bench_forward).
+  std::vector<vk::Stream::KernelTime> times;
+  double submit(vk::Stream& stream) {
+    const double ms = stream.submit();
+    times.insert(times.end(), stream.last_times().begin(), stream.last_times().end());
+    return ms;
+  }
 
   uint32_t bands() const { return (uint32_t(params.grid_h) + band_rows - 1) / band_rows; }
 
@@ -457,6 +465,8 @@ ForwardVulkan::~ForwardVulkan() = default;
 
 uint64_t ForwardVulkan::rays_per_source() const { return impl_->layout.ranges.front().total_rays; }
 
+const std::vector<vk::Stream::KernelTime>& ForwardVulkan::last_kernel_times() const { return impl_->times; }
+
 unsigned ForwardVulkan::footprint_cell_chunks() const { return impl_->footprint ? impl_->footprint->chunks : 0; }
 
 std::vector<FisherResult> ForwardVulkan::fisher(std::span<const glm::dvec3> theta) {
@@ -471,6 +481,7 @@ std::vector<FisherResult> ForwardVulkan::fisher(std::span<const glm::dvec3> thet
     if (d >= m.layout.ranges.size()) throw std::invalid_argument("fisher: design index " + std::to_string(d) + " out of range");
   std::vector<FisherResult> out(theta.size());
   last_kernel_ms_ = 0;
+  m.times.clear();
   if (theta.empty()) return out;
   const uint32_t batch = uint32_t(std::min<size_t>(m.sources_per_batch, theta.size()));
   std::vector<glm::vec4> src(theta.size());
@@ -502,7 +513,7 @@ std::vector<FisherResult> ForwardVulkan::fisher(std::span<const glm::dvec3> thet
       last_kernel_ms_ += m.record_splat(stream, true, sources, source_designs, images, p);
       stream.barrier();
       stream.dispatch(m.reduce, {&images, &partials}, &rp, rp.chunks, p.source_count);
-      last_kernel_ms_ += stream.submit();
+      last_kernel_ms_ += m.submit(stream);
       auto part = partials.download<float>(size_t(p.source_count) * rp.chunks * kPartialFloats);
       for (uint32_t s = 0; s < p.source_count; ++s) {
         FisherResult& r = out[first + s];
@@ -527,6 +538,7 @@ template <class Consume>
 double render_bands(ForwardVulkan::Impl& m, const AnalysisGrid& grid, bool derivatives, const glm::dvec3& theta,
                     const shared::TraceParams& base, Consume&& consume) {
   const uint32_t pixel_floats = derivatives ? 8 : 1;
+  m.times.clear();
   // Bands as tall as one buffer allows at this pixel size.
   const uint64_t band_bytes = uint64_t(m.band_rows) * grid.width * kPixelBytes;
   const uint32_t rows = uint32_t(std::min<uint64_t>(grid.height, band_bytes / (uint64_t(grid.width) * pixel_floats * 4)));
@@ -556,7 +568,7 @@ double render_bands(ForwardVulkan::Impl& m, const AnalysisGrid& grid, bool deriv
     stream.fill_zero(images);
     stream.barrier();
     ms += m.record_splat(stream, derivatives, sources, m.design_zero, images, p);
-    ms += stream.submit();
+    ms += m.submit(stream);
     images.download(pixels.data(), uint64_t(p.band_rows) * grid.width * pixel_floats * sizeof(float));
     consume(row0, uint32_t(p.band_rows), pixels.data());
   }

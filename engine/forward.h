@@ -68,6 +68,10 @@ class ForwardVulkan {
   std::vector<float> psf_values(const glm::dvec3& theta);
 
   double last_kernel_ms() const { return last_kernel_ms_; }  // device time of the last call
+  // Each dispatch of the last call and its device time: the footprint's
+  // passes (the first over the cells, a split level each, the cut) and the
+  // Fisher reduction, in order (empty where the queue has no timestamps).
+  const std::vector<vk::Stream::KernelTime>& last_kernel_times() const;
   // Footprint splat: the chunks its first pass takes the cells in (1 while its
   // lists fit in a storage buffer within the budget; 0 for the point splat).
   unsigned footprint_cell_chunks() const;

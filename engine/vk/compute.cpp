@@ -254,6 +254,7 @@ void Stream::begin_if_needed() {
   if (queries_) vkCmdResetQueryPool(cmd_, queries_, 0, 2 * max_dispatches_);
   recording_ = true;
   dispatches_ = 0;
+  names_.clear();
 }
 
 void Stream::fill_zero(Buffer& buffer) {
@@ -308,6 +309,7 @@ void Stream::dispatch(Kernel& k, std::initializer_list<const Buffer*> buffers, c
   if (queries_) vkCmdWriteTimestamp(cmd_, VK_PIPELINE_STAGE_TOP_OF_PIPE_BIT, queries_, 2 * dispatches_);
   vkCmdDispatch(cmd_, gx, gy, gz);
   if (queries_) vkCmdWriteTimestamp(cmd_, VK_PIPELINE_STAGE_BOTTOM_OF_PIPE_BIT, queries_, 2 * dispatches_ + 1);
+  names_.push_back(k.name_);
   ++dispatches_;
 }
 
@@ -324,14 +326,20 @@ double Stream::submit() {
   check(vkWaitForFences(ctx_.device(), 1, &fence_, VK_TRUE, UINT64_MAX), "vkWaitForFences");
   double wall_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
   double ms = wall_ms;
+  times_.clear();
   if (queries_ && dispatches_ > 0) {
     std::vector<uint64_t> stamps(2 * dispatches_);
     check(vkGetQueryPoolResults(ctx_.device(), queries_, 0, 2 * dispatches_, stamps.size() * sizeof(uint64_t),
                                 stamps.data(), sizeof(uint64_t), VK_QUERY_RESULT_64_BIT | VK_QUERY_RESULT_WAIT_BIT),
           "vkGetQueryPoolResults");
     ms = 0;
-    for (uint32_t i = 0; i < dispatches_; ++i) ms += double(stamps[2 * i + 1] - stamps[2 * i]) * ctx_.timestamp_period_ns() * 1e-6;
+    for (uint32_t i = 0; i < dispatches_; ++i) {
+      const double t = double(stamps[2 * i + 1] - stamps[2 * i]) * ctx_.timestamp_period_ns() * 1e-6;
+      ms += t;
+      times_.push_back({names_[i], t});
+    }
   }
+  names_.clear();
   check(vkResetDescriptorPool(ctx_.device(), pool_, 0), "vkResetDescriptorPool");
   check(vkResetCommandBuffer(cmd_, 0), "vkResetCommandBuffer");
   dispatches_ = 0;

@@ -117,6 +117,13 @@ class Stream {
   // Run what was recorded and wait. Returns the summed kernel time in
   // milliseconds (GPU timestamps; host wall time where the queue has none).
   double submit();
+  // Each dispatch of the last submit() and its time in milliseconds (empty
+  // where the queue has no timestamps): where a pipeline's time goes.
+  struct KernelTime {
+    std::string kernel;
+    double ms;
+  };
+  const std::vector<KernelTime>& last_times() const { return times_; }
 
  private:
   void begin_if_needed();
@@ -128,6 +135,8 @@ class Stream {
   VkFence fence_ = VK_NULL_HANDLE;
   uint32_t dispatches_ = 0;
   bool recording_ = false;
+  std::vector<std::string> names_;  // of the dispatches recorded
+  std::vector<KernelTime> times_;
 };
 
 }  // namespace prism::vk

@@ -292,3 +292,41 @@ TEST_CASE("kernels compile once per context and specialisation, and a kernel nev
   INFO("validation layer messages: " << ctx.validation_messages().size());
   CHECK(ctx.validation_messages().empty());
 }
+
+TEST_CASE("each dispatch's time is reported by pass, and the passes add up to the call's kernel time") {
+  // The footprint of the real prototype lenses: the first pass over the
+  // cells, one dispatch per split level, the cut; the Fisher reduction after
+  // them (bench_forward's "passes" table reads these).
+  auto sys = prism::builtin_scene("prototype").optics;
+  prism::TraceSettings t;
+  t.rays_per_lenslet = 256;
+  t.binning = 32;
+  t.splat = prism::Splat::footprint;
+  prism::ForwardVulkan fw(gpu(), sys, t);
+  const glm::dvec3 theta{2.0, -1.0, 4.0};
+  auto names = [&] {
+    std::vector<std::string> out;
+    double sum = 0;
+    for (const auto& k : fw.last_kernel_times()) {
+      out.push_back(k.kernel);
+      CHECK(k.ms >= 0);
+      sum += k.ms;
+    }
+    CHECK(sum == doctest::Approx(fw.last_kernel_ms()).epsilon(1e-9));
+    return out;
+  };
+  fw.psf(theta);
+  auto psf = names();
+  REQUIRE_FALSE(psf.empty());
+  CHECK(psf.front() == "psf_footprint");
+  CHECK(std::count(psf.begin(), psf.end(), "psf_footprint_split") >= 1);  // the f = 3 mm lenslets' rims
+  fw.fisher(std::vector<glm::dvec3>{theta});
+  auto fisher = names();
+  CHECK(fisher.back() == "fisher_reduce");
+  // A call reports its own dispatches only.
+  fw.psf_values(theta);
+  auto values = names();
+  CHECK(values.front() == "psf_footprint (values)");
+  CHECK(std::count(values.begin(), values.end(), "fisher_reduce") == 0);
+  prism::test::check_validation_clean();
+}
