@@ -57,6 +57,17 @@ std::string fixed(double x, int digits) {
   std::snprintf(b, sizeof b, "%.*f", digits, x);
   return b;
 }
+// The items of a comma-separated option value ("16,4,1").
+std::vector<std::string> comma_list(const std::string& list) {
+  std::vector<std::string> out;
+  for (size_t at = 0; at <= list.size();) {
+    const size_t end = std::min(list.find(',', at), list.size());
+    out.push_back(list.substr(at, end - at));
+    at = end + 1;
+  }
+  return out;
+}
+
 // A relative error, marked '<' when within 1%.
 std::string within(double err) { return fixed(err, 4) + (err <= 0.01 ? "<" : ""); }
 
@@ -281,18 +292,11 @@ int main(int argc, char** argv) {
     else if (a == "--max-rays-native") o.max_rays_native = unsigned(std::stoul(next()));
     else if (a == "--binnings") {
       o.binnings.clear();
-      std::string list = next();
-      for (size_t at = 0; at < list.size();) {
-        size_t end = list.find(',', at);
-        o.binnings.push_back(unsigned(std::stoul(list.substr(at, end - at))));
-        at = end == std::string::npos ? list.size() : end + 1;
-      }
+      for (const std::string& v : comma_list(next())) o.binnings.push_back(unsigned(std::stoul(v)));
     }
     else if (a == "--variants") {
       o.variants.clear();
-      std::string list = next() + ",";
-      for (size_t at = 0, end; (end = list.find(',', at)) != std::string::npos; at = end + 1) {
-        std::string v = list.substr(at, end - at);
+      for (const std::string& v : comma_list(next())) {
         if (v == "thin") o.variants.push_back(Variant::thin);
         else if (v == "real") o.variants.push_back(Variant::real);
         else if (v == "real+diffraction") o.variants.push_back(Variant::real_diffraction);
@@ -303,9 +307,7 @@ int main(int argc, char** argv) {
     else if (a == "--skip-convergence") o.skip_convergence = true;
     else if (a == "--sections") {
       o.sections.clear();
-      std::string list = next() + ",";
-      for (size_t at = 0, end; (end = list.find(',', at)) != std::string::npos; at = end + 1) {
-        std::string v = list.substr(at, end - at);
+      for (const std::string& v : comma_list(next())) {
         if (v != "throughput" && v != "effects" && v != "convergence" && v != "passes")
           throw std::runtime_error("--sections: unknown '" + v + "' (throughput, effects, convergence, passes)");
         o.sections.push_back(v);
