@@ -40,6 +40,14 @@ std::filesystem::path scratch_dir();
 // Called by the test runner (main.cpp) as each test case starts.
 void begin_test_case();
 
+// The allowance, per unit of a channel's peak, between two renders of the
+// same inputs. Float atomic adds sum a pixel's light in the order
+// invocations reach it, which varies from run to run: in the last digit on
+// lavapipe when its threads contend (2 threads, a loaded machine) and on a
+// GPU always (an H200: 2e-7 of the peak); the footprint's split lists are
+// also appended in whatever order workgroups finish.
+inline constexpr double same_render_tolerance = 1e-6;
+
 // A scene small enough for exhaustive CPU-reference comparisons.
 OpticalSystem small_system(LensModel model);
 

@@ -1,5 +1,6 @@
 #include "engine/vk/compute.h"
 
+#include <algorithm>
 #include <chrono>
 #include <cstring>
 
@@ -16,9 +17,21 @@ struct RawBuffer {
   VkBuffer buffer = VK_NULL_HANDLE;
   VkDeviceMemory memory = VK_NULL_HANDLE;
   void* mapped = nullptr;
+  bool host_cached = false;  // the host reads the mapped memory through its cache
 };
 
-RawBuffer make_buffer(Context& ctx, uint64_t bytes, VkBufferUsageFlags usage, bool want_device_local) {
+enum class Role { storage, staging };
+
+// Memory for a buffer, most preferred first. Storage: device-local memory the
+// host maps and reads through its cache (lavapipe, integrated GPUs: one
+// memory); device-local memory the host maps but reads uncached (a discrete
+// GPU's resizable BAR: uploads write into it directly, downloads go through a
+// staging copy, since each uncached read crosses the bus: on an H200 the
+// refinement's image downloads made a 6 ms render take about 190 ms);
+// device-local memory (a discrete GPU without resizable BAR, or when its BAR
+// is full); host memory. Staging: host memory, cached first. With
+// ContextOptions::staged_buffers, storage is never mapped.
+RawBuffer make_buffer(Context& ctx, uint64_t bytes, VkBufferUsageFlags usage, Role role) {
   RawBuffer rb;
   VkBufferCreateInfo bi{VK_STRUCTURE_TYPE_BUFFER_CREATE_INFO};
   bi.size = bytes;
@@ -28,28 +41,38 @@ RawBuffer make_buffer(Context& ctx, uint64_t bytes, VkBufferUsageFlags usage, bo
   VkMemoryRequirements req;
   vkGetBufferMemoryRequirements(ctx.device(), rb.buffer, &req);
   const VkMemoryPropertyFlags host = VK_MEMORY_PROPERTY_HOST_VISIBLE_BIT | VK_MEMORY_PROPERTY_HOST_COHERENT_BIT;
+  const VkMemoryPropertyFlags cached = VK_MEMORY_PROPERTY_HOST_CACHED_BIT;
   const VkMemoryPropertyFlags local = VK_MEMORY_PROPERTY_DEVICE_LOCAL_BIT;
-  uint32_t type = UINT32_MAX;
-  if (want_device_local) {
-    type = ctx.find_memory_type(req.memoryTypeBits, local | host);
-    if (type == UINT32_MAX) type = ctx.find_memory_type(req.memoryTypeBits, local);
+  const bool map = role == Role::staging || !ctx.staged_buffers();
+  std::vector<VkMemoryPropertyFlags> wanted;
+  if (role == Role::staging) wanted = {host | cached, host};
+  else if (map) wanted = {local | host | cached, local | host, local, host | cached, host};
+  else wanted = {local, host};
+  VkResult r = VK_ERROR_OUT_OF_DEVICE_MEMORY;
+  std::vector<uint32_t> tried;
+  for (VkMemoryPropertyFlags want : wanted) {
+    const uint32_t type = ctx.find_memory_type(req.memoryTypeBits, want);
+    if (type == UINT32_MAX || std::find(tried.begin(), tried.end(), type) != tried.end()) continue;
+    tried.push_back(type);
+    VkMemoryAllocateInfo ai{VK_STRUCTURE_TYPE_MEMORY_ALLOCATE_INFO};
+    ai.allocationSize = req.size;
+    ai.memoryTypeIndex = type;
+    r = vkAllocateMemory(ctx.device(), &ai, nullptr, &rb.memory);
+    // A heap that is full (a BAR of 256 MiB) leaves the next kind of memory.
+    if (r == VK_ERROR_OUT_OF_DEVICE_MEMORY || r == VK_ERROR_OUT_OF_HOST_MEMORY) continue;
+    if (r != VK_SUCCESS) break;
+    const VkMemoryPropertyFlags flags = ctx.memory_type_flags(type);
+    check(vkBindBufferMemory(ctx.device(), rb.buffer, rb.memory, 0), "vkBindBufferMemory");
+    if (map && (flags & host) == host) {
+      check(vkMapMemory(ctx.device(), rb.memory, 0, VK_WHOLE_SIZE, 0, &rb.mapped), "vkMapMemory");
+      rb.host_cached = (flags & cached) != 0;
+    }
+    return rb;
   }
-  if (type == UINT32_MAX) type = ctx.find_memory_type(req.memoryTypeBits, host);
-  if (type == UINT32_MAX) throw Error("no memory type for a " + std::to_string(bytes) + "-byte buffer");
-  VkMemoryAllocateInfo ai{VK_STRUCTURE_TYPE_MEMORY_ALLOCATE_INFO};
-  ai.allocationSize = req.size;
-  ai.memoryTypeIndex = type;
-  VkResult r = vkAllocateMemory(ctx.device(), &ai, nullptr, &rb.memory);
-  if (r != VK_SUCCESS) {
-    vkDestroyBuffer(ctx.device(), rb.buffer, nullptr);
-    check(r, ("vkAllocateMemory of " + std::to_string(bytes >> 20) + " MiB").c_str());
-  }
-  check(vkBindBufferMemory(ctx.device(), rb.buffer, rb.memory, 0), "vkBindBufferMemory");
-  VkPhysicalDeviceMemoryProperties mp;
-  vkGetPhysicalDeviceMemoryProperties(ctx.physical(), &mp);
-  if ((mp.memoryTypes[type].propertyFlags & host) == host)
-    check(vkMapMemory(ctx.device(), rb.memory, 0, VK_WHOLE_SIZE, 0, &rb.mapped), "vkMapMemory");
-  return rb;
+  vkDestroyBuffer(ctx.device(), rb.buffer, nullptr);
+  if (tried.empty()) throw Error("no memory type for a " + std::to_string(bytes) + "-byte buffer");
+  check(r, ("vkAllocateMemory of " + std::to_string(bytes >> 20) + " MiB").c_str());
+  throw Error("vkAllocateMemory failed");  // not reached: check throws
 }
 
 void destroy(Context& ctx, RawBuffer& rb) {
@@ -69,10 +92,11 @@ Buffer::Buffer(Context& ctx, uint64_t bytes) : ctx_(ctx), bytes_(bytes) {
   if (bytes > ctx.max_storage_buffer_bytes())
     throw Error("Buffer of " + std::to_string(bytes) + " bytes exceeds maxStorageBufferRange (" +
                 std::to_string(ctx.max_storage_buffer_bytes()) + ") of " + ctx.describe() + "; chunk the data");
-  RawBuffer rb = make_buffer(ctx, bytes, kStorage, true);
+  RawBuffer rb = make_buffer(ctx, bytes, kStorage, Role::storage);
   buffer_ = rb.buffer;
   memory_ = rb.memory;
   mapped_ = rb.mapped;
+  host_cached_ = rb.host_cached;
 }
 
 Buffer::~Buffer() {
@@ -90,8 +114,20 @@ void Buffer::copy(VkBuffer src, VkBuffer dst, uint64_t src_off, uint64_t dst_off
   VkCommandBufferBeginInfo bi{VK_STRUCTURE_TYPE_COMMAND_BUFFER_BEGIN_INFO};
   bi.flags = VK_COMMAND_BUFFER_USAGE_ONE_TIME_SUBMIT_BIT;
   vkBeginCommandBuffer(cmd, &bi);
+  // Earlier kernels' writes before the copy reads (or overwrites) them; the
+  // copy's writes before later kernels and the host read them.
+  VkMemoryBarrier before{VK_STRUCTURE_TYPE_MEMORY_BARRIER};
+  before.srcAccessMask = VK_ACCESS_SHADER_WRITE_BIT | VK_ACCESS_TRANSFER_WRITE_BIT;
+  before.dstAccessMask = VK_ACCESS_TRANSFER_READ_BIT | VK_ACCESS_TRANSFER_WRITE_BIT;
+  vkCmdPipelineBarrier(cmd, VK_PIPELINE_STAGE_COMPUTE_SHADER_BIT | VK_PIPELINE_STAGE_TRANSFER_BIT,
+                       VK_PIPELINE_STAGE_TRANSFER_BIT, 0, 1, &before, 0, nullptr, 0, nullptr);
   VkBufferCopy region{src_off, dst_off, bytes};
   vkCmdCopyBuffer(cmd, src, dst, 1, &region);
+  VkMemoryBarrier after{VK_STRUCTURE_TYPE_MEMORY_BARRIER};
+  after.srcAccessMask = VK_ACCESS_TRANSFER_WRITE_BIT;
+  after.dstAccessMask = VK_ACCESS_SHADER_READ_BIT | VK_ACCESS_SHADER_WRITE_BIT | VK_ACCESS_HOST_READ_BIT;
+  vkCmdPipelineBarrier(cmd, VK_PIPELINE_STAGE_TRANSFER_BIT, VK_PIPELINE_STAGE_COMPUTE_SHADER_BIT | VK_PIPELINE_STAGE_HOST_BIT,
+                       0, 1, &after, 0, nullptr, 0, nullptr);
   vkEndCommandBuffer(cmd);
   VkSubmitInfo si{VK_STRUCTURE_TYPE_SUBMIT_INFO};
   si.commandBufferCount = 1;
@@ -103,11 +139,11 @@ void Buffer::copy(VkBuffer src, VkBuffer dst, uint64_t src_off, uint64_t dst_off
 
 void Buffer::upload(const void* data, uint64_t bytes, uint64_t offset) {
   if (offset + bytes > bytes_) throw Error("Buffer::upload past the end of the buffer");
-  if (mapped_) {
+  if (mapped_) {  // host writes: combined on the way, fast whether cached or not
     std::memcpy(static_cast<char*>(mapped_) + offset, data, bytes);
     return;
   }
-  RawBuffer staging = make_buffer(ctx_, bytes, kStaging, false);
+  RawBuffer staging = make_buffer(ctx_, bytes, kStaging, Role::staging);
   std::memcpy(staging.mapped, data, bytes);
   copy(staging.buffer, buffer_, 0, offset, bytes);
   destroy(ctx_, staging);
@@ -115,11 +151,11 @@ void Buffer::upload(const void* data, uint64_t bytes, uint64_t offset) {
 
 void Buffer::download(void* data, uint64_t bytes, uint64_t offset) const {
   if (offset + bytes > bytes_) throw Error("Buffer::download past the end of the buffer");
-  if (mapped_) {
+  if (mapped_ && host_cached_) {
     std::memcpy(data, static_cast<const char*>(mapped_) + offset, bytes);
     return;
   }
-  RawBuffer staging = make_buffer(ctx_, bytes, kStaging, false);
+  RawBuffer staging = make_buffer(ctx_, bytes, kStaging, Role::staging);
   copy(buffer_, staging.buffer, offset, 0, bytes);
   std::memcpy(data, staging.mapped, bytes);
   destroy(ctx_, staging);

@@ -13,9 +13,11 @@
 
 namespace prism::vk {
 
-// A storage buffer. Device-local memory is preferred; when it is not mappable
-// (a discrete GPU without resizable BAR) uploads and downloads go through a
-// staging copy. One buffer may not exceed maxStorageBufferRange: callers chunk.
+// A storage buffer in device-local memory where there is room. The host
+// writes and reads it directly where it can map it; it reads through a staging
+// copy where the mapping is uncached (a discrete GPU's BAR), and does both
+// through one where it cannot map it (make_buffer in compute.cpp says why).
+// One buffer may not exceed maxStorageBufferRange: callers chunk.
 class Buffer {
  public:
   Buffer(Context& ctx, uint64_t bytes);
@@ -40,6 +42,7 @@ class Buffer {
   VkBuffer buffer_ = VK_NULL_HANDLE;
   VkDeviceMemory memory_ = VK_NULL_HANDLE;
   void* mapped_ = nullptr;
+  bool host_cached_ = false;
   uint64_t bytes_ = 0;
 };
 

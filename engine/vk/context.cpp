@@ -135,6 +135,7 @@ Context::Context(ContextOptions options) {
   if (request.empty())
     if (const char* env = std::getenv("PRISM_DEVICE")) request = env;
 
+  staged_buffers_ = options.staged_buffers;
   instance_ = create_instance(validation);
   if (validation) {
     VkDebugUtilsMessengerCreateInfoEXT mi{VK_STRUCTURE_TYPE_DEBUG_UTILS_MESSENGER_CREATE_INFO_EXT};

@@ -25,6 +25,10 @@ struct ContextOptions {
   // Enable the Khronos validation layer and count its messages. Also switched
   // on by PRISM_VALIDATION=1 (the test suite sets it).
   bool validation = false;
+  // Never map a storage buffer: every upload and download goes through a
+  // staging copy, as on a discrete GPU whose memory the host cannot map
+  // (vk::Buffer). For testing that path on a device that maps everything.
+  bool staged_buffers = false;
 };
 
 class Context {
@@ -51,7 +55,9 @@ class Context {
   // Nanoseconds per timestamp tick; 0 when the queue cannot time kernels.
   double timestamp_period_ns() const { return timestamp_period_ns_; }
   uint32_t find_memory_type(uint32_t type_bits, VkMemoryPropertyFlags want) const;
+  VkMemoryPropertyFlags memory_type_flags(uint32_t type) const { return mem_props_.memoryTypes[type].propertyFlags; }
 
+  bool staged_buffers() const { return staged_buffers_; }
   bool validation_enabled() const { return messenger_ != VK_NULL_HANDLE; }
   // Messages from the validation layer so far (warnings and errors).
   const std::vector<std::string>& validation_messages() const { return messages_; }
@@ -70,6 +76,7 @@ class Context {
   VkPhysicalDeviceProperties props_{};
   VkPhysicalDeviceMemoryProperties mem_props_{};
   double timestamp_period_ns_ = 0;
+  bool staged_buffers_ = false;
   std::vector<std::string> messages_;
   std::unique_ptr<PipelineCache> pipelines_;
 

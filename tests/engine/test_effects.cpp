@@ -26,11 +26,6 @@ prism::PixelImage render(const prism::OpticalSystem& sys, prism::Splat splat = p
   return fw.psf(theta);
 }
 
-// Same kernels, same inputs: the point splat is reproducible bit for bit. The
-// footprint splat's second pass takes its triangles in the order parallel
-// workgroups appended them, so its float sums vary in the last digits.
-double same_input_tolerance(prism::Splat splat) { return splat == prism::Splat::point ? 0.0 : 1e-6; }
-
 // Channels first..last (0: b; 1..3: its derivatives) of `got` against
 // `expect`, pixel by pixel, each to `tol` of its peak in `expect`.
 void check_images(const prism::PixelImage& expect, const prism::PixelImage& got, double tol, int first = 0,
@@ -60,7 +55,7 @@ TEST_CASE("an effect the scene does not name changes nothing, whatever its param
   for (auto splat : {prism::Splat::point, prism::Splat::footprint}) {
     std::string splat_name = prism::to_string(splat);
     CAPTURE(splat_name);
-    check_images(render(plain, splat), render(odd, splat), same_input_tolerance(splat));
+    check_images(render(plain, splat), render(odd, splat), prism::test::same_render_tolerance);
   }
   prism::test::check_validation_clean();
 }
@@ -90,7 +85,7 @@ TEST_CASE("effects at neutral parameters reduce to the plain model") {
     auto holder = plain;
     holder.effects.holder_vignetting = true;
     holder.effects.holder_bore_mm = 0.0;  // a bore of zero length clips nothing
-    check_images(base, render(holder, splat), same_input_tolerance(splat));
+    check_images(base, render(holder, splat), prism::test::same_render_tolerance);
   }
   prism::test::check_validation_clean();
 }
