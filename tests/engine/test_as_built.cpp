@@ -121,8 +121,12 @@ TEST_CASE("as built: a sensor moved by whole pixels moves every image by whole p
         }
       // The footprint's split pieces go to the pixel of their centroid, which
       // the float landing points can move across a border: 1e-3 of the peak
-      // as in test_footprint.cpp.
-      const double tol = t.splat == prism::Splat::point ? 2e-4 : 1e-3;
+      // as in test_footprint.cpp. The point splat's derivative channels jump
+      // where a hit crosses a pixel-centre line: 1e-3 of their peak as in
+      // test_forward_vulkan.cpp (2e-4 held on lavapipe, whose float rounding
+      // the two renders share; an H200 went 4% past it at 4 of 5e5 pixels).
+      const bool pt = t.splat == prism::Splat::point;
+      const double tol = pt && c == 0 ? 2e-4 : 1e-3;
       auto cmp = prism::test::compare(shifted_want, kept_got, {.abs = tol * prism::test::peak_abs(w)});
       CHECK_MESSAGE(cmp.ok(), cmp.report("channel " + std::to_string(c) + " (moved sensor vs nominal shifted)"));
     }
@@ -189,8 +193,18 @@ TEST_CASE("as built: Vulkan equals the double reference on tilted real lenses an
     auto image = fw.psf(k.theta);
     REQUIRE(ref.photons() > 0);
     CHECK(image.photons() == doctest::Approx(ref.photons()).epsilon(1e-5));
-    const double ref_crlb = prism::crlb_from_fisher(prism::ref::fisher_of(ref, 0.0, k.t.estimator).poisson, ref.photons()).r3_mm;
-    const auto got_fisher = fw.fisher(std::vector<glm::dvec3>{k.theta}).front();
+    // The CRLB where every lit pixel holds many rays (test_forward_vulkan.cpp's
+    // header: a pixel reached by one ray with a tiny bilinear fraction weighs
+    // 1/b in the Fisher sum, and float's landing error moves it a lot). The
+    // point splat's 400 rays per lenslet at 55 um are too few for that: its
+    // CRLB is compared at 880 um pixels (at 55 um an H200 gave 14% less than
+    // the reference while its pixels matched).
+    auto ft = k.t;
+    if (ft.splat == prism::Splat::point) ft.binning = 128;
+    const auto fref = ft.binning == k.t.binning ? ref : prism::ref::psf(k.sys, ft, k.theta);
+    const double ref_crlb = prism::crlb_from_fisher(prism::ref::fisher_of(fref, 0.0, ft.estimator).poisson, fref.photons()).r3_mm;
+    prism::ForwardVulkan ffw(gpu(), k.sys, ft);
+    const auto got_fisher = ffw.fisher(std::vector<glm::dvec3>{k.theta}).front();
     CHECK(prism::crlb_from_fisher(got_fisher.poisson, got_fisher.photons).r3_mm == doctest::Approx(ref_crlb).epsilon(2e-3));
     // Pixel by pixel as test_forward_vulkan.cpp and test_footprint.cpp (float
     // landing points, about 1e-4 mm off the double ones here), except for a

@@ -58,17 +58,12 @@ void edit_json(const fs::path& dir, const std::function<void(nlohmann::json&)>& 
   std::ofstream(dir / "stack.json") << j.dump();
 }
 
-// Runs the prism binary; returns its exit status, with stdout+stderr in `output`.
+// Runs the prism binary on the tests' device (main.cpp's PRISM_DEVICE,
+// inherited); returns its exit status, with stdout+stderr in `output`.
 int prism_cli(const std::string& args, std::string& output) {
-  fs::path log = prism::test::scratch_dir() / "prism-cli.log";
-  std::string cmd = "PRISM_DEVICE=cpu " + std::string(PRISM_BINARY) + " " + args + " > " + log.string() + " 2>&1";
-  int status = std::system(cmd.c_str());
-  std::ifstream in(log);
-  std::stringstream ss;
-  ss << in.rdbuf();
-  output = ss.str();
-  fs::remove(log);
-  return WEXITSTATUS(status);
+  auto r = prism::test::run_prism(args);
+  output = r.output;
+  return r.status;
 }
 
 }  // namespace

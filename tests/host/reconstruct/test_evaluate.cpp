@@ -20,6 +20,11 @@ namespace fs = std::filesystem;
 
 namespace {
 
+// Relative allowance for a CRLB computed twice from the same inputs: its
+// Fisher sums add in the order the device's invocations reach them
+// (support.h, same_render_tolerance).
+constexpr double crlb_twice_allowance = prism::test::same_render_tolerance;
+
 // x, y in {-5, 0, 5}, depth 5..35 every 5 mm (7.5 mm, the double experiment's
 // fixed vertex, inside): 63 PSFs at 16 x 16 binning. Dictionary, truth and
 // CRLB with the point splat, which keeps these end-to-end runs quick on
@@ -307,11 +312,15 @@ TEST_CASE("evaluation volume with --truth-scene: events, CRLB and journal from t
   const auto& scene = d.reader->manifest().scene;
   const auto nominal = prism::evaluate(prism::test::gpu(), scene, *d.reader, o);
 
-  // The same system named as the truth: the same events and estimates.
+  // The same system named as the truth: the same events and estimates, to
+  // the order of the device's float sums (support.h, same_render_tolerance),
+  // which moved one estimate by 2.4 um on an H200.
   o.truth_scene = scene;
   const auto same = prism::evaluate(prism::test::gpu(), scene, *d.reader, o);
   REQUIRE(same.volume.size() == 4);
-  for (size_t i = 0; i < 4; ++i) CHECK(same.volume[i].estimate.x_mm == nominal.volume[i].estimate.x_mm);
+  const double same_mm = 0.01;
+  for (size_t i = 0; i < 4; ++i)
+    CHECK(std::abs(same.volume[i].estimate.x_mm - nominal.volume[i].estimate.x_mm) <= same_mm);
 
   // A sensor 0.3 mm farther from the lenses than the dictionary's: other
   // clicks, hence other estimates, and the bounds of that system.
@@ -403,7 +412,8 @@ TEST_CASE("evaluation volume: a stopped run resumes from its journal, which must
     const auto &a = whole.volume[i], &b = resumed.volume[i];
     CHECK(b.index == i);
     CHECK(b.truth_mm == a.truth_mm);
-    CHECK(b.crlb_mm.z == doctest::Approx(a.crlb_mm.z).epsilon(1e-12));
+    // The CRLB is computed again, to the float sums' order on a GPU (support.h).
+    CHECK(b.crlb_mm.z == doctest::Approx(a.crlb_mm.z).epsilon(crlb_twice_allowance));
     CHECK(b.estimate.x_mm == doctest::Approx(a.estimate.x_mm).epsilon(1e-12));
     CHECK(b.estimate.depth_mm == doctest::Approx(a.estimate.depth_mm).epsilon(1e-12));
     CHECK(b.estimate.alpha == doctest::Approx(a.estimate.alpha).epsilon(1e-12));
@@ -451,7 +461,7 @@ TEST_CASE("evaluation protocol: a stopped run resumes from its journal with the 
     REQUIRE(so_far.rows.size() == 1);
     CHECK(so_far.rows[0].photons == whole.rows[0].photons);
     CHECK(so_far.rows[0].stats.err3d_mean == doctest::Approx(whole.rows[0].stats.err3d_mean).epsilon(1e-12));
-    CHECK(so_far.rows[0].crlb_3d_mm == doctest::Approx(whole.rows[0].crlb_3d_mm).epsilon(1e-12));
+    CHECK(so_far.rows[0].crlb_3d_mm == doctest::Approx(whole.rows[0].crlb_3d_mm).epsilon(crlb_twice_allowance));
     CHECK(lines_of(journal).size() == 6);  // read, not written
     // Another estimator reads the same events and says what made them.
     only.settings.newton_iterations += 1;

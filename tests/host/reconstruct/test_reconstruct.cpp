@@ -751,7 +751,9 @@ TEST_CASE("support scan on the device: weights fitted only where the NLL bound c
     }
     CHECK(ordinary_fits * 2 < ordinary_psfs);
     CHECK(t.scan_fits < t.scan_candidates);
-    if (layout == L::automatic) CHECK(t.scan_fallbacks >= 1);
+    // Serial fits (automatic on a CPU device) run out of loop budget on the
+    // 1e4-photon event; a GPU's automatic layout is workgroups throughout.
+    if (layout == L::automatic && prism::test::gpu().is_cpu()) CHECK(t.scan_fallbacks >= 1);
   }
   // Coarse to fine (the carry margin decides which weights): the whole
   // algorithm from a level 4 scan, K = 1 and 2, with and without the bound.
