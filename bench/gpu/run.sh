@@ -1,19 +1,24 @@
 #!/usr/bin/env bash
 # One timed session on a machine with a Vulkan GPU (the README's GPU figures):
-# the test files on the GPU (validation layer on), then the main job of
-# ./setup.sh demo, bench_reconstruct and bench_forward, each step stopped at
-# its share of a time budget. Logs and CSVs go to OUT; a summary is printed
-# last.
+# bench_forward, the main job of ./setup.sh demo, bench_reconstruct and the
+# test files (validation layer on), in that order unless STEPS names others,
+# each stopped at its share of a time budget. Logs and CSVs go to OUT; a
+# summary is printed last.
 #
-#   bench/gpu/run.sh OUT [BUDGET_SECONDS]      default budget 540
+#   bench/gpu/run.sh OUT [BUDGET_SECONDS [STEPS]]
+#       BUDGET_SECONDS  default 540
+#       STEPS           comma list of forward, demo, reconstruct, tests
+#                       (default all four, in that order)
+#   PRISM_GPU_TEST_FILES="engine/test_footprint.cpp ..."   only these test files
 #
 # Where the machine lacks the build dependencies, bench/gpu/bundle.sh packs
 # the binaries: this script unpacks .gpu/bundle.tar.gz when it is there.
 # The device: $PRISM_DEVICE, default gpu (a GPU, never lavapipe).
 set -uo pipefail
 root="$(cd "$(dirname "$0")/../.." && pwd)"
-out="${1:?usage: bench/gpu/run.sh OUT [BUDGET_SECONDS]}"
+out="${1:?usage: bench/gpu/run.sh OUT [BUDGET_SECONDS [STEPS]]}"
 budget="${2:-540}"
+steps="${3:-forward,demo,reconstruct,tests}"
 mkdir -p "$out/tests"
 out="$(cd "$out" && pwd)"
 cd "$root"
@@ -62,39 +67,50 @@ if ! step probe 60 $prism crlb --scene prototype --depth-mm 25 --device "$PRISM_
   exit 1
 fi
 
-# 1. The test files, several at once (each its own process, as ctest runs
+# The test files, several at once (each its own process, as ctest runs
 # them), validation layer on. Not the MPI test (no mpirun there) nor the
-# Python and camera tests (not in prism_tests).
-# The longest files first (ctest's measured costs on lavapipe), so that none is left to the end.
-files=$(cd tests && ls engine/*.cpp host/*/*.cpp host/*.cpp | grep -v cmd/test_mpi |
-  awk '{print (/calibrate\/test_calibrate|test_refine|test_reconstruct|test_footprint|test_diffraction|test_forward_vulkan|test_cli|test_evaluate/ ? 0 : 1), $0}' |
-  sort -k1,1n -s | cut -d' ' -f2)
-t0=$SECONDS
-limit=$((budget / 4))
-echo "$files" | xargs -P 8 -I{} sh -c 't=$(date +%s); n=$(echo {} | tr / _); timeout -k 5 '"$limit"' \
-  build/tests/prism_tests --source-file="*tests/{}" >"'"$out"'/tests/$n.log" 2>&1; echo "$? $(($(date +%s) - t)) s {}"' \
-  >"$out/tests.rc"
-note "== tests: $((SECONDS - t0)) s (each file stopped after $limit s); failed or stopped: $(awk '$1 != 0' "$out/tests.rc" | wc -l) of $(wc -l <"$out/tests.rc")"
-sort -k2,2nr "$out/tests.rc" | awk '{print "   rc " $0}' | tee -a "$summary"
+# Python and camera tests (not in prism_tests). The longest files first
+# (ctest's measured costs on lavapipe), so that none is left to the end.
+run_tests() {
+  local files="${PRISM_GPU_TEST_FILES:-}"
+  [[ -n "$files" ]] || files=$(cd tests && ls engine/*.cpp host/*/*.cpp host/*.cpp | grep -v cmd/test_mpi |
+    awk '{print (/calibrate\/test_calibrate|test_refine|test_reconstruct|test_footprint|test_diffraction|test_forward_vulkan|test_cli|test_evaluate/ ? 0 : 1), $0}' |
+    sort -k1,1n -s | cut -d' ' -f2)
+  local t0=$SECONDS left=$((budget - (SECONDS - start) - 10))
+  ((left < 20)) && { note "== tests: skipped, budget spent"; return; }
+  echo $files | tr ' ' '\n' | xargs -P 8 -I{} sh -c 't=$(date +%s); n=$(echo {} | tr / _); timeout -k 5 '"$left"' \
+    build/tests/prism_tests --source-file="*tests/{}" >"'"$out"'/tests/$n.log" 2>&1; echo "$? $(($(date +%s) - t)) s {}"' \
+    >"$out/tests.rc"
+  note "== tests: $((SECONDS - t0)) s (stopped after $left s); failed or stopped: $(awk '$1 != 0' "$out/tests.rc" | wc -l) of $(wc -l <"$out/tests.rc")"
+  sort -k2,2nr "$out/tests.rc" | awk '{print "   rc " $0}' | tee -a "$summary"
+}
 
-# 2. The main job of ./setup.sh demo, each command timed.
-mkdir -p "$out/demo"
-step demo-dictionary 150 $prism dictionary build --scene prototype --out "$out/demo/dictionary" --binning 16 \
-  --rays 4096 --splat point
-step demo-simulate 60 $prism simulate --scene prototype --vertex 1,1,31,100 --events 1000 --binning 16 --seed 1 \
-  --out "$out/demo/events.events"
-step demo-reconstruct 60 $prism reconstruct --dictionary "$out/demo/dictionary" --events "$out/demo/events.events" \
-  --vertices 1 --out "$out/demo/vertices.csv" --model none
-step demo-evaluate 120 $prism evaluate --dictionary "$out/demo/dictionary" --experiments volume --volume-events 8 \
-  --volume-x-mm -15,15 --volume-y-mm -15,15 --volume-depth-mm 2,48 --model scene --out "$out/demo/volume"
-rm -rf "$out/demo/dictionary"   # large; its manifest is in the log
+# The main job of ./setup.sh demo, each command timed.
+run_demo() {
+  mkdir -p "$out/demo"
+  step demo-dictionary 150 $prism dictionary build --scene prototype --out "$out/demo/dictionary" --binning 16 \
+    --rays 4096 --splat point
+  step demo-simulate 60 $prism simulate --scene prototype --vertex 1,1,31,100 --events 1000 --binning 16 --seed 1 \
+    --out "$out/demo/events.events"
+  step demo-reconstruct 60 $prism reconstruct --dictionary "$out/demo/dictionary" --events "$out/demo/events.events" \
+    --vertices 1 --out "$out/demo/vertices.csv" --model none
+  step demo-evaluate 120 $prism evaluate --dictionary "$out/demo/dictionary" --experiments volume --volume-events 8 \
+    --volume-x-mm -15,15 --volume-y-mm -15,15 --volume-depth-mm 2,48 --model scene --out "$out/demo/volume"
+  rm -rf "$out/demo/dictionary"  # large; its manifest is in the log
+}
 
-# 3. The benchmarks.
-step bench_reconstruct 200 build/bench/bench_reconstruct --device "$PRISM_DEVICE" --out "$out/bench-reconstruct" \
-  --groups backend,coarse,K,refine,native
-step bench_forward 90 build/bench/bench_forward --device "$PRISM_DEVICE" --sections throughput,passes
+for s in ${steps//,/ }; do
+  case "$s" in
+    forward) step bench_forward 90 build/bench/bench_forward --device "$PRISM_DEVICE" --sections throughput,passes ;;
+    demo) run_demo ;;
+    reconstruct) step bench_reconstruct 200 build/bench/bench_reconstruct --device "$PRISM_DEVICE" \
+                   --out "$out/bench-reconstruct" --groups backend,coarse,K,refine,native ;;
+    tests) run_tests ;;
+    *) note "unknown step $s (forward, demo, reconstruct, tests)"; exit 2 ;;
+  esac
+done
 
 note "== total $((SECONDS - start)) s"
-for f in demo-reconstruct demo-evaluate bench_reconstruct bench_forward; do
+for f in bench_forward demo-reconstruct demo-evaluate bench_reconstruct; do
   [[ -f "$out/$f.log" ]] && { echo "---- $f"; tail -n 30 "$out/$f.log"; }
 done
