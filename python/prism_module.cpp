@@ -455,6 +455,7 @@ SessionOptions session_options(const py::dict& o) {
   s.settings.scan_step_px = o["scan_step"].cast<int>();
   s.settings.carry_margin_nll = o["carry_margin"].cast<double>();
   s.settings.tau_mm = o["tau_mm"].cast<double>();
+  s.settings.dark_rate = o["dark_rate"].cast<double>();
   return s;
 }
 
@@ -659,6 +660,7 @@ PYBIND11_MODULE(_core, m) {
     d["batch"] = s.batch;
     d["carry_margin"] = s.settings.carry_margin_nll;
     d["tau_mm"] = s.settings.tau_mm;
+    d["dark_rate"] = s.settings.dark_rate;
     return d;
   });
   m.def("set_max_memory", [](const std::string& text) {

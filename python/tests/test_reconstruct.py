@@ -47,11 +47,12 @@ def test_reconstruct_equals_the_command_from_a_file_and_from_arrays(tmp_path):
     for c in columns:
         np.testing.assert_array_equal(from_file[c], from_arrays[c], err_msg=c)
     # The other backends and options reach the command's code: the same rows as the command.
-    for backend, extra in (("cpu", ["--threads", "2"]), ("dense", ["--level", "2", "--precision", "half"])):
+    for backend, extra in (("cpu", ["--threads", "2"]),
+                           ("dense", ["--level", "2", "--precision", "half", "--dark-rate", "1e-4"])):
         out = tmp_path / f"search-{backend}.csv"
         run_prism("reconstruct", "--dictionary", dictionary, "--events", events, "--vertices", "1", "--model", "none",
                   "--backend", backend, *extra, "--out", out)
-        kwargs = dict(threads=2) if backend == "cpu" else dict(level=2, precision="half")
+        kwargs = dict(threads=2) if backend == "cpu" else dict(level=2, precision="half", dark_rate=1e-4)
         check(prism.reconstruct(dictionary, events, model="none", backend=backend, **kwargs), out, 1e-8, 1e-8)
     # With the refinement (the thin-lens scene's model): the device's sums
     # may come in another order, so the same optimum to 1e-3 mm.
@@ -78,3 +79,5 @@ def test_reconstruct_refuses_bad_events_with_the_commands_messages(tmp_path):
         prism.reconstruct(dictionary, [(0, None, [1, 2])], model="none", binning=3)
     with pytest.raises(ValueError, match="vertices: 9"):
         prism.reconstruct(dictionary, [], vertices=9)
+    with pytest.raises(ValueError, match="dark_rate: 0 must be > 0"):
+        prism.reconstruct(dictionary, [], dark_rate=0)
