@@ -35,6 +35,12 @@ inline constexpr const char* device_help =
     "Vulkan device: auto (GPU if present), gpu, cpu (lavapipe), an index or part of a name (prism devices); "
     "default $PRISM_DEVICE or auto";
 
+// What --dark-rate sets, said alike by reconstruct and evaluate.
+inline constexpr const char* dark_rate_help =
+    "the likelihood's background, expected counts per click-level pixel and event: the NLL's floor at clicks no "
+    "PSF reaches, in the search and the refinement (README \"Clicks at the sensor's own pixels\": it sets how much a "
+    "click the model misses costs)";
+
 struct ForwardOptions {
   std::string device;
   unsigned rays = 0;  // 0: the splat's converged default (TraceSettings::default_rays)

@@ -57,7 +57,8 @@ TEST_CASE("prism --help names every subcommand, and a word where one must stand 
   refused("dictionary merge", "'merge' is not a command of prism dictionary; choose from build, info, simulate-hdr, merge-hdr, assemble");
   refused("dictionary", "prism dictionary needs a command: build, info, simulate-hdr, merge-hdr, assemble");
   refused("crlb extra", "not expected: extra");  // a command's own words: CLI11's message
-  CHECK(prism::test::run_prism("reconstruct --help").output.find("--dark-rate FLOAT=1e-06") != std::string::npos);
+  for (const char* command : {"reconstruct", "evaluate"})
+    CHECK(prism::test::run_prism(std::string(command) + " --help").output.find("--dark-rate FLOAT=1e-06") != std::string::npos);
   refused("reconstruct --dictionary d --events e --out o.csv --dark-rate 0", "--dark-rate");
 }
 
