@@ -166,25 +166,23 @@ void bound_best() {
   float best_score;
   best_shift = lattice_shift(best_of_blocks(row, best_score), n);
   best_mass = mass_shifted(psf.sat_word, best_shift.x, best_shift.y);
-  // Over the reached clicks: their count, sum P, sum log P, sum b / P; and
-  // the terms free of alpha (nll_lower_bound).
-  vec2 count_mass = vec2(0.0f), logp_ratio = vec2(0.0f);
-  float fixed_part = 0.0f;
+  // The sums over the clicks that bound the NLL (nll_lower_bound).
+  float alpha0 = bound_tangent_alpha(float(click_count), best_mass, P.alpha_max);
+  BoundSums t = no_bound_sums();
   for (uint c = lane(); c < click_count; c += lanes()) {
     ivec2 q = click_at(c) - best_shift;
-    float p = psf_value(p_base, q.x, q.y);
-    float b = rate_weight[first_click + c].x;
-    if (p > 0.0f) {
-      count_mass += vec2(1.0f, p);
-      logp_ratio += vec2(log(p), b / p);
-      fixed_part -= b;
-    } else {
-      fixed_part -= b + log_click(b);
-    }
+    t = bound_sums_add(t, psf_value(p_base, q.x, q.y), rate_weight[first_click + c].x, alpha0);
   }
-  count_mass = lanes_sum2(count_mass);
-  logp_ratio = lanes_sum2(logp_ratio);
-  fixed_part = lanes_sum(fixed_part);
+  vec2 v = lanes_sum2(vec2(t.reached, t.q));
+  t.reached = v.x, t.q = v.y;
+  v = lanes_sum2(vec2(t.log_p, t.ratio));
+  t.log_p = v.x, t.ratio = v.y;
+  v = lanes_sum2(vec2(t.fixed_part, t.curved));
+  t.fixed_part = v.x, t.curved = v.y;
+  v = lanes_sum2(vec2(t.curved_log_p, t.curved_ratio));
+  t.curved_log_p = v.x, t.curved_ratio = v.y;
+  v = lanes_sum2(vec2(t.tangent_slope, t.tangent_offset));
+  t.tangent_slope = v.x, t.tangent_offset = v.y;
   if (lane() == 0u) {
     ScanOut o;
     o.shift_x = best_shift.x;
@@ -194,8 +192,7 @@ void bound_best() {
     o.alpha = 0.0f;
     o.newton = FIT_SKIPPED;
     o.shifts = shifts;
-    o.bound = nll_lower_bound(count_mass.x, count_mass.y, logp_ratio.x, logp_ratio.y, fixed_part, best_mass,
-                              P.alpha_max);
+    o.bound = nll_lower_bound(t, best_mass, P.alpha_max);
     results[row] = o;
   }
 }

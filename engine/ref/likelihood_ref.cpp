@@ -16,25 +16,49 @@ double click_curvature(double lambda) {
 
 double click_weight(double lambda) { return 1.0 / -std::expm1(-lambda); }
 
+namespace {
+
+// min over [0, alpha_max] of linear alpha + offset - log_p - n log(alpha + ratio / n):
+// convex, its minimum where the slope is 0 (linear only when n = 0).
+double convex_bound_min(double n, double linear, double offset, double log_p, double ratio, double alpha_max) {
+  if (n == 0) return offset + std::min(0.0, alpha_max * linear);
+  const double a = linear > 0 ? std::clamp(n / linear - ratio / n, 0.0, alpha_max) : alpha_max;
+  return offset + a * linear - log_p - n * std::log(a + ratio / n);
+}
+
+}  // namespace
+
 double nll_lower_bound(std::span<const double> p, double s, std::span<const double> background, double alpha_max) {
-  // Terms free of alpha exactly; over the reached clicks
-  // -log(1 - exp(-lambda)) >= -log(lambda) = -log(P_c) - log(alpha + b_c / P_c),
-  // and sum_c log(alpha + r_c) <= n log(alpha + mean r) (log is concave).
+  // Terms free of alpha exactly. Over the reached clicks, curved:
+  // h_c >= -log(lambda) = -log(P_c) - log(alpha + b_c / P_c) and
+  // sum_c log(alpha + r_c) <= n log(alpha + mean r) (log is concave); or,
+  // for those the background dominates at alpha0, h_c above its tangent there
+  // (h_c is convex). The larger of the two bounds.
+  const double alpha0 = s > 0 ? std::min(std::max(double(background.size()), 1.0) / s, alpha_max) : alpha_max;
   double fixed = 0, n = 0, q = 0, log_p = 0, ratio = 0;
+  double curved = 0, curved_log_p = 0, curved_ratio = 0, tangent_slope = 0, tangent_offset = 0;
   for (size_t c = 0; c < background.size(); ++c) {
     const double b = background[c];
     fixed -= b;
-    if (p[c] > 0) {
-      n += 1, q += p[c], log_p += std::log(p[c]), ratio += b / p[c];
-    } else {
+    if (p[c] <= 0) {
       fixed -= log_click(b);
+      continue;
+    }
+    n += 1, q += p[c], log_p += std::log(p[c]), ratio += b / p[c];
+    if (b <= alpha0 * p[c]) {
+      curved += 1, curved_log_p += std::log(p[c]), curved_ratio += b / p[c];
+    } else {
+      const double lambda0 = b + alpha0 * p[c];
+      const double slope = -p[c] / std::expm1(lambda0);  // h'(alpha0)
+      tangent_slope += slope;
+      tangent_offset += -log_click(lambda0) - alpha0 * slope;
     }
   }
   const double off_clicks = s - q;  // the mass the clicks do not see
-  if (n == 0) return fixed + std::min(0.0, alpha_max * off_clicks);
-  // alpha off_clicks - n log(alpha + ratio / n): convex, its minimum where the slope is 0.
-  const double a = off_clicks > 0 ? std::clamp(n / off_clicks - ratio / n, 0.0, alpha_max) : alpha_max;
-  return fixed + a * off_clicks - log_p - n * std::log(a + ratio / n);
+  const double all_curved = convex_bound_min(n, off_clicks, fixed, log_p, ratio, alpha_max);
+  if (curved == n) return all_curved;
+  return std::max(all_curved, convex_bound_min(curved, off_clicks + tangent_slope, fixed + tangent_offset,
+                                               curved_log_p, curved_ratio, alpha_max));
 }
 
 double fit_weights(std::span<const std::vector<double>* const> p, std::span<const double> s,

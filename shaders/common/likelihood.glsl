@@ -50,32 +50,95 @@ PRISM_FN float click_curvature(float lambda) {
 
 // A lower bound on what one candidate's NLL can reach over its weight,
 //   min over 0 <= alpha <= alpha_max of
-//   f(alpha) = alpha S - sum_c [lambda_c + log(1 - exp(-lambda_c))],  lambda_c = b_c + alpha P_c,
+//   f(alpha) = alpha (S - q) - sum_c b_c + sum_c h_c(alpha),
+//   h_c(alpha) = -log(1 - exp(-lambda_c)),  lambda_c = b_c + alpha P_c,  q = sum_c P_c,
 // from sums over the clicks at its shift, without fitting the weight (the
 // support scan fits weights only for candidates whose bound can still win).
-// The clicks it does not reach (P_c = 0) give terms free of alpha, summed
-// exactly in `fixed_part` (-b_c - log(1 - exp(-b_c)) each) along with -b_c of
-// the reached ones. Of those, `reached` clicks with mass `q` (sum P_c),
-// `log_p` (sum log P_c) and `ratio` (sum b_c / P_c): 1 - exp(-lambda) <=
-// lambda gives -log(1 - exp(-lambda_c)) >= -log P_c - log(alpha + b_c / P_c),
-// and the concavity of log sum_c log(alpha + r_c) <= n log(alpha + ratio / n)
-// (nearly equal: b_c / P_c << alpha wherever the candidate explains a click).
-// What is left, alpha (S - q) - log_p - n log(alpha + ratio / n), is convex
-// in alpha with its minimum in closed form. Exact (to rounding) when no click
-// is reached.
+// Each h_c is convex and falls with alpha; it is bounded below two ways.
+//  - Curved, for clicks the candidate explains: 1 - exp(-lambda) <= lambda
+//    gives h_c >= -log P_c - log(alpha + r_c), r_c = b_c / P_c, and the
+//    concavity of log gives sum_c log(alpha + r_c) <= n log(alpha + mean r).
+//    Nearly equal where every r_c << alpha; one faint click (r_c >> alpha)
+//    inflates mean r and loosens it for all (a high dark rate makes many).
+//  - Tangent, for clicks the background dominates (b_c > alpha0 P_c): h_c
+//    lies above its tangent at alpha0 (convex), which is nearly h_c itself
+//    there, since such an h_c is nearly linear in alpha.
+// alpha0 is the weight's moment estimate, the event's clicks over S.
+// Clicks the candidate does not reach (P_c = 0) give terms free of alpha,
+// exact in fixed_part (-b_c - log(1 - exp(-b_c)) each), as is -b_c of the
+// reached ones. What is left, A alpha - log_p - n log(alpha + ratio / n),
+// is convex with its minimum in closed form. The bound is the larger of
+// this with every reached click curved and with the faint ones on their
+// tangent (both are bounds). Exact (to rounding) when no click is reached.
 // The double reference is ref::nll_lower_bound.
-PRISM_FN float nll_lower_bound(float reached, float q, float log_p, float ratio, float fixed_part, float s,
-                               float alpha_max) {
-  float free_mass = s - q;  // S - sum_c P_c >= 0 up to rounding: the mass off the clicks
-  // The sums came from float terms: the bound allows for their rounding
-  // (2e-4 of their magnitudes; the tests measure the float form against the
-  // double one at up to 1e-5).
-  if (reached <= 0.0f) return fixed_part + min(0.0f, alpha_max * free_mass) - 2e-4f * (abs(fixed_part) + 1.0f);
-  float a = alpha_max;  // free_mass <= 0: the bound falls all the way to alpha_max
-  if (free_mass > 0.0f) a = clamp(reached / free_mass - ratio / reached, 0.0f, alpha_max);
-  float spread = reached * log(a + ratio / reached);
-  float rounding = 2e-4f * (abs(fixed_part) + abs(log_p) + abs(a * free_mass) + abs(spread) + 1.0f);
-  return fixed_part + a * free_mass - log_p - spread - rounding;
+struct BoundSums {
+  float reached;         // clicks with P_c > 0
+  float q;               // their sum of P_c
+  float log_p;           // their sum of log P_c
+  float ratio;           // their sum of r_c
+  float fixed_part;      // -b_c of every click, -log(1 - exp(-b_c)) of the unreached
+  float curved;          // reached clicks with b_c <= alpha0 P_c: their count,
+  float curved_log_p;    //   sum of log P_c
+  float curved_ratio;    //   and sum of r_c
+  float tangent_slope;   // the others: sum of h_c'(alpha0) (<= 0)
+  float tangent_offset;  //   and of h_c(alpha0) - alpha0 h_c'(alpha0)
+};
+
+PRISM_FN BoundSums no_bound_sums() {
+  BoundSums z;
+  z.reached = 0.0f, z.q = 0.0f, z.log_p = 0.0f, z.ratio = 0.0f, z.fixed_part = 0.0f;
+  z.curved = 0.0f, z.curved_log_p = 0.0f, z.curved_ratio = 0.0f, z.tangent_slope = 0.0f, z.tangent_offset = 0.0f;
+  return z;
+}
+
+// The tangent point: the moment estimate of the weight (clicks over S), in (0, alpha_max].
+PRISM_FN float bound_tangent_alpha(float clicks, float s, float alpha_max) {
+  return s > 0.0f ? min(max(clicks, 1.0f) / s, alpha_max) : alpha_max;
+}
+
+// One click into the sums: P_c = p, b_c = b.
+PRISM_FN BoundSums bound_sums_add(BoundSums t, float p, float b, float alpha0) {
+  t.fixed_part -= b;
+  if (p <= 0.0f) {
+    t.fixed_part -= log_click(b);
+    return t;
+  }
+  float lp = log(p), r = b / p;
+  t.reached += 1.0f, t.q += p, t.log_p += lp, t.ratio += r;
+  if (b <= alpha0 * p) {
+    t.curved += 1.0f, t.curved_log_p += lp, t.curved_ratio += r;
+  } else {
+    float lambda0 = b + alpha0 * p;
+    // h'(alpha0) = -P exp(-lambda0) / (1 - exp(-lambda0)), without cancellation.
+    float slope = -p * exp(-lambda0) * click_weight(lambda0);
+    t.tangent_slope += slope;
+    t.tangent_offset += -log_click(lambda0) - alpha0 * slope;
+  }
+  return t;
+}
+
+// min over [0, alpha_max] of linear alpha + offset - log_p - n log(alpha + ratio / n),
+// less an allowance for float sums (2e-4 of their magnitudes; the tests
+// measure the float form against the double one at up to 1e-5).
+PRISM_FN float convex_bound_min(float n, float linear, float offset, float log_p, float ratio, float alpha_max) {
+  if (n <= 0.0f) {
+    float a0 = linear < 0.0f ? alpha_max : 0.0f;
+    return offset + linear * a0 - 2e-4f * (abs(offset) + abs(linear * a0) + 1.0f);
+  }
+  float a = alpha_max;  // linear <= 0: the bound falls all the way to alpha_max
+  if (linear > 0.0f) a = clamp(n / linear - ratio / n, 0.0f, alpha_max);
+  float spread = n * log(a + ratio / n);
+  return offset + a * linear - log_p - spread -
+         2e-4f * (abs(offset) + abs(log_p) + abs(a * linear) + abs(spread) + 1.0f);
+}
+
+PRISM_FN float nll_lower_bound(BoundSums t, float s, float alpha_max) {
+  float free_mass = s - t.q;  // S - sum_c P_c >= 0 up to rounding: the mass off the clicks
+  float all_curved = convex_bound_min(t.reached, free_mass, t.fixed_part, t.log_p, t.ratio, alpha_max);
+  if (t.curved == t.reached) return all_curved;
+  float split = convex_bound_min(t.curved, free_mass + t.tangent_slope, t.fixed_part + t.tangent_offset,
+                                 t.curved_log_p, t.curved_ratio, alpha_max);
+  return max(all_curved, split);
 }
 
 // ScanOut.newton of a serial weight fit that ran out of loop budget (support_scan.comp).

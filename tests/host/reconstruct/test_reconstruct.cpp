@@ -184,16 +184,11 @@ TEST_CASE("the NLL bound that lets the scan skip weight fits lies below the fitt
     if (none_reached) CHECK(bound == doctest::Approx(best).epsilon(1e-12));
     else reached_cases++, worst_gap_per_click = std::max(worst_gap_per_click, (best - bound) / double(clicks));
     // The kernels' float form from the same sums (support_scan.comp, phase 1).
-    float n = 0, q = 0, log_p = 0, ratio = 0, fixed_part = 0;
-    for (size_t c = 0; c < clicks; ++c) {
-      if (p[c] > 0) {
-        n += 1, q += float(p[c]), log_p += std::log(float(p[c])), ratio += float(b[c] / p[c]);
-        fixed_part -= float(b[c]);
-      } else {
-        fixed_part -= float(b[c]) + prism::shared::log_click(float(b[c]));
-      }
-    }
-    const float bound_f = prism::shared::nll_lower_bound(n, q, log_p, ratio, fixed_part, float(s), float(alpha_max));
+    const float alpha0 = prism::shared::bound_tangent_alpha(float(clicks), float(s), float(alpha_max));
+    prism::shared::BoundSums t = prism::shared::no_bound_sums();
+    for (size_t c = 0; c < clicks; ++c) t = prism::shared::bound_sums_add(t, float(p[c]), float(b[c]), alpha0);
+    const float bound_f = prism::shared::nll_lower_bound(t, float(s), float(alpha_max));
+    const float n = t.reached, log_p = t.log_p, fixed_part = t.fixed_part;
     // Float sums of up to 300 terms: within their rounding of the double
     // bound, and below it by no more than the allowance the kernel subtracts.
     const double magnitude = std::abs(double(fixed_part)) + std::abs(double(log_p)) + double(n) * (1 + std::log(alpha_max)) + 1;
@@ -202,6 +197,44 @@ TEST_CASE("the NLL bound that lets the scan skip weight fits lies below the fitt
   }
   CHECK(reached_cases > 100);
   MESSAGE("largest gap between the bound and the fitted NLL: " << worst_gap_per_click << " per click");
+}
+
+TEST_CASE("the NLL bound stays tight when a high dark rate makes faint clicks that the candidate barely reaches") {
+  // A candidate that explains 60 clicks (lambda ~ 0.1 at alpha ~ 100) and
+  // reaches 20 more faintly (P_c = 1e-7 under a background of 1e-4: r_c =
+  // 1000 >> alpha). Curved alone, the faint clicks' r_c inflate the mean r
+  // of every click and the bound falls tens of nats below the fitted NLL,
+  // so the scan must fit this candidate's weight; on their tangents they
+  // cost the bound almost nothing.
+  std::vector<double> p, b;
+  for (int c = 0; c < 60; ++c) p.push_back(1e-3 * (0.5 + c / 60.0)), b.push_back(1e-4);
+  for (int c = 0; c < 20; ++c) p.push_back(1e-7), b.push_back(1e-4);
+  const double s = std::accumulate(p.begin(), p.end(), 0.0) + 0.9, alpha_max = 1e6;
+  const std::vector<double>* cols[] = {&p};
+  std::vector<double> alpha{prism::ref::initial_alpha(p, s, alpha_max)};
+  const double fitted = prism::ref::fit_weights(cols, std::span<const double>(&s, 1), b, alpha, 200, alpha_max);
+  const double bound = prism::ref::nll_lower_bound(p, s, b, alpha_max);
+  const float alpha0 = prism::shared::bound_tangent_alpha(float(p.size()), float(s), float(alpha_max));
+  prism::shared::BoundSums t = prism::shared::no_bound_sums();
+  for (size_t c = 0; c < p.size(); ++c) t = prism::shared::bound_sums_add(t, float(p[c]), float(b[c]), alpha0);
+  const float bound_f = prism::shared::nll_lower_bound(t, float(s), float(alpha_max));
+  prism::shared::BoundSums all_curved = t;  // every reached click curved: the bound before the tangents
+  all_curved.curved = all_curved.reached, all_curved.curved_log_p = all_curved.log_p;
+  all_curved.curved_ratio = all_curved.ratio;
+  const float loose = prism::shared::nll_lower_bound(all_curved, float(s), float(alpha_max));
+  CAPTURE(alpha[0]);
+  CAPTURE(fitted);
+  CAPTURE(bound);
+  CAPTURE(bound_f);
+  CAPTURE(loose);
+  CHECK(t.curved == 60);
+  CHECK(bound <= fitted);
+  CHECK(fitted - bound < 5.0);
+  CHECK(bound_f <= fitted);
+  CHECK(fitted - bound_f < 5.0);
+  CHECK(fitted - loose > 20.0);
+  MESSAGE("fitted NLL " << fitted << " at alpha " << alpha[0] << "; bound " << bound << " (float " << bound_f
+                        << "), every click curved " << loose);
 }
 
 TEST_CASE("reconstruction: one forward-model vertex off the grid, 25 trials at 100 and 1000 photons") {
