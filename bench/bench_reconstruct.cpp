@@ -7,8 +7,10 @@
 // plot of error against time per event.
 //
 //   bench_reconstruct [--device D] [--dictionary DIR] [--native-dictionary DIR] [--out DIR]
-//                     [--events-per-position N] [--native-positions N] [--groups G,...]
+//                     [--events-per-position N] [--native-positions N] [--dark-rate R] [--groups G,...]
 //
+// --dark-rate sets the likelihood's floor per click pixel for every row
+// (ReconstructionSettings::dark_rate; the bound rows' pruning depends on it).
 // --groups runs only those groups of rows (backend, tier, coarse, bound, layout,
 // step, precision, K, refine, native); the ratios print where their rows ran.
 //
@@ -114,6 +116,7 @@ struct Config {
   // the scan of the next (reconstruct.h) or after it.
   int scan_chunk_events = defaults::scan_chunk_events;
   bool overlap_scans = true;
+  double dark_rate = ReconstructionSettings{}.dark_rate;  // the likelihood's floor per click pixel (--dark-rate)
 };
 
 Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, const std::vector<Event>& events,
@@ -128,6 +131,7 @@ Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, c
   s.fit_all_weights = c.fit_all_weights;
   s.scan_chunk_events = c.scan_chunk_events;
   s.overlap_scans = c.overlap_scans;
+  s.dark_rate = c.dark_rate;
   DictionaryService service(reader, device ? &ctx : nullptr, s.search_level, {}, c.half);
   Row r;
   r.group = c.group;
@@ -185,6 +189,7 @@ int main(int argc, char** argv) {
   std::string device, dict_dir, native_dir, out_dir = "bench-reconstruct";
   int per_position = 8;
   int native_positions = 0;  // 0: three fixed positions inside the small native grid
+  double dark_rate = ReconstructionSettings{}.dark_rate;
   std::string only;  // --groups: comma-separated, empty for all
   for (int i = 1; i < argc; ++i) {
     std::string a = argv[i];
@@ -202,10 +207,11 @@ int main(int argc, char** argv) {
     else if (a == "--events-per-position") per_position = std::max(2, std::stoi(value()));
     else if (a == "--native-positions") native_positions = std::max(1, std::stoi(value()));
     else if (a == "--groups") only = "," + value() + ",";
+    else if (a == "--dark-rate") dark_rate = std::stod(value());
     else {
       std::fprintf(stderr, "usage: bench_reconstruct [--device D] [--dictionary DIR] [--native-dictionary DIR] [--out DIR] "
-                           "[--events-per-position N] [--native-positions N] [--groups backend,tier,coarse,bound,layout,overlap,step,precision,K,refine,"
-                           "native]\n");
+                           "[--events-per-position N] [--native-positions N] [--dark-rate R] [--groups backend,tier,coarse,bound,layout,"
+                           "overlap,step,precision,K,refine,native]\n");
       return a == "--help" || a == "-h" ? 0 : 2;
     }
   }
@@ -259,6 +265,7 @@ int main(int argc, char** argv) {
   std::printf("# bench_reconstruct\n# machine: %s\n# device: %s\n", bench::machine_line().c_str(), ctx.describe().c_str());
   std::printf("# dictionary: %zu PSFs, level 0 %d x %d px (%.0f um), %d levels; clicks on level 0\n", m.grid.size(),
               m.width, m.height, m.pixel_mm(0) * 1e3, m.levels);
+  std::printf("# likelihood floor (--dark-rate): %g expected counts per click pixel and event\n", dark_rate);
   std::printf("# events: forward model at %zu off-grid positions, 100 photons (pairs: 125 + 125); times: medians of "
               "3 repeats; error: 3D, against the truth\n\n",
               positions.size());
@@ -271,7 +278,9 @@ int main(int argc, char** argv) {
   const Row not_run;
   auto run = [&](const Config& c, const std::vector<Event>& ev, const std::vector<Truth>& tr) -> const Row& {
     if (!only.empty() && only.find("," + c.group + ",") == std::string::npos) return not_run;
-    rows.push_back(measure(ctx, reader, c, ev, tr));
+    Config at_floor = c;
+    at_floor.dark_rate = dark_rate;
+    rows.push_back(measure(ctx, reader, at_floor, ev, tr));
     print(rows.back());
     return rows.back();
   };
@@ -426,7 +435,9 @@ int main(int argc, char** argv) {
       }
     }
     auto run_native = [&](const Config& c, const std::vector<Event>& ev) {
-      Row r = measure(ctx, native, c, ev, native_truths);
+      Config at_floor = c;
+      at_floor.dark_rate = dark_rate;
+      Row r = measure(ctx, native, at_floor, ev, native_truths);
       print(r);
       rows.push_back(r);
       return r;
