@@ -107,6 +107,13 @@ inline constexpr double search_shifts_per_click = 1.5e5;
 // hands the search scan_chunks_per_batch such chunks at once.
 inline constexpr int scan_chunk_events = 64;
 inline constexpr int scan_chunks_per_batch = 4;
+// The search's likelihood floor (ReconstructionSettings::search_dark_rate),
+// expected counts per sensor pixel and event: 1e-4 per 110 um click pixel
+// (16 x 16 sensor pixels). Of 1e-6..1e-3 per 110 um pixel on 1000 volume
+// events (seed 7), and checked on 1000 others (seed 8): README "The floor
+// with the refinement". At the sensor's own pixels it is below the weights'
+// dark rate, which the search then keeps.
+inline constexpr double search_dark_rate_per_sensor_pixel = 1e-4 / 256;
 
 // Continuous refinement of reconstructed vertices (host/reconstruct/refine.h):
 // the scene's forward model, footprint splat, at this many cells per lenslet

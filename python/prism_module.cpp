@@ -456,6 +456,7 @@ SessionOptions session_options(const py::dict& o) {
   s.settings.carry_margin_nll = o["carry_margin"].cast<double>();
   s.settings.tau_mm = o["tau_mm"].cast<double>();
   s.settings.dark_rate = o["dark_rate"].cast<double>();
+  s.settings.search_dark_rate = o["search_dark_rate"].cast<double>();
   return s;
 }
 
@@ -661,6 +662,7 @@ PYBIND11_MODULE(_core, m) {
     d["carry_margin"] = s.settings.carry_margin_nll;
     d["tau_mm"] = s.settings.tau_mm;
     d["dark_rate"] = s.settings.dark_rate;
+    d["search_dark_rate"] = s.settings.search_dark_rate;
     return d;
   });
   m.def("set_max_memory", [](const std::string& text) {

@@ -295,6 +295,9 @@ void add_evaluate(CLI::App& app) {
                 "level chosen by a budget of shifts per click)")
       ->check(non_negative_number);
   c->add_option("--dark-rate", a->options.settings.dark_rate, dark_rate_help)->capture_default_str()->check(positive_number);
+  c->add_option("--search-dark-rate", a->options.settings.search_dark_rate, search_dark_rate_help)
+      ->capture_default_str()
+      ->check(non_negative_number);
   c->add_option("--precision", a->precision, "device backends: the scan level's values as float or half")
       ->capture_default_str()->check(CLI::IsMember({"float", "half"}));
   c->add_option("--device", a->device, "Vulkan device for the reconstruction, the event truth and the CRLB (see "

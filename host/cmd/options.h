@@ -41,6 +41,13 @@ inline constexpr const char* dark_rate_help =
     "PSF reaches, in the search and the refinement (README \"Clicks at the sensor's own pixels\": it sets how much a "
     "click the model misses costs)";
 
+// What --search-dark-rate sets, said alike by reconstruct and evaluate.
+inline constexpr const char* search_dark_rate_help =
+    "the floor with which the search chooses among the dictionary's PSFs, expected counts per sensor pixel (a click "
+    "pixel of b x b sensor pixels holds b^2 of it, and never less than --dark-rate; 0: --dark-rate alone); the "
+    "weights, the descent and the refinement keep --dark-rate. Higher makes a click the nearest PSF misses cost the "
+    "search less without biasing the photon count (README \"The floor with the refinement\")";
+
 struct ForwardOptions {
   std::string device;
   unsigned rays = 0;  // 0: the splat's converged default (TraceSettings::default_rays)

@@ -212,6 +212,9 @@ void add_reconstruct(CLI::App& app) {
   c->add_option("--tau-mm", a->session.settings.tau_mm, "lateral search half-width around each grid node, source mm")
       ->capture_default_str()->check(non_negative_number);
   c->add_option("--dark-rate", a->session.settings.dark_rate, dark_rate_help)->capture_default_str()->check(positive_number);
+  c->add_option("--search-dark-rate", a->session.settings.search_dark_rate, search_dark_rate_help)
+      ->capture_default_str()
+      ->check(non_negative_number);
   c->add_option("--budget-mib", a->session.budget_mib, "host memory for summed-area tables, tiles and open PSF files, all threads together")
       ->capture_default_str()->check(positive_number);
   c->add_option("--threads", a->session.threads, "worker threads of the cpu backend")->capture_default_str()->check(CLI::Range(1u, 256u));

@@ -106,9 +106,14 @@ const Column& EventFit::column(size_t psf, Shift shift) {
   return columns_.emplace(key, std::move(c)).first->second;
 }
 
-std::vector<double> EventFit::rates(int level, const std::vector<Vertex>& vs, int skip) {
+double EventFit::search_floor() const {
+  const double side = double(m_.base_binning) * std::ldexp(1.0, level_);  // sensor pixels per click pixel, per axis
+  return std::max(s_.dark_rate, s_.search_dark_rate * side * side);
+}
+
+std::vector<double> EventFit::rates(int level, const std::vector<Vertex>& vs, double floor, int skip) {
   const auto& cl = clicks_at(level);
-  std::vector<double> lam(cl.size(), s_.dark_rate * double(1 << (2 * (level - level_))));
+  std::vector<double> lam(cl.size(), floor * double(1 << (2 * (level - level_))));
   for (size_t k = 0; k < vs.size(); ++k) {
     if (int(k) == skip || vs[k].alpha <= 0) continue;
     Shift sh = vs[k].shift;
@@ -126,7 +131,7 @@ std::vector<double> EventFit::rates(int level, const std::vector<Vertex>& vs, in
 
 std::vector<double> EventFit::dense_rates(int level) {
   const int w = m_.level_width(level), h = m_.level_height(level);
-  std::vector<double> lam(size_t(w) * size_t(h), s_.dark_rate * double(1 << (2 * (level - level_))));
+  std::vector<double> lam(size_t(w) * size_t(h), search_floor() * double(1 << (2 * (level - level_))));
   std::vector<glm::ivec2> px(lam.size());
   for (const Vertex& v : vs_) {
     if (v.alpha <= 0) continue;
@@ -171,7 +176,7 @@ double EventFit::fit_one(const std::vector<double>& p, double s, const std::vect
 ScanEvent EventFit::scan_input(bool dense) {
   ScanEvent e;
   e.clicks = clicks_at(search_level_);
-  e.rate = rates(search_level_, vs_);
+  e.rate = rates(search_level_, vs_, search_floor());
   if (dense) e.dense_rate = dense_rates(search_level_);
   return e;
 }
@@ -228,7 +233,7 @@ std::vector<ReconstructedVertex> EventFit::finish(std::vector<Vertex>& vs) {
           std::abs(vs[j].shift.y - v.shift.y) <= 1)
         o.flags |= merged;
     DepthFit z{depth_of(v.psf), false};
-    if (v.alpha > 0) z = refine_depth(v, rates(level_, vs, int(k)));
+    if (v.alpha > 0) z = refine_depth(v, rates(level_, vs, s_.dark_rate, int(k)));
     glm::dvec2 xy = source_xy(v, z.depth_mm);
     o.x_mm = xy.x;
     o.y_mm = xy.y;

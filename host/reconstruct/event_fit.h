@@ -90,9 +90,14 @@ class EventFit {
   std::vector<float> values_at(size_t psf, int level, Shift shift);
   const Column& column(size_t psf, Shift shift);
   // lambda at the clicks of `level` of the vertices `vs` (shifts on the
-  // click grid), dark rate included; vertex `skip` left out.
-  std::vector<double> rates(int level, const std::vector<Vertex>& vs, int skip = -1);
+  // click grid), the floor `floor` (per click-level pixel) included; vertex
+  // `skip` left out.
+  std::vector<double> rates(int level, const std::vector<Vertex>& vs, double floor, int skip = -1);
   std::vector<double> dense_rates(int level);  // at every pixel (the dense baseline's input)
+  // The floor the search chooses PSFs with, per click-level pixel
+  // (ReconstructionSettings::search_dark_rate, per sensor pixel, times the
+  // sensor pixels in a click pixel; never below dark_rate).
+  double search_floor() const;
 
   // --- weights (event_fit.cpp) ---
   double fit(std::vector<Vertex>& vs);  // all weights jointly at the click level; the event's NLL

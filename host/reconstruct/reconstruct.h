@@ -42,6 +42,15 @@ struct ReconstructionSettings {
   double tau_mm = 2.5;           // lateral search half-width around each grid node, source mm (half a 5 mm pitch)
   double dark_rate = 1e-6;       // background expected counts per click-level pixel: keeps the NLL finite at
                                  // clicks no PSF reaches and is the gradient floor at lambda = 0 (see .cpp)
+  // The floor with which the search chooses among the dictionary's PSFs (scan,
+  // carry, selection), expected counts per *sensor* pixel (a click pixel of
+  // b x b sensor pixels holds b^2 of it; never below dark_rate there); the
+  // weights, the descent and the depth keep dark_rate, so the photon count is
+  // not biased by it. 0: dark_rate alone. A PSF at a grid node misses clicks
+  // of an off-grid source: a higher floor makes such a click cost the search
+  // less (README "The floor with the refinement"). The default is 1e-4 per
+  // 110 um click pixel (16 x 16 sensor pixels).
+  double search_dark_rate = defaults::search_dark_rate_per_sensor_pixel;
   int refine_candidates = 8;     // PSFs carried from the coarse scan (ranked by coarse NLL) to the click level
   // Coarse to fine: with the scan on a level coarser than select_level, every
   // PSF within carry_margin_nll of the scan's best NLL (at least

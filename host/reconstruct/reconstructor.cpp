@@ -123,8 +123,9 @@ Reconstructor::Reconstructor(DictionaryService& dictionary, int click_level, Rec
   const auto& m = dictionary.manifest();
   if (s_.vertices < 1 || s_.vertices > 8)
     throw std::invalid_argument("reconstruction: vertices = " + std::to_string(s_.vertices) + "; choose K in 1..8");
-  if (!(s_.dark_rate > 0) || !(s_.tau_mm >= 0) || !(s_.alpha_max > 0))
-    throw std::invalid_argument("reconstruction: dark_rate and alpha_max must be > 0 and tau_mm >= 0");
+  if (!(s_.dark_rate > 0) || !(s_.tau_mm >= 0) || !(s_.alpha_max > 0) || !(s_.search_dark_rate >= 0))
+    throw std::invalid_argument(
+        "reconstruction: dark_rate and alpha_max must be > 0, tau_mm and search_dark_rate >= 0");
   if (s_.scan_step_px < 1) throw std::invalid_argument("reconstruction: the scan step must be >= 1 pixel");
   if (level_ < 0 || level_ >= m.levels)
     throw std::invalid_argument("reconstruction: click level " + std::to_string(level_) + " is not in the dictionary");

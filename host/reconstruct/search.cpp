@@ -7,7 +7,8 @@
 // Coarse to fine (a scan coarser than select_level): every PSF within the
 // carry margin goes down to select_level first and is ranked again there.
 // The binary model is exact at any level: a block clicks when any of its
-// pixels does, with rate the block's sum.
+// pixels does, with rate the block's sum. The search's floor is
+// search_floor() throughout; the weights fitted after it (event_fit.cpp) keep dark_rate.
 #include <algorithm>
 #include <cmath>
 #include <limits>
@@ -42,7 +43,7 @@ Vertex EventFit::refine(std::vector<SupportScore> scored, std::vector<Vertex>& r
   auto weights_at = [&](int l) -> const std::vector<double>& {
     auto it = weights.find(l);
     if (it != weights.end()) return it->second;
-    auto w = rates(l, vs_);
+    auto w = rates(l, vs_, search_floor());
     for (double& x : w) x = ref::click_weight(x);
     return weights[l] = std::move(w);
   };
@@ -63,7 +64,7 @@ Vertex EventFit::refine(std::vector<SupportScore> scored, std::vector<Vertex>& r
     // in the order of their lower bounds on it (ref::nll_lower_bound), until
     // the next bound exceeds the keep-th NLL fitted so far; the rest cannot be
     // among the keep best, and are dropped unfitted.
-    const auto background = rates(Lf, vs_);
+    const auto background = rates(Lf, vs_, search_floor());
     struct Carried {
       double bound;
       size_t j;
@@ -97,7 +98,7 @@ Vertex EventFit::refine(std::vector<SupportScore> scored, std::vector<Vertex>& r
     ranked.resize(std::min(keep, ranked.size()));
     selected = std::move(ranked);
   }
-  auto background_click = rates(level_, vs_);
+  auto background_click = rates(level_, vs_, search_floor());
   std::vector<std::pair<double, Vertex>> tried;
   for (const SupportScore& c : selected) {
     Shift sh = c.shift;

@@ -460,7 +460,8 @@ def build_dictionary(out, scene="prototype", *, grid_x_mm=None, grid_y_mm=None, 
 
 def reconstruct(dictionary, events, *, vertices=1, binning=None, model=None, scene=None, backend="vulkan",
                 device=None, precision="float", level=None, scan_step=1, carry_margin=None, tau_mm=None,
-                dark_rate=None, batch=None, serial_scans=False, budget_mib=1024.0, threads=1, progress=None):
+                dark_rate=None, search_dark_rate=None, batch=None, serial_scans=False, budget_mib=1024.0, threads=1,
+                progress=None):
     """The vertices of every event, as `prism reconstruct` (the paper's
     ADCG-inspired search on the sparse likelihood, then the continuous
     maximum-likelihood refinement; README "Reconstruction").
@@ -482,7 +483,8 @@ def reconstruct(dictionary, events, *, vertices=1, binning=None, model=None, sce
         correlation on the device) or "cpu" (the double reference).
     device, precision ("float" or "half": the scan level's values on the
         device), level (the scan level; None: chosen by a budget of shifts
-        per click), scan_step, carry_margin, tau_mm, dark_rate, batch (events per
+        per click), scan_step, carry_margin, tau_mm, dark_rate,
+        search_dark_rate (per sensor pixel; 0: dark_rate alone), batch (events per
         device scan), serial_scans, budget_mib, threads (cpu backend): as the
         command's options of the same names.
     progress: None, or a callable progress(done, total) as events are done
@@ -501,9 +503,12 @@ def reconstruct(dictionary, events, *, vertices=1, binning=None, model=None, sce
                    vertices=int(vertices), scan_step=int(scan_step),
                    carry_margin=float(d["carry_margin"] if carry_margin is None else carry_margin),
                    tau_mm=float(d["tau_mm"] if tau_mm is None else tau_mm),
-                   dark_rate=float(d["dark_rate"] if dark_rate is None else dark_rate))
+                   dark_rate=float(d["dark_rate"] if dark_rate is None else dark_rate),
+                   search_dark_rate=float(d["search_dark_rate"] if search_dark_rate is None else search_dark_rate))
     if not options["dark_rate"] > 0:
         raise ValueError(f"dark_rate: {dark_rate} must be > 0 (expected counts per click pixel)")
+    if not options["search_dark_rate"] >= 0:
+        raise ValueError(f"search_dark_rate: {search_dark_rate} must be >= 0 (expected counts per sensor pixel)")
     if not 1 <= options["vertices"] <= 8:
         raise ValueError(f"vertices: {vertices} is not in 1..8")
     if not 1 <= options["batch"] <= 65535:

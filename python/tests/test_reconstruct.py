@@ -81,3 +81,5 @@ def test_reconstruct_refuses_bad_events_with_the_commands_messages(tmp_path):
         prism.reconstruct(dictionary, [], vertices=9)
     with pytest.raises(ValueError, match="dark_rate: 0 must be > 0"):
         prism.reconstruct(dictionary, [], dark_rate=0)
+    with pytest.raises(ValueError, match="search_dark_rate: -1 must be >= 0"):
+        prism.reconstruct(dictionary, [], search_dark_rate=-1)

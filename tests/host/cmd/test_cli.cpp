@@ -57,9 +57,13 @@ TEST_CASE("prism --help names every subcommand, and a word where one must stand 
   refused("dictionary merge", "'merge' is not a command of prism dictionary; choose from build, info, simulate-hdr, merge-hdr, assemble");
   refused("dictionary", "prism dictionary needs a command: build, info, simulate-hdr, merge-hdr, assemble");
   refused("crlb extra", "not expected: extra");  // a command's own words: CLI11's message
-  for (const char* command : {"reconstruct", "evaluate"})
-    CHECK(prism::test::run_prism(std::string(command) + " --help").output.find("--dark-rate FLOAT=1e-06") != std::string::npos);
+  for (const char* command : {"reconstruct", "evaluate"}) {
+    const std::string help = prism::test::run_prism(std::string(command) + " --help").output;
+    CHECK(help.find("--dark-rate FLOAT=1e-06") != std::string::npos);
+    CHECK(help.find("--search-dark-rate FLOAT=3.90625e-07") != std::string::npos);
+  }
   refused("reconstruct --dictionary d --events e --out o.csv --dark-rate 0", "--dark-rate");
+  refused("evaluate --dictionary d --search-dark-rate -1", "--search-dark-rate");
 }
 
 TEST_CASE("prism crlb writes the documented CSV columns and a plot") {

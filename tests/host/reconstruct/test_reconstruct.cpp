@@ -237,6 +237,46 @@ TEST_CASE("the NLL bound stays tight when a high dark rate makes faint clicks th
                         << "), every click curved " << loose);
 }
 
+TEST_CASE("the search's own floor chooses the PSF; the photon count keeps the dark rate and is not biased by it") {
+  // Three ways on the same events: the dark rate alone (1e-6 per click
+  // pixel); a search floor of 1e-3 per click pixel (search_dark_rate is per
+  // sensor pixel: a click pixel holds test_binning^2 of them) with the dark
+  // rate for the weights; and 1e-3 as the dark rate throughout. Where the
+  // search floor chooses the same PSF and shift, the vertex must be the same;
+  // and the high dark rate throughout must pull the photon
+  // count down (it expects ~125 background clicks over the 419 x 298 pixels),
+  // or this test could not tell the floors apart.
+  const double high = 1e-3;
+  auto plain = settings(1), split = settings(1), single = settings(1);
+  plain.search_dark_rate = 0;
+  split.search_dark_rate = high / double(test_binning * test_binning);
+  single.search_dark_rate = 0;
+  single.dark_rate = high;
+  int same = 0;
+  double alpha_plain = 0, alpha_single = 0;
+  const int n = prism::test::under_sanitizer ? 2 : 6;
+  for (int i = 0; i < n; ++i) {
+    CAPTURE(i);
+    const prism::Event e = make_event({{{2, -1.5, 23}, 100}}, 31, uint64_t(i));
+    const auto a = run(e, plain), b = run(e, split), c = run(e, single);
+    REQUIRE(a.size() == 1);
+    REQUIRE(b.size() == 1);
+    REQUIRE(c.size() == 1);
+    alpha_plain += a[0].alpha, alpha_single += c[0].alpha;
+    if (a[0].psf != b[0].psf || a[0].shift_px != b[0].shift_px) continue;
+    ++same;
+    // The same optimum from another start (Newton stops within 1e-9).
+    CHECK(b[0].alpha == doctest::Approx(a[0].alpha).epsilon(1e-7));
+    CHECK(b[0].nll == doctest::Approx(a[0].nll).epsilon(1e-9));
+    CHECK(b[0].depth_mm == doctest::Approx(a[0].depth_mm).epsilon(1e-7));
+  }
+  CHECK(same >= n / 2);
+  MESSAGE("mean alpha (100 photons): " << alpha_plain / n << " with the dark rate alone, " << alpha_single / n
+                                       << " with 1e-3 throughout; the search floor chose the same vertex in " << same
+                                       << " of " << n);
+  CHECK(alpha_single < 0.9 * alpha_plain);
+}
+
 TEST_CASE("reconstruction: one forward-model vertex off the grid, 25 trials at 100 and 1000 photons") {
   // (1, 1, 31) is the paper's line through the field; (2, -1.5, 23) tests the
   // shift's sign in both axes (a wrong sign would put it 4 and 3 mm away).
@@ -718,11 +758,13 @@ TEST_CASE("support scan on the device: sparse, dense and half agree with the CPU
         CHECK(got[i].empty());
         continue;
       }
-      // A serial fit sums its clicks in order, not in a tree: where the NLL
-      // is flat in alpha (a PSF that reaches a few clicks, a stray click it
-      // barely reaches) its float line search stops within 2e-3 of the
-      // reference's alpha (measured: 1.1e-3 at worst, the NLL agreeing).
-      auto c = compare_scans(ref[i], got[i], layout == L::group ? 1e-3 : 2e-3);
+      // Where the NLL is flat in alpha (a PSF that reaches a few clicks, a
+      // stray click it barely reaches) a float line search stops within 2e-3
+      // of the reference's alpha, the NLL agreeing. Measured: a serial fit
+      // (clicks summed in order) 1.1e-3 at worst at a floor of 1e-6 per click
+      // pixel; in workgroups 1.6e-3 relative (3.4e-3 at alpha 2.16) at the
+      // search's default floor (1.6e-3 per scan pixel here), on the 8-click event.
+      auto c = compare_scans(ref[i], got[i], 2e-3);
       MESSAGE(name << ", event " << i << " (" << events[i].clicks.size() << " clicks): same best shift for "
                    << c.same_shift << " of " << c.psfs << " PSFs; " << c.nll.report("NLL"));
       CHECK(c.same_shift >= c.psfs - 2);  // ties within float resolution may go either way
