@@ -139,6 +139,9 @@ void run(const ReconstructArgs& a) {
   std::printf("%s: %llu events, K = %d, %.1f clicks per event; clicks on level %d, search on level %d, tau %.2f mm\n",
               a.out.c_str(), (unsigned long long)done, s.vertices, done ? double(clicks) / double(done) : 0.0, session.click_level(),
               pool.search_level(), s.tau_mm);
+  std::printf("likelihood floors: --dark-rate %g per click pixel (weights, refinement), --search-dark-rate %g per "
+              "sensor pixel (the search's choice of PSFs)\n",
+              s.dark_rate, s.search_dark_rate);
   std::printf("%.2f s, %.1f events/s; %llu vertices flagged\n", seconds, seconds > 0 ? double(done) / seconds : 0.0,
               (unsigned long long)flagged);
   if (on_device)  // the scans ran beside the host's work (ReconstructionSettings::overlap_scans)
