@@ -38,8 +38,8 @@ inline constexpr const char* device_help =
 // What --dark-rate sets, said alike by reconstruct and evaluate.
 inline constexpr const char* dark_rate_help =
     "the likelihood's background, expected counts per click-level pixel and event: the NLL's floor at clicks no "
-    "PSF reaches, in the search and the refinement (README \"Clicks at the sensor's own pixels\": it sets how much a "
-    "click the model misses costs)";
+    "PSF reaches, for the weights and the refinement, and for the search where --search-dark-rate gives less "
+    "(README \"Clicks at the sensor's own pixels\": it sets how much a click the model misses costs)";
 
 // What --search-dark-rate sets, said alike by reconstruct and evaluate.
 inline constexpr const char* search_dark_rate_help =
