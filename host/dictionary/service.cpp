@@ -39,9 +39,10 @@ DictionaryService::DictionaryService(const DictionaryReader& reader, vk::Context
   auto finer_hint = [&] {
     return coarse_level + 1 < m.levels ? "; level " + std::to_string(coarse_level + 1) + " needs a quarter of it" : "";
   };
-  if (sat_bytes * n > budget.host_bytes)
+  const uint64_t lit_bytes = (w + 1) * (h + 1) * sizeof(uint32_t);
+  if ((sat_bytes + lit_bytes) * n > budget.host_bytes)
     throw DictionaryError(reader.dir() + ": the summed-area tables of level " + std::to_string(coarse_level) + " need " +
-                          mib(sat_bytes * n) + ", more than the host budget of " + mib(budget.host_bytes) + finer_hint());
+                          mib((sat_bytes + lit_bytes) * n) + ", more than the host budget of " + mib(budget.host_bytes) + finer_hint());
   if (ctx && psf_bytes * n > budget.device_bytes)
     throw DictionaryError(reader.dir() + ": level " + std::to_string(coarse_level) + " needs " + mib(psf_bytes * n) +
                           " on the device (values and summed-area tables), more than the device budget of " +
@@ -55,7 +56,8 @@ DictionaryService::DictionaryService(const DictionaryReader& reader, vk::Context
     PsfLevel lv = reader.has(i) ? reader.read_level(i, coarse_level)
                                 : throw DictionaryError(reader.path_of(i) + ": missing; finish `prism dictionary build`");
     sats_.emplace_back(lv);
-    account(int64_t(sats_.back().bytes()));
+    lit_.emplace_back(lv);
+    account(int64_t(sats_.back().bytes() + lit_.back().bytes()));
     if (!ctx) continue;
     uint32_t chunk = uint32_t(i / per_chunk);
     uint64_t in_chunk = i % per_chunk;
@@ -102,12 +104,22 @@ ScanLevel DictionaryService::scan_level() const {
   return s;
 }
 
+ServiceStats& ServiceStats::operator+=(const ServiceStats& o) {
+  for (auto [a, b] : {std::pair{&host_bytes, o.host_bytes}, {&host_peak_bytes, o.host_peak_bytes},
+                      {&device_bytes, o.device_bytes}, {&tile_hits, o.tile_hits}, {&tile_misses, o.tile_misses},
+                      {&evictions, o.evictions}, {&bytes_read, o.bytes_read}, {&file_opens, o.file_opens},
+                      {&dark_pixels, o.dark_pixels}})
+    *a += b;
+  return *this;
+}
+
 void DictionaryService::account(int64_t delta) {
   stats_.host_bytes = uint64_t(int64_t(stats_.host_bytes) + delta);
   stats_.host_peak_bytes = std::max(stats_.host_peak_bytes, stats_.host_bytes);
 }
 
 const std::vector<float>& DictionaryService::tile(size_t i, int level, int tx, int ty) {
+  const int t = reader_.manifest().tile_px;
   TileKey key{i, level, tx, ty};
   auto it = tiles_.find(key);
   if (it != tiles_.end()) {
@@ -116,7 +128,6 @@ const std::vector<float>& DictionaryService::tile(size_t i, int level, int tx, i
     return it->second.p;
   }
   ++stats_.tile_misses;
-  int t = reader_.manifest().tile_px;
   uint64_t bytes = uint64_t(t) * t * sizeof(float);
   // A file opened for the tile counts too, unless it takes a closed one's place.
   const bool file_open = std::any_of(files_.begin(), files_.end(), [&](const PsfFile& f) { return f.index() == i; });
@@ -178,6 +189,14 @@ std::vector<float> DictionaryService::values(size_t i, int level, std::span<cons
     const int tx = px.x / t, ty = px.y / t;
     Seen& slot = seen[size_t(tx * 7 + ty) % seen.size()];
     if (slot.tx != tx || slot.ty != ty) {
+      if (level < coarse_level_) {
+        // Dark on the coarse level: no light in the pixel, no tile to read.
+        const int d = coarse_level_ - level, cx = px.x >> d, cy = px.y >> d;
+        if (lit_[i].count(cx, cy, cx + 1, cy + 1) == 0) {
+          ++stats_.dark_pixels;
+          continue;
+        }
+      }
       const uint64_t evictions = stats_.evictions;
       const float* p = tile(i, level, tx, ty).data();
       if (stats_.evictions != evictions) seen.fill(Seen{});

@@ -4,7 +4,9 @@
 // values (float, or half floats at the store's scale) followed by its
 // summed-area table in float; the tables stay on the host too, in double. Finer levels are read tile by tile, only
 // around the pixels asked for, into an LRU cache that never exceeds the host
-// budget. A dictionary far larger than memory is served this way.
+// budget. A dictionary far larger than memory is served this way. A pixel
+// under a dark pixel of the coarse level is known to be zero: its tile is not
+// read for it.
 #pragma once
 #include <cstdint>
 #include <list>
@@ -36,6 +38,9 @@ struct ServiceStats {
   uint64_t tile_hits = 0, tile_misses = 0, evictions = 0;
   uint64_t bytes_read = 0;  // decoded tile bytes fetched from disk
   uint64_t file_opens = 0;  // PSF files opened for tiles (the coarse level's reads not counted)
+  uint64_t dark_pixels = 0;  // pixels asked for that are dark on the coarse level: zeros, no tile read
+  // Another service's counts added (peaks and device bytes too: services side by side).
+  ServiceStats& operator+=(const ServiceStats& o);
 };
 
 class DictionaryService {
@@ -91,6 +96,7 @@ class DictionaryService {
   std::vector<std::unique_ptr<vk::Buffer>> chunks_;
   std::vector<Slot> slots_;
   std::vector<SummedArea> sats_;
+  std::vector<LitPixels> lit_;  // per PSF, the coarse level's lit pixels
   std::map<TileKey, Tile> tiles_;
   std::list<TileKey> lru_;  // front: most recent
   std::list<PsfFile> files_;  // open PSF files, front: most recently read

@@ -561,12 +561,36 @@ SummedArea::SummedArea(const PsfLevel& l) : width_(l.width), height_(l.height) {
   }
 }
 
+LitPixels::LitPixels(const PsfLevel& l) : width_(l.width), height_(l.height) {
+  table_.assign(size_t(width_ + 1) * (height_ + 1), 0u);
+  for (int y = 0; y < height_; ++y) {
+    uint32_t row = 0;
+    for (int x = 0; x < width_; ++x) {
+      row += l.p[size_t(y) * width_ + x] > 0.0f ? 1u : 0u;
+      table_[size_t(y + 1) * (width_ + 1) + x + 1] = table_[size_t(y) * (width_ + 1) + x + 1] + row;
+    }
+  }
+}
+
+namespace {
+// Clips [x0, x1) x [y0, y1) to a width x height level; false when nothing is left.
+bool clip_rect(int& x0, int& y0, int& x1, int& y1, int width, int height) {
+  x0 = std::clamp(x0, 0, width);
+  x1 = std::clamp(x1, 0, width);
+  y0 = std::clamp(y0, 0, height);
+  y1 = std::clamp(y1, 0, height);
+  return x1 > x0 && y1 > y0;
+}
+}  // namespace
+
+uint32_t LitPixels::count(int x0, int y0, int x1, int y1) const {
+  if (!clip_rect(x0, y0, x1, y1, width_, height_)) return 0;
+  auto at = [&](int x, int y) { return table_[size_t(y) * (width_ + 1) + x]; };
+  return at(x1, y1) - at(x0, y1) - at(x1, y0) + at(x0, y0);  // exact in unsigned arithmetic
+}
+
 double SummedArea::mass(int x0, int y0, int x1, int y1) const {
-  x0 = std::clamp(x0, 0, width_);
-  x1 = std::clamp(x1, 0, width_);
-  y0 = std::clamp(y0, 0, height_);
-  y1 = std::clamp(y1, 0, height_);
-  if (x1 <= x0 || y1 <= y0) return 0.0;
+  if (!clip_rect(x0, y0, x1, y1, width_, height_)) return 0.0;
   auto at = [&](int x, int y) { return table_[size_t(y) * (width_ + 1) + x]; };
   return at(x1, y1) - at(x0, y1) - at(x1, y0) + at(x0, y0);
 }

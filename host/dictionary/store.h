@@ -168,4 +168,20 @@ class SummedArea {
   std::vector<double> table_;  // (width + 1) x (height + 1), row-major
 };
 
+// Which pixels of a level hold light, counted over rectangles (an integer
+// summed-area table of p > 0). A level-k pixel sums its level-0 pixels, all
+// non-negative, so a rectangle with no lit pixel at a coarse level has none
+// at any finer level: the tiles under it need not be read.
+class LitPixels {
+ public:
+  explicit LitPixels(const PsfLevel& level);
+  // Lit pixels in columns [x0, x1) and rows [y0, y1), clipped to the level.
+  uint32_t count(int x0, int y0, int x1, int y1) const;
+  size_t bytes() const { return table_.size() * sizeof(uint32_t); }
+
+ private:
+  int width_, height_;
+  std::vector<uint32_t> table_;  // (width + 1) x (height + 1), row-major
+};
+
 }  // namespace prism

@@ -400,6 +400,38 @@ TEST_CASE("streaming serves a dictionary several times larger than its budget") 
   prism::test::check_validation_clean();
 }
 
+TEST_CASE("a pixel dark on the coarse level is served as zero without its tile") {
+  auto& d = small();
+  prism::DictionaryReader r(d.dir);
+  const auto& m = r.manifest();
+  const int coarse = 2;  // 105 x 75 px of 441 um: the lenslets' images leave some dark
+  prism::DictionaryService svc(r, nullptr, coarse, prism::ServiceBudget{});
+  // Every pixel of every finer level, against the file.
+  uint64_t pixels = 0;
+  for (size_t i = 0; i < m.grid.size(); ++i)
+    for (int level = 0; level < coarse; ++level) {
+      CAPTURE(i);
+      CAPTURE(level);
+      const auto want = r.read_level(i, level);
+      std::vector<glm::ivec2> px;
+      for (int y = 0; y < want.height; ++y)
+        for (int x = 0; x < want.width; ++x) px.push_back({x, y});
+      pixels += px.size();
+      CHECK(svc.values(i, level, px) == want.p);
+    }
+  // Some were dark: skipped, and served right (above).
+  const auto& st = svc.stats();
+  CHECK(st.dark_pixels > 0);
+  CHECK(st.dark_pixels < pixels);
+  // The count over rectangles, clipped to the level.
+  const auto level = r.read_level(0, coarse);
+  prism::LitPixels lit(level);
+  uint32_t brute = 0;
+  for (float p : level.p) brute += p > 0.0f ? 1u : 0u;
+  CHECK(lit.count(-3, -3, level.width + 9, level.height + 1) == brute);
+  CHECK(lit.count(-3, -3, 0, 5) == 0);
+}
+
 TEST_CASE("the service keeps a few PSF files open: tiles read through them are the reader's, and the budget counts them") {
   auto& d = small();
   prism::DictionaryReader r(d.dir);
@@ -441,7 +473,8 @@ TEST_CASE("the service keeps a few PSF files open: tiles read through them are t
   }
   // The host budget counts the tables, the tiles and the open files.
   uint64_t tables = 0;
-  for (size_t i = 0; i < m.grid.size(); ++i) tables += svc.coarse_mass(i).bytes();
+  for (size_t i = 0; i < m.grid.size(); ++i)
+    tables += svc.coarse_mass(i).bytes() + prism::LitPixels(r.read_level(i, 3)).bytes();
   const uint64_t tile_bytes = uint64_t(m.tile_px) * m.tile_px * sizeof(float);
   CHECK(svc.stats().evictions == 0);
   CHECK(svc.stats().host_bytes == tables + svc.stats().tile_misses * tile_bytes + 2 * prism::PsfFile::bytes(m));
