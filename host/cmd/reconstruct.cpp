@@ -124,6 +124,8 @@ void run(const ReconstructArgs& a) {
   for (uint64_t* x : {&r.starts, &r.iterations, &r.rescues, &r.lattice_scans, &r.lattice_depths, &r.reseeds,
                       &r.continuations_kept, &r.continuations})
     *x = ranks::sum(*x);
+  ServiceStats d = pool.dictionary_stats();
+  for (uint64_t* x : {&d.tile_misses, &d.bytes_read, &d.file_opens, &d.tile_hits, &d.dark_pixels}) *x = ranks::sum(*x);
   const uint64_t renders = ranks::sum(uint64_t(refiner ? session.source_model()->renders() : 0));
   if (!ranks::root()) return;
   const unsigned threads = pool.workers();
@@ -131,9 +133,10 @@ void run(const ReconstructArgs& a) {
     std::printf("# %d MPI ranks, each on its own device; the times below are summed over them, rank 0's device:\n",
                 ranks::size());
   if (on_device)
-    std::printf("# device: %s; %s scan, %s dictionary on the device, batches of %zu events, %s\n",
+    std::printf("# device: %s; %s scan, %s dictionary on the device, batches of %zu events, %s (%u host thread%s)\n",
                 ctx->describe().c_str(), a.session.backend.c_str(), a.session.precision.c_str(), a.session.batch,
-                a.session.serial_scans ? "each scanned, then the host's work on it" : "the host's work on one beside the scan of the next");
+                a.session.serial_scans ? "each scanned, then the host's work on it" : "the host's work on one beside the scan of the next",
+                a.session.threads, a.session.threads == 1 ? "" : "s");
   else
     std::printf("# device: CPU reference (double precision, %u thread%s)\n", threads, threads == 1 ? "" : "s");
   std::printf("%s: %llu events, K = %d, %.1f clicks per event; clicks on level %d, search on level %d, tau %.2f mm\n",
@@ -150,6 +153,10 @@ void run(const ReconstructArgs& a) {
   else
     std::printf("time: support scans %.2f s, the rest on the host %.2f s%s\n", t.scan_s, t.host_s,
                 threads > 1 ? " (summed over threads)" : "");
+  std::printf("dictionary tiles below the scan level: %llu read (%.0f MiB decoded, %llu file opens), %llu from the "
+              "cache; %llu pixels asked for were dark on the scan level, not read; tables and tiles at most %.0f MiB (--budget-mib)\n",
+              (unsigned long long)d.tile_misses, double(d.bytes_read) / (1 << 20), (unsigned long long)d.file_opens,
+              (unsigned long long)d.tile_hits, (unsigned long long)d.dark_pixels, double(d.host_peak_bytes) / (1 << 20));
   if (t.scan_candidates > 0)
     std::printf("weights fitted in the scans: %llu of %llu (event, PSF) candidates (%.1f%%; the rest bounded out)\n",
                 (unsigned long long)t.scan_fits, (unsigned long long)t.scan_candidates,
@@ -209,6 +216,10 @@ void add_reconstruct(CLI::App& app) {
                  "110 um clicks); one coarser than the clicks' level + 2 is searched coarse to fine: every PSF "
                  "within --carry-margin of its best NLL goes down to the clicks' level + 2 and is ranked again there")
       ->check(non_negative_number);
+  c->add_option("--select-level", a->session.settings.select_level,
+                "coarse to fine: the level where the carried PSFs are ranked again before the best go on to the "
+                "clicks (-1: the clicks' level + 2)")
+      ->capture_default_str()->check(CLI::Range(-1, 63));
   c->add_option("--carry-margin", a->session.settings.carry_margin_nll,
                 "coarse to fine: NLL margin of the PSFs carried from a coarse scan (0: its 8 best alone)")
       ->capture_default_str()->check(non_negative_number);
@@ -220,7 +231,8 @@ void add_reconstruct(CLI::App& app) {
       ->check(non_negative_number);
   c->add_option("--budget-mib", a->session.budget_mib, "host memory for summed-area tables, tiles and open PSF files, all threads together")
       ->capture_default_str()->check(positive_number);
-  c->add_option("--threads", a->session.threads, "worker threads of the cpu backend")->capture_default_str()->check(CLI::Range(1u, 256u));
+  c->add_option("--threads", a->session.threads, "host threads: the cpu backend's workers; with vulkan or dense, the "
+                 "threads that descend events beside the device's scan (each with its share of --budget-mib)")->capture_default_str()->check(CLI::Range(1u, 256u));
   c->callback([a] { run(*a); });
 }
 

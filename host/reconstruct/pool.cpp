@@ -27,7 +27,7 @@ ReconstructionPool::ReconstructionPool(const DictionaryReader& reader, int click
                                 " shifts of the PSFs per click, more than " + format_number(max_scan_shifts) +
                                 ": choose a coarser --level or a smaller --tau-mm");
   const bool on_device = o.backend != ReconstructionBackend::cpu;
-  const unsigned n = on_device ? 1u : std::max(1u, o.threads);
+  const unsigned n = std::max(1u, o.threads);
   {
     // The host budget holds the summed-area tables and the tile cache; the
     // scan level on a CPU device is host memory too.
@@ -42,6 +42,17 @@ ReconstructionPool::ReconstructionPool(const DictionaryReader& reader, int click
   }
   ServiceBudget budget;
   budget.host_bytes = o.host_budget_bytes / n;
+  if (on_device) {
+    // One worker: the device scans, n threads descend, each through a
+    // service of its own (the first holds the scan level on the device).
+    for (unsigned t = 0; t < n; ++t)
+      services_.push_back(std::make_unique<DictionaryService>(reader, t == 0 ? o.ctx : nullptr, settings_.search_level,
+                                                              budget, o.device_half));
+    std::vector<DictionaryService*> helpers;
+    for (unsigned t = 1; t < n; ++t) helpers.push_back(services_[t].get());
+    workers_.push_back(std::make_unique<Reconstructor>(*services_[0], click_level, settings_, o.backend, o.ctx, helpers));
+    return;
+  }
   for (unsigned t = 0; t < n; ++t) {
     services_.push_back(std::make_unique<DictionaryService>(reader, on_device ? o.ctx : nullptr,
                                                             settings_.search_level, budget, o.device_half));
@@ -85,6 +96,12 @@ ReconstructionTimings ReconstructionPool::timings() const {
     sum.scan_candidates += t.scan_candidates;
     sum.scan_device_bytes = std::max(sum.scan_device_bytes, t.scan_device_bytes);
   }
+  return sum;
+}
+
+ServiceStats ReconstructionPool::dictionary_stats() const {
+  ServiceStats sum;
+  for (const auto& d : services_) sum += d->stats();
   return sum;
 }
 

@@ -16,7 +16,8 @@ namespace prism {
 struct PoolOptions {
   ReconstructionBackend backend = ReconstructionBackend::vulkan;
   vk::Context* ctx = nullptr;        // required by the device backends
-  unsigned threads = 1;              // workers of the cpu backend (the device backends use one)
+  unsigned threads = 1;              // host threads: the cpu backend's workers (each scans and descends); with a
+                                     // device backend, threads descending events beside the device's scan
   uint64_t host_budget_bytes = 1ull << 30;  // summed-area tables, tiles and open files, all workers together
   bool device_half = false;          // the scan level on the device as half floats
 };
@@ -36,6 +37,7 @@ class ReconstructionPool {
   int search_level() const { return settings_.search_level; }
   const ReconstructionSettings& settings() const { return settings_; }
   ReconstructionTimings timings() const;  // summed over the workers
+  ServiceStats dictionary_stats() const;  // the tiles read and skipped, summed over the workers
 
  private:
   ReconstructionSettings settings_;

@@ -159,8 +159,14 @@ struct ReconstructionTimings {
 // a service made with a device (and its coarse level is the scan level).
 class Reconstructor {
  public:
+  // `host_helpers`: more services of the same dictionary and coarse level
+  // (made without a device), one per extra host thread: with a device
+  // backend, the events of a chunk are descended on 1 + their count threads,
+  // event i on service i mod (1 + count), so that no service is shared
+  // between threads.
   Reconstructor(DictionaryService& dictionary, int click_level, ReconstructionSettings settings,
-                ReconstructionBackend backend = ReconstructionBackend::cpu, vk::Context* ctx = nullptr);
+                ReconstructionBackend backend = ReconstructionBackend::cpu, vk::Context* ctx = nullptr,
+                std::vector<DictionaryService*> host_helpers = {});
   ~Reconstructor();
   // Per event, K rows (fewer never; rows with alpha 0 are flagged). Bounded
   // work: every loop has a cap in settings.
@@ -173,6 +179,7 @@ class Reconstructor {
 
  private:
   DictionaryService& d_;
+  std::vector<DictionaryService*> services_;  // d_, then the host helpers
   int level_;
   ReconstructionSettings s_;
   ReconstructionBackend backend_;

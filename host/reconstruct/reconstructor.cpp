@@ -3,7 +3,9 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <functional>
 #include <future>
+#include <thread>
 
 #include "engine/defaults.h"
 #include "host/reconstruct/event_fit.h"
@@ -118,9 +120,17 @@ ReconstructionBackend backend_from_string(const std::string& s) {
 }
 
 Reconstructor::Reconstructor(DictionaryService& dictionary, int click_level, ReconstructionSettings settings,
-                             ReconstructionBackend backend, vk::Context* ctx)
+                             ReconstructionBackend backend, vk::Context* ctx,
+                             std::vector<DictionaryService*> host_helpers)
     : d_(dictionary), level_(click_level), s_(settings), backend_(backend) {
   const auto& m = dictionary.manifest();
+  services_.push_back(&d_);
+  for (DictionaryService* h : host_helpers) {
+    if (!h || &h->manifest() != &m || h->coarse_level() != d_.coarse_level())
+      throw std::invalid_argument("reconstruction: a host thread's dictionary service must serve the same dictionary "
+                                  "and coarse level as the first");
+    services_.push_back(h);
+  }
   if (s_.vertices < 1 || s_.vertices > 8)
     throw std::invalid_argument("reconstruction: vertices = " + std::to_string(s_.vertices) + "; choose K in 1..8");
   if (!(s_.dark_rate > 0) || !(s_.tau_mm >= 0) || !(s_.alpha_max > 0) || !(s_.search_dark_rate >= 0))
@@ -186,9 +196,27 @@ std::vector<std::vector<ReconstructedVertex>> Reconstructor::run(std::span<const
   const auto& m = d_.manifest();
   check_clicks(events);
   auto t0 = clock::now();
+  // Host threads: event i on services_[i mod T], descended by thread i mod T.
+  const size_t T = backend_ == ReconstructionBackend::cpu ? 1 : services_.size();
   std::vector<EventFit> fits;
   fits.reserve(events.size());
-  for (const Event& e : events) fits.emplace_back(e, level_, d_, s_);
+  for (size_t i = 0; i < events.size(); ++i) fits.emplace_back(events[i], level_, *services_[i % T], s_);
+  auto on_host_threads = [&](const std::function<void(size_t)>& work) {  // work(i) for every event i
+    std::vector<std::exception_ptr> failures(T);
+    auto share = [&](size_t t) {
+      try {
+        for (size_t i = t; i < fits.size(); i += T) work(i);
+      } catch (...) {
+        failures[t] = std::current_exception();
+      }
+    };
+    std::vector<std::thread> helpers;
+    for (size_t t = 1; t < T; ++t) helpers.emplace_back(share, t);
+    share(0);
+    for (auto& h : helpers) h.join();
+    for (auto& f : failures)
+      if (f) std::rethrow_exception(f);
+  };
   const ScanSettings scan = scan_settings(s_, d_, level_);
   const size_t n_psf = m.grid.size();
   double host_s = seconds(t0, clock::now());
@@ -251,15 +279,19 @@ std::vector<std::vector<ReconstructedVertex>> Reconstructor::run(std::span<const
       timings_.scan_device_bytes = std::max(timings_.scan_device_bytes, device_->last_device_bytes());
       if (more && s_.overlap_scans) next = launch(first + per_chunk);
       auto h = clock::now();
-      for (size_t j = first; j < std::min(active.size(), first + per_chunk); ++j)
-        fits[active[j]].add_vertex(to_scores(done.results, j - first, n_psf));
+      const size_t last = std::min(active.size(), first + per_chunk);
+      std::vector<long> chunk_of(fits.size(), -1);  // event -> its row in this chunk's results
+      for (size_t j = first; j < last; ++j) chunk_of[active[j]] = long(j - first);
+      on_host_threads([&](size_t i) {
+        if (chunk_of[i] >= 0) fits[i].add_vertex(to_scores(done.results, size_t(chunk_of[i]), n_psf));
+      });
       host_s += seconds(h, clock::now());
       if (more && !s_.overlap_scans) next = launch(first + per_chunk);
     }
   }
   auto d = clock::now();
-  std::vector<std::vector<ReconstructedVertex>> out;
-  for (auto& f : fits) out.push_back(f.result());
+  std::vector<std::vector<ReconstructedVertex>> out(fits.size());
+  on_host_threads([&](size_t i) { out[i] = fits[i].result(); });
   timings_.host_s += host_s + seconds(d, clock::now());
   return out;
 }

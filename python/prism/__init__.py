@@ -485,7 +485,7 @@ def reconstruct(dictionary, events, *, vertices=1, binning=None, model=None, sce
         device), level (the scan level; None: chosen by a budget of shifts
         per click), scan_step, carry_margin, tau_mm, dark_rate,
         search_dark_rate (per sensor pixel; 0: dark_rate alone), batch (events per
-        device scan), serial_scans, budget_mib, threads (cpu backend): as the
+        device scan), serial_scans, budget_mib, threads (host threads): as the
         command's options of the same names.
     progress: None, or a callable progress(done, total) as events are done
         (it must not call prism itself).

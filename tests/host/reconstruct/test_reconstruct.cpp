@@ -11,6 +11,7 @@
 #include <filesystem>
 #include <fstream>
 #include <functional>
+#include <memory>
 #include <numeric>
 #include <random>
 #include <sstream>
@@ -86,12 +87,29 @@ std::vector<prism::ReconstructedVertex> run(const prism::Event& e, const prism::
 
 // The same events through a device backend: a service with the scan level on
 // the device (float or half values).
+// `host_threads` > 1: the extra threads' services, without a device and
+// with a small tile budget (evictions during the descent).
 struct DeviceRun {
   prism::DictionaryService service;
+  std::vector<std::unique_ptr<prism::DictionaryService>> helpers;
   prism::Reconstructor reconstructor;
-  DeviceRun(prism::ReconstructionBackend b, const prism::ReconstructionSettings& s, bool half = false)
+  DeviceRun(prism::ReconstructionBackend b, const prism::ReconstructionSettings& s, bool half = false,
+            int host_threads = 1)
       : service(*small_dictionary().reader, &prism::test::gpu(), 2, {}, half),
-        reconstructor(service, 0, s, b, &prism::test::gpu()) {}
+        helpers(make_helpers(host_threads)),
+        reconstructor(service, 0, s, b, &prism::test::gpu(), pointers(helpers)) {}
+  static std::vector<std::unique_ptr<prism::DictionaryService>> make_helpers(int host_threads) {
+    std::vector<std::unique_ptr<prism::DictionaryService>> h;
+    for (int t = 1; t < host_threads; ++t)
+      h.push_back(std::make_unique<prism::DictionaryService>(*small_dictionary().reader, nullptr, 2,
+                                                             prism::ServiceBudget{4u << 20, 0}));
+    return h;
+  }
+  static std::vector<prism::DictionaryService*> pointers(const std::vector<std::unique_ptr<prism::DictionaryService>>& h) {
+    std::vector<prism::DictionaryService*> p;
+    for (const auto& x : h) p.push_back(x.get());
+    return p;
+  }
 };
 
 bool finite(const prism::ReconstructedVertex& v) {
@@ -923,19 +941,22 @@ TEST_CASE("reconstruction on the device: the hazard events give the reference's 
           CHECK(g.nll == doctest::Approx(r.nll).epsilon(1e-5));
         }
       // One event per scan, the host's work on each beside the scan of the
-      // next or after it: bit for bit the whole batch's vertices (each event
-      // is scored alone).
+      // next or after it, or three events per scan descended on three host
+      // threads: bit for bit the whole batch's vertices (each event is
+      // scored and descended alone).
       if (backend != B::vulkan || half) continue;
-      for (bool overlap : {true, false}) {
+      for (auto [overlap, threads] : {std::pair{true, 1}, std::pair{false, 1}, std::pair{true, 3}}) {
         auto s = settings(k);
-        s.scan_chunk_events = 1;
+        s.scan_chunk_events = threads == 1 ? 1 : 3;
         s.overlap_scans = overlap;
-        DeviceRun c(backend, s);
+        DeviceRun c(backend, s, false, threads);
         auto again = c.reconstructor.run(mine);
         REQUIRE(again.size() == got.size());
+        for (const auto& h : c.helpers) CHECK(h->stats().evictions > 0);
         for (size_t i = 0; i < mine.size(); ++i)
           for (size_t v = 0; v < size_t(k); ++v) {
             CAPTURE(overlap);
+            CAPTURE(threads);
             CAPTURE(k);
             CAPTURE(i);
             CAPTURE(v);
