@@ -117,7 +117,7 @@ void run(const ReconstructArgs& a) {
   scored = ranks::sum(scored);
   error_sum_mm = ranks::sum(error_sum_mm);
   auto t = pool.timings();
-  for (double* x : {&t.scan_s, &t.host_s, &t.scan_wait_s}) *x = ranks::sum(*x);
+  for (double* x : {&t.scan_s, &t.scan_kernel_ms, &t.host_s, &t.scan_wait_s}) *x = ranks::sum(*x);
   for (uint64_t* x : {&t.scan_fits, &t.scan_candidates}) *x = ranks::sum(*x);
   RefineStats r = refiner ? refiner->stats() : RefineStats{};
   r.seconds = ranks::sum(r.seconds);
@@ -148,8 +148,9 @@ void run(const ReconstructArgs& a) {
   std::printf("%.2f s, %.1f events/s; %llu vertices flagged\n", seconds, seconds > 0 ? double(done) / seconds : 0.0,
               (unsigned long long)flagged);
   if (on_device)  // the scans ran beside the host's work (ReconstructionSettings::overlap_scans)
-    std::printf("time: support scans %.2f s, the search's host work %.2f s; the host waited %.2f s for scans\n",
-                t.scan_s, t.host_s, t.scan_wait_s);
+    std::printf("time: support scans %.2f s (kernels %.2f s), the search's host work %.2f s; the host waited %.2f s "
+                "for scans\n",
+                t.scan_s, t.scan_kernel_ms / 1e3, t.host_s, t.scan_wait_s);
   else
     std::printf("time: support scans %.2f s, the rest on the host %.2f s%s\n", t.scan_s, t.host_s,
                 threads > 1 ? " (summed over threads)" : "");
