@@ -16,7 +16,9 @@
 //
 // native: clicks at the sensor's own 6.9 um pixels against a full-resolution
 // dictionary, and the same events binned 16 x 16 (110 um) against the same
-// dictionary's level 4. Its dictionary (--native-dictionary DIR, or built once
+// dictionary's level 4; then the fine clicks descended on 2 host threads,
+// and with the carried PSFs ranked on 27.6 um (the clicks' level + 2, the
+// default before 441.6 um). Its dictionary (--native-dictionary DIR, or built once
 // in /tmp: x, y in -5, 0, 5 mm, depths 15, 20, 25, binning 1, footprint at
 // 1024 cells, about 3 minutes on lavapipe) is small: the rows compare the two
 // click grids on the same events, not the 1210-PSF grid's accuracy. With
@@ -117,6 +119,8 @@ struct Config {
   int scan_chunk_events = defaults::scan_chunk_events;
   bool overlap_scans = true;
   double dark_rate = ReconstructionSettings{}.dark_rate;  // the likelihood's floor per click pixel (--dark-rate)
+  int host_threads = 1;   // device backends: threads descending events beside the scan (reconstruct.h)
+  int select_level = -1;  // coarse to fine: where the carried PSFs are ranked again (-1: select_level()'s default)
 };
 
 Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, const std::vector<Event>& events,
@@ -132,7 +136,17 @@ Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, c
   s.scan_chunk_events = c.scan_chunk_events;
   s.overlap_scans = c.overlap_scans;
   s.dark_rate = c.dark_rate;
-  DictionaryService service(reader, device ? &ctx : nullptr, s.search_level, {}, c.half);
+  s.select_level = c.select_level;
+  // The default host budget, shared by the host threads as prism reconstruct shares it.
+  ServiceBudget budget;
+  budget.host_bytes /= uint64_t(std::max(1, c.host_threads));
+  DictionaryService service(reader, device ? &ctx : nullptr, s.search_level, budget, c.half);
+  std::vector<std::unique_ptr<DictionaryService>> helpers;
+  std::vector<DictionaryService*> helper_ptrs;
+  for (int t = 1; t < c.host_threads; ++t) {
+    helpers.push_back(std::make_unique<DictionaryService>(service, budget));
+    helper_ptrs.push_back(helpers.back().get());
+  }
   Row r;
   r.group = c.group;
   r.name = c.name;
@@ -141,7 +155,7 @@ Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, c
   std::unique_ptr<SourceModel> model;
   if (c.refine) model = make_scene_model(reader.manifest().scene, refine_trace_settings(unsigned(reader.manifest().base_binning)), &ctx);
   for (int k = 0; k < c.repeats; ++k) {
-    Reconstructor rec(service, c.click_level, s, c.backend, &ctx);
+    Reconstructor rec(service, c.click_level, s, c.backend, &ctx, helper_ptrs);
     auto start = std::chrono::steady_clock::now();
     r.out = rec.run(events);
     if (model) {
@@ -159,6 +173,7 @@ Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, c
   r.seconds_per_event = bench::median(per_event);
   r.scan_share = bench::median(share);
   r.host_peak_bytes = service.stats().host_peak_bytes;
+  for (const auto& h : helpers) r.host_peak_bytes += h->stats().host_peak_bytes;
   r.rss_bytes = bench::peak_rss_bytes();
   auto e = errors(r.out, truth);
   r.err_mean_mm = std::accumulate(e.begin(), e.end(), 0.0) / double(e.size());
@@ -372,7 +387,7 @@ int main(int argc, char** argv) {
 
   // 4. Clicks at the sensor's own pixels (6.9 um) against a full-resolution
   // dictionary, and the same events binned to 110 um against its level 4.
-  Row native_fine, native_binned;
+  Row native_fine, native_binned, native_threads, native_select;
   if (only.empty() || only.find(",native,") != std::string::npos) {
     if (native_dir.empty()) {
       native_dir = (fs::temp_directory_path() / "prism-bench-reconstruct-native").string();
@@ -448,6 +463,18 @@ int main(int argc, char** argv) {
     binned_c.click_level = binned_level;
     native_fine = run_native(fine_c, fine);
     native_binned = run_native(binned_c, binned);
+    // The host's descent through the tiles takes most of the fine clicks'
+    // time where the scan is coarse: on two host threads, and (one thread)
+    // with the carried PSFs ranked on the clicks' level + 2 (27.6 um), the
+    // default before 441.6 um.
+    Config threads_c = fine_c;
+    threads_c.name = "6.9 um clicks, 2 threads";
+    threads_c.host_threads = 2;
+    native_threads = run_native(threads_c, fine);
+    Config select_c = fine_c;
+    select_c.name = "6.9 um, ranked on 27.6 um";
+    select_c.select_level = 2;
+    native_select = run_native(select_c, fine);
   }
 
   auto ran = [](const Row& r) { return r.events > 0; };
@@ -496,6 +523,14 @@ int main(int argc, char** argv) {
                 native_fine.events, native_fine.seconds_per_event / native_binned.seconds_per_event,
                 1 / native_fine.seconds_per_event, 1 / native_binned.seconds_per_event, native_fine.err_mean_mm,
                 native_binned.err_mean_mm, native_fine.err_median_mm, native_binned.err_median_mm);
+  if (ran(native_fine) && ran(native_threads) && ran(native_select))
+    std::printf("  6.9 um clicks on 2 host threads vs 1: %.2fx faster, same vertices %s; carried PSFs ranked on 441.6 um "
+                "(default) vs 27.6 um: %.2fx faster, error mean %.3f vs %.3f mm, median %.3f vs %.3f mm, > 3 mm %zu vs %zu\n",
+                native_fine.seconds_per_event / native_threads.seconds_per_event,
+                same_vertices(native_fine, native_threads) ? "yes" : "NO",
+                native_select.seconds_per_event / native_fine.seconds_per_event, native_fine.err_mean_mm,
+                native_select.err_mean_mm, native_fine.err_median_mm, native_select.err_median_mm, native_fine.catastrophic,
+                native_select.catastrophic);
   if (refine_rows)
     std::printf("  refinement model per source (footprint, %u cells per lenslet, median of %zu positions): device %.3f s, "
               "double reference %.3f s (%.1fx)\n",

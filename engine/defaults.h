@@ -101,6 +101,15 @@ inline constexpr double dictionary_depth_planes_mm[] = {0,  1,  2,  3,  4,    5,
 // gains little and more PSFs must be carried down. The 1210-PSF one gets
 // level 3 (5.8e4; level 4 was 1.3x faster there, level 2 2.8x slower).
 inline constexpr double search_shifts_per_click = 1.5e5;
+// Coarse to fine (host/reconstruct/reconstruct.h, select_level): the PSFs
+// carried from a coarse scan are ranked again on pixels of this many sensor
+// pixels per axis (441.6 um on the prototype's 6.9 um sensor), or on the
+// clicks' level + 2 where that is coarser. The PSFs within the carry margin
+// (up to 512) go down to it one level at a time, each through the tiles
+// around its clicks, before the best 8 go on to the clicks: at 6.9 um clicks
+// the clicks' level + 2 (27.6 um) cost five levels of tiles for each (README
+// "Clicks at the sensor's own pixels").
+inline constexpr int select_pixel_sensor_px = 64;
 // Device backends scan a pass's events this many at a time (one dispatch
 // per dictionary chunk), the host descending each chunk while the device
 // scans the next (host/reconstruct/reconstruct.h); `prism reconstruct`

@@ -136,7 +136,7 @@ void run(const ReconstructArgs& a) {
     std::printf("# device: %s; %s scan, %s dictionary on the device, batches of %zu events, %s (%u host thread%s)\n",
                 ctx->describe().c_str(), a.session.backend.c_str(), a.session.precision.c_str(), a.session.batch,
                 a.session.serial_scans ? "each scanned, then the host's work on it" : "the host's work on one beside the scan of the next",
-                a.session.threads, a.session.threads == 1 ? "" : "s");
+                pool.host_threads(), pool.host_threads() == 1 ? "" : "s");
   else
     std::printf("# device: CPU reference (double precision, %u thread%s)\n", threads, threads == 1 ? "" : "s");
   std::printf("%s: %llu events, K = %d, %.1f clicks per event; clicks on level %d, search on level %d, tau %.2f mm\n",
@@ -214,12 +214,12 @@ void add_reconstruct(CLI::App& app) {
       ->capture_default_str()->check(CLI::Range(1, 64));
   c->add_option("--level", a->session.level, "dictionary level of the scan over all PSFs (default: the finest from the clicks' level + 2 up "
                  "whose shifts over all PSFs stay within a budget per click; level 4 for the default dictionary at "
-                 "110 um clicks); one coarser than the clicks' level + 2 is searched coarse to fine: every PSF "
-                 "within --carry-margin of its best NLL goes down to the clicks' level + 2 and is ranked again there")
+                 "110 um clicks); one coarser than --select-level is searched coarse to fine: every PSF "
+                 "within --carry-margin of its best NLL goes down to --select-level and is ranked again there")
       ->check(non_negative_number);
   c->add_option("--select-level", a->session.settings.select_level,
-                "coarse to fine: the level where the carried PSFs are ranked again before the best go on to the "
-                "clicks (-1: the clicks' level + 2)")
+                "coarse to fine: the level where the carried PSFs are ranked again before the best 8 go on to the "
+                "clicks (-1: pixels of 64 x 64 sensor pixels, 441.6 um, or the clicks' level + 2 where coarser)")
       ->capture_default_str()->check(CLI::Range(-1, 63));
   c->add_option("--carry-margin", a->session.settings.carry_margin_nll,
                 "coarse to fine: NLL margin of the PSFs carried from a coarse scan (0: its 8 best alone)")
@@ -233,7 +233,8 @@ void add_reconstruct(CLI::App& app) {
   c->add_option("--budget-mib", a->session.budget_mib, "host memory for summed-area tables, tiles and open PSF files, all threads together")
       ->capture_default_str()->check(positive_number);
   c->add_option("--threads", a->session.threads, "host threads: the cpu backend's workers; with vulkan or dense, the "
-                 "threads that descend events beside the device's scan (each with its share of --budget-mib)")->capture_default_str()->check(CLI::Range(1u, 256u));
+                 "threads that descend events beside the device's scan (each with its share of --budget-mib). 0: 1 for "
+                 "the cpu backend, this machine's hardware threads (at most 8) for vulkan and dense")->capture_default_str()->check(CLI::Range(0u, 256u));
   c->callback([a] { run(*a); });
 }
 

@@ -25,7 +25,8 @@ uint64_t DictionaryService::device_bytes(const DictionaryManifest& m, int coarse
 
 DictionaryService::DictionaryService(const DictionaryReader& reader, vk::Context* ctx, int coarse_level,
                                      ServiceBudget budget, bool device_half)
-    : reader_(reader), coarse_level_(coarse_level), budget_(budget), device_half_(device_half) {
+    : reader_(reader), coarse_level_(coarse_level), budget_(budget), device_half_(device_half),
+      tables_(std::make_shared<CoarseTables>()) {
   const DictionaryManifest& m = reader.manifest();
   if (coarse_level < 0 || coarse_level >= m.levels)
     throw DictionaryError(reader.dir() + ": no level " + std::to_string(coarse_level) + " (levels 0.." +
@@ -55,9 +56,9 @@ DictionaryService::DictionaryService(const DictionaryReader& reader, vk::Context
   for (size_t i = 0; i < n; ++i) {
     PsfLevel lv = reader.has(i) ? reader.read_level(i, coarse_level)
                                 : throw DictionaryError(reader.path_of(i) + ": missing; finish `prism dictionary build`");
-    sats_.emplace_back(lv);
-    lit_.emplace_back(lv);
-    account(int64_t(sats_.back().bytes() + lit_.back().bytes()));
+    tables_->mass.emplace_back(lv);
+    tables_->lit.emplace_back(lv);
+    account(int64_t(tables_->mass.back().bytes() + tables_->lit.back().bytes()));
     if (!ctx) continue;
     uint32_t chunk = uint32_t(i / per_chunk);
     uint64_t in_chunk = i % per_chunk;
@@ -75,7 +76,7 @@ DictionaryService::DictionaryService(const DictionaryReader& reader, vk::Context
     } else {
       std::memcpy(words.data(), lv.p.data(), lv.p.size() * 4);
     }
-    const auto& table = sats_.back().table();
+    const auto& table = tables_->mass.back().table();
     for (size_t k = 0; k < table.size(); ++k) {
       float v = float(table[k]);
       std::memcpy(&words[p_words + k], &v, 4);
@@ -85,6 +86,9 @@ DictionaryService::DictionaryService(const DictionaryReader& reader, vk::Context
     slots_.push_back({chunk, first, first + p_words});
   }
 }
+
+DictionaryService::DictionaryService(const DictionaryService& first, ServiceBudget budget)
+    : reader_(first.reader_), coarse_level_(first.coarse_level_), budget_(budget), tables_(first.tables_) {}
 
 ScanLevel DictionaryService::scan_level() const {
   if (chunks_.empty())
@@ -192,7 +196,7 @@ std::vector<float> DictionaryService::values(size_t i, int level, std::span<cons
       if (level < coarse_level_) {
         // Dark on the coarse level: no light in the pixel, no tile to read.
         const int d = coarse_level_ - level, cx = px.x >> d, cy = px.y >> d;
-        if (lit_[i].count(cx, cy, cx + 1, cy + 1) == 0) {
+        if (tables_->lit[i].count(cx, cy, cx + 1, cy + 1) == 0) {
           ++stats_.dark_pixels;
           continue;
         }

@@ -49,6 +49,11 @@ class DictionaryService {
   // stores the coarse values on the device as half floats (half the bytes).
   DictionaryService(const DictionaryReader& reader, vk::Context* ctx, int coarse_level, ServiceBudget budget,
                     bool device_half = false);
+  // A service beside `first` for another host thread: the same dictionary
+  // and coarse level, the coarse level's tables shared (read-only; `first`
+  // counts them), tiles and open files of its own within `budget`, nothing
+  // on a device. `first` must outlive it.
+  DictionaryService(const DictionaryService& first, ServiceBudget budget);
 
   // What the coarse level of every PSF takes on the device: values and float
   // summed-area tables.
@@ -67,7 +72,7 @@ class DictionaryService {
   Slot coarse_slot(size_t i) const { return slots_.at(i); }
   const vk::Buffer& coarse_chunk(uint32_t c) const { return *chunks_.at(c); }
   size_t coarse_chunks() const { return chunks_.size(); }
-  const SummedArea& coarse_mass(size_t i) const { return sats_.at(i); }
+  const SummedArea& coarse_mass(size_t i) const { return tables_->mass.at(i); }
   // The coarse level as the support-scan kernels read it (radii left 0 for the
   // caller); throws when the service was made without a device.
   ScanLevel scan_level() const;
@@ -95,8 +100,12 @@ class DictionaryService {
   bool device_half_ = false;
   std::vector<std::unique_ptr<vk::Buffer>> chunks_;
   std::vector<Slot> slots_;
-  std::vector<SummedArea> sats_;
-  std::vector<LitPixels> lit_;  // per PSF, the coarse level's lit pixels
+  // The coarse level on the host, per PSF: its summed-area table and lit pixels.
+  struct CoarseTables {
+    std::vector<SummedArea> mass;
+    std::vector<LitPixels> lit;
+  };
+  std::shared_ptr<CoarseTables> tables_;
   std::map<TileKey, Tile> tiles_;
   std::list<TileKey> lru_;  // front: most recent
   std::list<PsfFile> files_;  // open PSF files, front: most recently read

@@ -514,8 +514,8 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   if (o.truth_scene) run["truth"]["scene"] = to_json(physical);
   // Coarse to fine only where the scan is coarser than the select level (a
   // journal of the exhaustive scan keeps its header).
-  if (s.search_level > select_level(s, o.level))
-    run["search"]["carry"] = {{"select_level", select_level(s, o.level)}, {"margin_nll", s.carry_margin_nll},
+  if (s.search_level > select_level(s, m, o.level))
+    run["search"]["carry"] = {{"select_level", select_level(s, m, o.level)}, {"margin_nll", s.carry_margin_nll},
                               {"max", s.carry_max}};
   const std::string on_mismatch = "rerun with the same options, or without --resume to start over";
   const WorkShare& share = o.share;

@@ -37,8 +37,8 @@ int search_level_of(const DictionaryService& d, const ReconstructionSettings& s,
   return std::clamp(s.search_level < 0 ? d.coarse_level() : s.search_level, click_level, d.manifest().levels - 1);
 }
 
-int select_level_of(int search_level, const ReconstructionSettings& s, int click_level) {
-  return std::clamp(select_level(s, click_level), click_level, search_level);
+int select_level_of(int search_level, const ReconstructionSettings& s, const DictionaryManifest& m, int click_level) {
+  return std::clamp(select_level(s, m, click_level), click_level, search_level);
 }
 
 EventFit::EventFit(const Event& e, int level, DictionaryService& d, const ReconstructionSettings& s)

@@ -50,7 +50,7 @@ int search_level_of(const DictionaryService& d, const ReconstructionSettings& s,
 // clicks' level and the search level): coarse to fine when it is finer than
 // the search level. The device scan's choice of which weights to fit
 // (reconstructor.cpp) rests on the same level as the pruning (search.cpp).
-int select_level_of(int search_level, const ReconstructionSettings& s, int click_level);
+int select_level_of(int search_level, const ReconstructionSettings& s, const DictionaryManifest& m, int click_level);
 
 class EventFit {
  public:

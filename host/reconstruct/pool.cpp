@@ -44,18 +44,17 @@ ReconstructionPool::ReconstructionPool(const DictionaryReader& reader, int click
   budget.host_bytes = o.host_budget_bytes / n;
   if (on_device) {
     // One worker: the device scans, n threads descend, each through a
-    // service of its own (the first holds the scan level on the device).
-    for (unsigned t = 0; t < n; ++t)
-      services_.push_back(std::make_unique<DictionaryService>(reader, t == 0 ? o.ctx : nullptr, settings_.search_level,
-                                                              budget, o.device_half));
+    // service of its own (the first holds the scan level on the device and
+    // the coarse tables, which the others share).
+    services_.push_back(std::make_unique<DictionaryService>(reader, o.ctx, settings_.search_level, budget, o.device_half));
+    for (unsigned t = 1; t < n; ++t) services_.push_back(std::make_unique<DictionaryService>(*services_[0], budget));
     std::vector<DictionaryService*> helpers;
     for (unsigned t = 1; t < n; ++t) helpers.push_back(services_[t].get());
     workers_.push_back(std::make_unique<Reconstructor>(*services_[0], click_level, settings_, o.backend, o.ctx, helpers));
     return;
   }
-  for (unsigned t = 0; t < n; ++t) {
-    services_.push_back(std::make_unique<DictionaryService>(reader, on_device ? o.ctx : nullptr,
-                                                            settings_.search_level, budget, o.device_half));
+  for (unsigned t = 0; t < n; ++t) {  // the cpu backend: workers that each scan and descend
+    services_.push_back(std::make_unique<DictionaryService>(reader, nullptr, settings_.search_level, budget));
     workers_.push_back(std::make_unique<Reconstructor>(*services_.back(), click_level, settings_, o.backend, o.ctx));
   }
 }

@@ -34,6 +34,7 @@ class ReconstructionPool {
   std::vector<std::vector<ReconstructedVertex>> run(std::span<const Event> events);
 
   unsigned workers() const { return unsigned(workers_.size()); }
+  unsigned host_threads() const { return unsigned(services_.size()); }  // one service per host thread
   int search_level() const { return settings_.search_level; }
   const ReconstructionSettings& settings() const { return settings_; }
   ReconstructionTimings timings() const;  // summed over the workers

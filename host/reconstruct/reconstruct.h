@@ -56,7 +56,8 @@ struct ReconstructionSettings {
   // PSF within carry_margin_nll of the scan's best NLL (at least
   // refine_candidates, at most carry_max) is carried down to select_level
   // (+-1 pixel re-searched per level) and ranked again there by its NLL; the
-  // refine_candidates best go on to the clicks. -1: the clicks' level + 2.
+  // refine_candidates best go on to the clicks. -1: select_level()'s default
+  // (441.6 um pixels, or the clicks' level + 2 where coarser).
   int select_level = -1;
   double carry_margin_nll = 50;  // measured: README "Reconstruction", coarse to fine
   int carry_max = 512;
@@ -123,10 +124,10 @@ struct ReconstructedVertex {
 int click_level(const DictionaryManifest& m, const EventFileHeader& h, const std::string& events_path,
                 const std::string& dictionary_dir);
 
-// The default level of the support scan: the finest from the select level
-// (the clicks' + 2) up whose shift lattices, summed over the PSFs, hold at
+// The default level of the support scan: the finest from the clicks' level
+// + 2 up whose shift lattices, summed over the PSFs, hold at
 // most defaults::search_shifts_per_click shifts (scan_shifts); a level
-// coarser than the select level is searched coarse to fine. Capped at the
+// coarser than select_level() is searched coarse to fine. Capped at the
 // coarsest stored. Every command and benchmark that picks a search level for
 // the user takes it from here.
 int default_search_level(const DictionaryManifest& m, int click_level, double tau_mm);
@@ -137,8 +138,10 @@ double scan_shifts(const DictionaryManifest& m, int level, double tau_mm);
 // (the default level holds at most defaults::search_shifts_per_click).
 inline constexpr double max_scan_shifts = 1e9;
 // The level a coarse-to-fine search ranks its carried PSFs on:
-// settings.select_level, or the clicks' level + 2 when it is -1.
-int select_level(const ReconstructionSettings& s, int click_level);
+// settings.select_level, or when it is -1 the finest from the clicks' level
+// + 2 up whose pixels span defaults::select_pixel_sensor_px sensor pixels
+// (capped at the coarsest stored).
+int select_level(const ReconstructionSettings& s, const DictionaryManifest& m, int click_level);
 
 // Where the time of a batch went.
 struct ReconstructionTimings {

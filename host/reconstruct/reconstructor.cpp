@@ -68,13 +68,16 @@ int default_search_level(const DictionaryManifest& m, int click_level, double ta
   // The scan's work is shifts x clicks and so is the carried PSFs' (each
   // re-searched on every finer level): the clicks scale both alike, so the
   // budget is per click.
-  int level = std::min(select_level(ReconstructionSettings{}, click_level), m.levels - 1);
+  int level = std::min(click_level + 2, m.levels - 1);
   while (level + 1 < m.levels && scan_shifts(m, level, tau_mm) > defaults::search_shifts_per_click) ++level;
   return level;
 }
 
-int select_level(const ReconstructionSettings& s, int click_level) {
-  return s.select_level < 0 ? click_level + 2 : s.select_level;
+int select_level(const ReconstructionSettings& s, const DictionaryManifest& m, int click_level) {
+  if (s.select_level >= 0) return s.select_level;
+  int level = click_level + 2;
+  while (level + 1 < m.levels && (m.base_binning << level) < defaults::select_pixel_sensor_px) ++level;
+  return level;
 }
 
 namespace {
@@ -95,7 +98,7 @@ std::vector<SupportScore> to_scores(const std::vector<ScanResult>& results, size
 ScanSettings scan_settings(const ReconstructionSettings& s, const DictionaryService& d, int click_level) {
   ScanSettings scan{s.scan_step_px, s.newton_iterations, s.alpha_max};
   const int Ls = detail::search_level_of(d, s, click_level);
-  const int Lf = detail::select_level_of(Ls, s, click_level);
+  const int Lf = detail::select_level_of(Ls, s, d.manifest(), click_level);
   if (!s.fit_all_weights) {
     scan.fit_margin_nll = Ls > Lf ? s.carry_margin_nll : 0.0;
     scan.fit_keep = std::max(1, s.refine_candidates);

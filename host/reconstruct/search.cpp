@@ -22,7 +22,7 @@ namespace prism::detail {
 
 Vertex EventFit::refine(std::vector<SupportScore> scored, std::vector<Vertex>& runners_up) {
   const int Ls = search_level_, step = std::max(1, s_.scan_step_px);
-  const int Lf = select_level_of(Ls, s_, level_);
+  const int Lf = select_level_of(Ls, s_, m_, level_);
   auto by_nll = [](const SupportScore& a, const SupportScore& b) {
     return a.nll < b.nll || (a.nll == b.nll && a.psf < b.psf);
   };

@@ -26,12 +26,18 @@ struct SessionOptions {
   size_t batch = defaults::scan_chunk_events;  // events per device scan
   int level = -1;                   // the search's scan level; -1: default_search_level
   double budget_mib = 1024;         // host memory of the search's tables, tiles and files
-  unsigned threads = 1;             // workers of the cpu backend
+  unsigned threads = 0;             // host threads (PoolOptions::threads); 0: host_threads_default()
   bool serial_scans = false;        // scan, then the host's work, instead of side by side
   double always_scan_below_mm = defaults::refine_always_scan_below_mm;  // RefineSettings'
   int always_scan_below_clicks = defaults::refine_always_scan_below_clicks;
   ReconstructionSettings settings;  // vertices (K) and the search's settings
 };
+
+// The host threads when none are asked for: the cpu backend's reference
+// runs on 1; the device backends descend on this machine's hardware threads
+// (at most 8), since the host's descent through the tiles is their cost
+// beside a coarse scan (README "Clicks at the sensor's own pixels").
+unsigned host_threads_default(const std::string& backend);
 
 class ReconstructionSession {
  public:

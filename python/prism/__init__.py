@@ -460,7 +460,7 @@ def build_dictionary(out, scene="prototype", *, grid_x_mm=None, grid_y_mm=None, 
 
 def reconstruct(dictionary, events, *, vertices=1, binning=None, model=None, scene=None, backend="vulkan",
                 device=None, precision="float", level=None, scan_step=1, carry_margin=None, tau_mm=None,
-                dark_rate=None, search_dark_rate=None, batch=None, serial_scans=False, budget_mib=1024.0, threads=1,
+                dark_rate=None, search_dark_rate=None, batch=None, serial_scans=False, budget_mib=1024.0, threads=None,
                 progress=None):
     """The vertices of every event, as `prism reconstruct` (the paper's
     ADCG-inspired search on the sparse likelihood, then the continuous
@@ -485,7 +485,8 @@ def reconstruct(dictionary, events, *, vertices=1, binning=None, model=None, sce
         device), level (the scan level; None: chosen by a budget of shifts
         per click), scan_step, carry_margin, tau_mm, dark_rate,
         search_dark_rate (per sensor pixel; 0: dark_rate alone), batch (events per
-        device scan), serial_scans, budget_mib, threads (host threads): as the
+        device scan), serial_scans, budget_mib, threads (host threads; None: 1 for the cpu backend, this
+        machine's hardware threads up to 8 for the device ones): as the
         command's options of the same names.
     progress: None, or a callable progress(done, total) as events are done
         (it must not call prism itself).
@@ -499,7 +500,7 @@ def reconstruct(dictionary, events, *, vertices=1, binning=None, model=None, sce
     options = dict(backend=str(backend), precision=str(precision), model="" if model is None else str(model),
                    scene="" if scene is None else str(scene), batch=int(batch or d["batch"]),
                    level=-1 if level is None else int(level),
-                   budget_mib=float(budget_mib), threads=int(threads), serial_scans=bool(serial_scans),
+                   budget_mib=float(budget_mib), threads=0 if threads is None else int(threads), serial_scans=bool(serial_scans),
                    vertices=int(vertices), scan_step=int(scan_step),
                    carry_margin=float(d["carry_margin"] if carry_margin is None else carry_margin),
                    tau_mm=float(d["tau_mm"] if tau_mm is None else tau_mm),
@@ -513,8 +514,8 @@ def reconstruct(dictionary, events, *, vertices=1, binning=None, model=None, sce
         raise ValueError(f"vertices: {vertices} is not in 1..8")
     if not 1 <= options["batch"] <= 65535:
         raise ValueError(f"batch: {batch} is not in 1..65535")
-    if not 1 <= options["threads"] <= 256:
-        raise ValueError(f"threads: {threads} is not in 1..256")
+    if threads is not None and not 1 <= options["threads"] <= 256:
+        raise ValueError(f"threads: {threads} is not in 1..256 (None: 1 for the cpu backend, the hardware threads up to 8 for the device ones)")
     if options["model"] not in ("", "scene", "dictionary", "none"):
         raise ValueError(f"model {model!r}: use 'scene', 'dictionary' or 'none'")
     if isinstance(dictionary, Dictionary):

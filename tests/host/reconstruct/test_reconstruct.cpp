@@ -96,13 +96,13 @@ struct DeviceRun {
   DeviceRun(prism::ReconstructionBackend b, const prism::ReconstructionSettings& s, bool half = false,
             int host_threads = 1)
       : service(*small_dictionary().reader, &prism::test::gpu(), 2, {}, half),
-        helpers(make_helpers(host_threads)),
+        helpers(make_helpers(service, host_threads)),
         reconstructor(service, 0, s, b, &prism::test::gpu(), pointers(helpers)) {}
-  static std::vector<std::unique_ptr<prism::DictionaryService>> make_helpers(int host_threads) {
+  static std::vector<std::unique_ptr<prism::DictionaryService>> make_helpers(const prism::DictionaryService& first,
+                                                                              int host_threads) {
     std::vector<std::unique_ptr<prism::DictionaryService>> h;
     for (int t = 1; t < host_threads; ++t)
-      h.push_back(std::make_unique<prism::DictionaryService>(*small_dictionary().reader, nullptr, 2,
-                                                             prism::ServiceBudget{4u << 20, 0}));
+      h.push_back(std::make_unique<prism::DictionaryService>(first, prism::ServiceBudget{1u << 20, 0}));
     return h;
   }
   static std::vector<prism::DictionaryService*> pointers(const std::vector<std::unique_ptr<prism::DictionaryService>>& h) {
@@ -349,7 +349,7 @@ TEST_CASE("reconstruction coarse to fine: a scan on level 4 carried by its NLL m
   CHECK(same >= 11);
 }
 
-TEST_CASE("reconstruction's default scan level: the finest from the clicks' + 2 within the shift budget, any binning") {
+TEST_CASE("reconstruction's default scan and select levels: the scan within the shift budget, ranking on 441.6 um, any binning") {
   prism::DictionaryManifest m;
   m.scene = prism::builtin_scene("prototype");
   m.grid = prism::DictionaryGrid::fine_near_face();
@@ -364,8 +364,17 @@ TEST_CASE("reconstruction's default scan level: the finest from the clicks' + 2 
   CHECK(level == 4);
   CHECK(prism::scan_shifts(m, level, tau) <= budget);
   CHECK(prism::scan_shifts(m, level - 1, tau) > budget);
-  // Never finer than the select level, never coarser than stored.
+  // Never finer than the clicks' level + 2, never coarser than stored.
   CHECK(prism::default_search_level(m, 3, tau) == 5);
+  // The carried PSFs are ranked on 441.6 um pixels (64 x 64 sensor pixels),
+  // or the clicks' level + 2 where coarser; a level given is taken as is.
+  const prism::ReconstructionSettings by_default;
+  CHECK(prism::select_level(by_default, m, 0) == 2);
+  CHECK(m.pixel_mm(2) == doctest::Approx(0.4416));
+  CHECK(prism::select_level(by_default, m, 3) == 5);
+  prism::ReconstructionSettings given;
+  given.select_level = 1;
+  CHECK(prism::select_level(given, m, 0) == 1);
   m.levels = 4;
   CHECK(prism::default_search_level(m, 0, tau) == 3);
   // Clicks at the sensor's own 6.9 um pixels: the same 1.77 mm scan pixels.
@@ -374,6 +383,9 @@ TEST_CASE("reconstruction's default scan level: the finest from the clicks' + 2 
   m.levels = 14;
   CHECK(prism::default_search_level(m, 0, tau) == 8);
   CHECK(m.pixel_mm(8) == doctest::Approx(1.7664));
+  CHECK(prism::select_level(by_default, m, 0) == 6);  // not 27.6 um: five levels of tiles fewer per carried PSF
+  CHECK(m.pixel_mm(6) == doctest::Approx(0.4416));
+  CHECK(prism::select_level(by_default, m, 5) == 7);
   // The paper's 1210-PSF grid has fewer near-face planes, so fewer shifts: level 3.
   m.base_binning = 16;
   m.width = 419, m.height = 298;
