@@ -6,8 +6,8 @@
 
 namespace prism {
 
-unsigned host_threads_default(const std::string& backend) {
-  if (backend == "cpu") return 1;
+unsigned host_threads_default(ReconstructionBackend backend) {
+  if (backend == ReconstructionBackend::cpu) return 1;
   return std::clamp(std::thread::hardware_concurrency(), 1u, 8u);
 }
 
@@ -34,7 +34,7 @@ ReconstructionSession::ReconstructionSession(const std::string& dictionary, cons
     throw std::runtime_error("--precision " + o.precision + ": use float or half");
   if (on_device() && !ctx) throw std::logic_error("ReconstructionSession: the device backends need a Vulkan context");
   options_.ctx = ctx;
-  options_.threads = o.threads ? o.threads : host_threads_default(o.backend);
+  options_.threads = o.threads ? o.threads : host_threads_default(options_.backend);
   // Saturated: a budget past 8 EiB is refused by the memory check, naming --budget-mib.
   options_.host_budget_bytes = uint64_t(std::min(o.budget_mib * double(1 << 20), 0x1p63));
   options_.device_half = o.precision == "half";
