@@ -78,34 +78,25 @@ bool within_budget() {
 }
 
 // The NLL less its terms free of alpha (the clicks the PSF does not reach;
-// fit_listed adds them once): the line search compares values of a few
-// tens, not of thousands, where float resolves the steps near the optimum.
-float objective(float alpha) {
+// fit_listed adds them once), with its slope and curvature: the line search
+// compares values of a few tens, not of thousands, where float resolves the
+// steps near the optimum.
+vec3 objective_slope_curvature(float alpha) {
   // Past the budget: +inf ends the backtracking, and with it the fit.
-  if (!within_budget()) return 1.0f / 0.0f;
+  if (!within_budget()) return vec3(1.0f / 0.0f, 0.0f, 1.0f);
   float part = 0.0f;
+  vec2 slope_curv = vec2(0.0f);
   for (uint c = lane(); c < click_count; c += lanes()) {
     ivec2 q = click_at(c) - best_shift;
     float p = psf_value(p_base, q.x, q.y);
-    if (p <= 0.0f) continue;
+    if (p <= 0.0f) continue;  // a click the PSF does not reach: no term in alpha
     float lambda = rate_weight[first_click + c].x + alpha * p;
     part += lambda + log_click(lambda);
+    slope_curv += vec2(p * click_weight(lambda), p * p * click_curvature(lambda));
   }
-  return alpha * best_mass - lanes_sum(part);
-}
-
-vec2 slope_curvature(float alpha) {
-  // Past the budget: a zero slope ends the fit.
-  if (!within_budget()) return vec2(0.0f, 1.0f);
-  vec2 part = vec2(0.0f);
-  for (uint c = lane(); c < click_count; c += lanes()) {
-    ivec2 q = click_at(c) - best_shift;
-    float p = psf_value(p_base, q.x, q.y);
-    float lambda = rate_weight[first_click + c].x + alpha * p;
-    part += vec2(p * click_weight(lambda), p * p * click_curvature(lambda));
-  }
-  vec2 s = lanes_sum2(part);
-  return vec2(best_mass - s.x, s.y);
+  part = lanes_sum(part);
+  slope_curv = lanes_sum2(slope_curv);
+  return vec3(alpha * best_mass - part, best_mass - slope_curv.x, slope_curv.y);
 }
 
 // This invocation's (event e, PSF m).

@@ -32,32 +32,23 @@ float shifted_psf(uint i) {
   return psf_value(p_base, q.x, q.y);
 }
 
-float objective(float alpha) {
+vec3 objective_slope_curvature(float alpha) {
   float part = 0.0f;
+  vec2 slope_curv = vec2(0.0f);
   for (uint i = gl_LocalInvocationID.x; i < pixels; i += GROUP) {
+    // f: (1 - y) alpha P - y log(1 - exp(-lambda)), less y lambda0; its
+    // slope P - y P / (1 - exp(-lambda)).
     float p = shifted_psf(i);
+    slope_curv.x += p;
     if (clicked(i)) {
-      float lambda0 = rate_at(i);
-      part -= lambda0 + log_click(lambda0 + alpha * p);
+      float lambda0 = rate_at(i), lambda = lambda0 + alpha * p;
+      part -= lambda0 + log_click(lambda);
+      slope_curv += vec2(-p * click_weight(lambda), p * p * click_curvature(lambda));
     } else {
       part += alpha * p;
     }
   }
-  return group_sum(part);
-}
-
-vec2 slope_curvature(float alpha) {
-  vec2 part = vec2(0.0f);
-  for (uint i = gl_LocalInvocationID.x; i < pixels; i += GROUP) {
-    // d/dalpha of (1 - y) alpha P - y log(1 - exp(-lambda)): P - y P / (1 - exp(-lambda)).
-    float p = shifted_psf(i);
-    part.x += p;
-    if (clicked(i)) {
-      float lambda = rate_at(i) + alpha * p;
-      part += vec2(-p * click_weight(lambda), p * p * click_curvature(lambda));
-    }
-  }
-  return group_sum2(part);
+  return vec3(group_sum(part), group_sum2(slope_curv));
 }
 
 void main() {

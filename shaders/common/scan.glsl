@@ -134,10 +134,10 @@ uint group_argmin(float score, uint j) {
 // (paper eq. 18) with Armijo backtracking, the one-vertex case of the CPU
 // reference's fit_weights, in float: it stops when a step no longer lowers
 // the objective by more than float resolves. Each kernel defines the
-// objective f(alpha) and its slope and curvature (sums over clicks, or over
-// every pixel for the dense kernel).
-float objective(float alpha);
-vec2 slope_curvature(float alpha);
+// objective f(alpha) with its slope and curvature, sums over the clicks (or
+// over every pixel for the dense kernel) in one pass: an accepted trial's
+// slope and curvature are the next Newton step's, so a step costs one pass.
+vec3 objective_slope_curvature(float alpha);  // (f, f', f'')
 
 struct WeightFit {
   float alpha;
@@ -147,33 +147,33 @@ struct WeightFit {
 
 WeightFit fit_weight(float alpha0) {
   float a = clamp(alpha0, 0.0f, P.alpha_max);
-  float f = objective(a);
+  vec3 at = objective_slope_curvature(a);
   uint it = 0u;
   for (; it < P.max_newton; ++it) {
-    vec2 gh = slope_curvature(a);
-    float g = gh.x;
+    float g = at.y;
     // Held at a bound by the sign of the slope: the projected optimum.
     if ((a <= 0.0f && g >= 0.0f) || (a >= P.alpha_max && g <= 0.0f)) break;
-    float dir = -g / (gh.y * (1.0f + 1e-6f) + 1e-30f);
+    float dir = -g / (at.z * (1.0f + 1e-6f) + 1e-30f);
     bool accepted = false;
-    float trial = a, ft = f, step = 0.0f;
+    float trial = a, step = 0.0f;
+    vec3 tried = at;
     for (float t = 1.0f; t > 1e-12f; t *= 0.5f) {
       trial = clamp(a + t * dir, 0.0f, P.alpha_max);
       step = abs(trial - a) / (1.0f + a);
       if (step == 0.0f) break;
-      ft = objective(trial);
-      if (ft <= f + 1e-4f * g * (trial - a)) {
+      tried = objective_slope_curvature(trial);
+      if (tried.x <= at.x + 1e-4f * g * (trial - a)) {
         accepted = true;
         break;
       }
     }
     if (!accepted) break;
-    bool converged = f - ft <= 1e-6f * (1.0f + abs(f)) && step < 1e-5f;
+    bool converged = at.x - tried.x <= 1e-6f * (1.0f + abs(at.x)) && step < 1e-5f;
     a = trial;
-    f = ft;
+    at = tried;
     if (converged) break;
   }
-  return WeightFit(a, f, it);
+  return WeightFit(a, at.x, it);
 }
 
 // Newton's start, as the CPU reference: the clicks the PSF reaches over its
