@@ -4,6 +4,8 @@
 #include <array>
 #include <cstring>
 
+#include <Imath/half.h>
+
 namespace prism {
 
 namespace {
@@ -122,17 +124,17 @@ void DictionaryService::account(int64_t delta) {
   stats_.host_peak_bytes = std::max(stats_.host_peak_bytes, stats_.host_bytes);
 }
 
-const std::vector<float>& DictionaryService::tile(size_t i, int level, int tx, int ty) {
+const DictionaryService::Tile& DictionaryService::tile(size_t i, int level, int tx, int ty) {
   const int t = reader_.manifest().tile_px;
   TileKey key{i, level, tx, ty};
   auto it = tiles_.find(key);
   if (it != tiles_.end()) {
     ++stats_.tile_hits;
     lru_.splice(lru_.begin(), lru_, it->second.lru);
-    return it->second.p;
+    return it->second;
   }
   ++stats_.tile_misses;
-  uint64_t bytes = uint64_t(t) * t * sizeof(float);
+  uint64_t bytes = uint64_t(t) * t * sizeof(uint16_t);
   // A file opened for the tile counts too, unless it takes a closed one's place.
   const bool file_open = std::any_of(files_.begin(), files_.end(), [&](const PsfFile& f) { return f.index() == i; });
   const bool file_added = !file_open && int(files_.size()) < std::max(1, budget_.open_files);
@@ -147,14 +149,13 @@ const std::vector<float>& DictionaryService::tile(size_t i, int level, int tx, i
   if (stats_.host_bytes + need > budget_.host_bytes)
     throw DictionaryError(reader_.dir() + ": the host budget of " + mib(budget_.host_bytes) +
                           " leaves no room for one tile and its open file; raise it");
-  PsfWindow w = open_file(i).read_window(level, tx * t, ty * t, t, t);
-  std::vector<float> p(size_t(t) * t, 0.0f);  // tiles at the level's edge are padded with zeros
-  for (int y = 0; y < w.height; ++y)
-    std::copy_n(&w.p[size_t(y) * w.width], w.width, &p[size_t(y) * t]);
+  PsfFile& file = open_file(i);
+  std::vector<uint16_t> bits(size_t(t) * t);
+  file.read_tile(level, tx, ty, bits);
   stats_.bytes_read += bytes;
   lru_.push_front(key);
   account(int64_t(bytes));
-  return tiles_.emplace(key, Tile{std::move(p), lru_.begin()}).first->second.p;
+  return tiles_.emplace(key, Tile{std::move(bits), file.value_scale(), lru_.begin()}).first->second;
 }
 
 PsfFile& DictionaryService::open_file(size_t i) {
@@ -184,7 +185,7 @@ std::vector<float> DictionaryService::values(size_t i, int level, std::span<cons
   // tile's values are gone.
   struct Seen {
     int tx = -1, ty = -1;
-    const float* p = nullptr;
+    const Tile* tile = nullptr;
   };
   std::array<Seen, 32> seen{};
   for (size_t k = 0; k < pixels.size(); ++k) {
@@ -202,11 +203,13 @@ std::vector<float> DictionaryService::values(size_t i, int level, std::span<cons
         }
       }
       const uint64_t evictions = stats_.evictions;
-      const float* p = tile(i, level, tx, ty).data();
+      const Tile* tile_read = &tile(i, level, tx, ty);
       if (stats_.evictions != evictions) seen.fill(Seen{});
-      slot = {tx, ty, p};
+      slot = {tx, ty, tile_read};
     }
-    out[k] = slot.p[size_t(px.y - ty * t) * t + size_t(px.x - tx * t)];
+    half h;
+    h.setBits(slot.tile->bits[size_t(px.y - ty * t) * t + size_t(px.x - tx * t)]);
+    out[k] = float(h) * slot.tile->scale;
   }
   return out;
 }

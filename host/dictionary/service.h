@@ -36,7 +36,7 @@ struct ServiceBudget {
 struct ServiceStats {
   uint64_t host_bytes = 0, host_peak_bytes = 0, device_bytes = 0;
   uint64_t tile_hits = 0, tile_misses = 0, evictions = 0;
-  uint64_t bytes_read = 0;  // decoded tile bytes fetched from disk
+  uint64_t bytes_read = 0;  // tile bytes fetched from disk, decompressed (half floats, as stored)
   uint64_t file_opens = 0;  // PSF files opened for tiles (the coarse level's reads not counted)
   uint64_t dark_pixels = 0;  // pixels asked for that are dark on the coarse level: zeros, no tile read
   // Another service's counts added (peaks and device bytes too: services side by side).
@@ -86,11 +86,15 @@ class DictionaryService {
 
  private:
   using TileKey = std::tuple<size_t, int, int, int>;  // psf, level, tile x, tile y
+  // A tile as stored (half-float bits, half the bytes of floats: twice the
+  // tiles in the same budget); a value is the half times scale, exactly the
+  // float the file reads as.
   struct Tile {
-    std::vector<float> p;
+    std::vector<uint16_t> bits;
+    float scale;
     std::list<TileKey>::iterator lru;
   };
-  const std::vector<float>& tile(size_t i, int level, int tx, int ty);
+  const Tile& tile(size_t i, int level, int tx, int ty);
   PsfFile& open_file(size_t i);
   void account(int64_t delta);
 

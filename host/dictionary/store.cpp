@@ -541,6 +541,33 @@ PsfWindow PsfFile::read_window(int level, int x0, int y0, int width, int height)
   });
 }
 
+float PsfFile::value_scale() const { return f_->inv_scale; }
+
+void PsfFile::read_tile(int level, int tx, int ty, std::span<uint16_t> out) {
+  const int t = m_->tile_px;
+  if (level < 0 || level >= m_->levels)
+    throw DictionaryError(path_ + ": level " + std::to_string(level) + " of " + std::to_string(m_->levels));
+  if (out.size() != size_t(t) * size_t(t))
+    throw std::invalid_argument("PsfFile::read_tile: the buffer holds " + std::to_string(out.size()) + " values, not " +
+                                std::to_string(t) + " x " + std::to_string(t));
+  exr_call(path_, [&] {
+    Imf::TiledInputFile& file = f_->file;
+    const int lw = file.levelWidth(level), lh = file.levelHeight(level);
+    if (tx < 0 || ty < 0 || tx * t >= lw || ty * t >= lh)
+      throw DictionaryError(path_ + ": no tile (" + std::to_string(tx) + ", " + std::to_string(ty) + ") on level " +
+                            std::to_string(level));
+    // Edge tiles are partial: the frame buffer covers the whole t x t block,
+    // zeros left where the level ends.
+    std::fill(out.begin(), out.end(), uint16_t(0));
+    const int bx = tx * t, by = ty * t;
+    Imf::FrameBuffer fb;
+    fb.insert("Y", Imf::Slice(Imf::HALF, (char*)(out.data() - bx - size_t(by) * t), sizeof(half),
+                              sizeof(half) * size_t(t)));
+    file.setFrameBuffer(fb);
+    file.readTile(tx, ty, level, level);
+  });
+}
+
 double DictionaryReader::photons_on_sensor(size_t i) const {
   std::string path = path_of(i);
   return exr_call(path, [&] {

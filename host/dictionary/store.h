@@ -8,6 +8,7 @@
 #pragma once
 #include <cstdint>
 #include <memory>
+#include <span>
 #include <stdexcept>
 #include <string>
 #include <vector>
@@ -138,6 +139,11 @@ class PsfFile {
   size_t index() const { return index_; }
   // Pixels [x0, x0 + width) x [y0, y0 + height) of `level`, cropped to it.
   PsfWindow read_window(int level, int x0, int y0, int width, int height);
+  // Tile (tx, ty) of `level` as stored: tile_px x tile_px half floats (their
+  // bits), row-major, zero beyond the level's edge; a value is the half
+  // times value_scale().
+  void read_tile(int level, int tx, int ty, std::span<uint16_t> out);
+  float value_scale() const;
   // What an open file holds in memory (its tile offset tables and one
   // tile's buffers), for budgets.
   static uint64_t bytes(const DictionaryManifest& m);

@@ -381,7 +381,7 @@ TEST_CASE("streaming serves a dictionary several times larger than its budget") 
           px.push_back({tx * t + (pass * 7) % t, ty * t + (pass * 5) % t});
           px.push_back({std::min(m.width - 1, (tx / 2) * t + 3), std::min(m.height - 1, ty * t + 1)});
         }
-    REQUIRE(uint64_t(px.size() / 2) * uint64_t(t) * uint64_t(t) * sizeof(float) > budget.host_bytes / 4);
+    REQUIRE(uint64_t(px.size() / 2) * uint64_t(t) * uint64_t(t) * sizeof(uint16_t) > budget.host_bytes / 4);
     const uint64_t before = svc.stats().evictions;
     const size_t i = m.grid.size() / 2;
     auto v = svc.values(i, 0, px);
@@ -475,7 +475,7 @@ TEST_CASE("the service keeps a few PSF files open: tiles read through them are t
   uint64_t tables = 0;
   for (size_t i = 0; i < m.grid.size(); ++i)
     tables += svc.coarse_mass(i).bytes() + prism::LitPixels(r.read_level(i, 3)).bytes();
-  const uint64_t tile_bytes = uint64_t(m.tile_px) * m.tile_px * sizeof(float);
+  const uint64_t tile_bytes = uint64_t(m.tile_px) * m.tile_px * sizeof(uint16_t);  // tiles are cached as stored, in half floats
   CHECK(svc.stats().evictions == 0);
   CHECK(svc.stats().host_bytes == tables + svc.stats().tile_misses * tile_bytes + 2 * prism::PsfFile::bytes(m));
   // Room for the tables and one tile but not its file: refused, not exceeded.
