@@ -110,6 +110,14 @@ inline constexpr double search_shifts_per_click = 1.5e5;
 // the clicks' level + 2 (27.6 um) cost five levels of tiles for each (README
 // "Clicks at the sensor's own pixels").
 inline constexpr int select_pixel_sensor_px = 64;
+// The refine_candidates PSFs ranked at the select level go down to the
+// finest level whose pixels span at least this many sensor pixels per axis
+// (the clicks' level where that is coarser) and are ranked by their NLL
+// there; only the best goes on to the clicks. At 110 um clicks (16 sensor
+// pixels) that is the clicks' level, as before; at 6.9 um clicks it is 27.6
+// um, which spares seven of the eight the two finest levels of tiles (README
+// "Clicks at the sensor's own pixels").
+inline constexpr int rank_pixel_sensor_px = 4;
 // Device backends scan a pass's events this many at a time (one dispatch
 // per dictionary chunk), the host descending each chunk while the device
 // scans the next (host/reconstruct/reconstruct.h); `prism reconstruct`

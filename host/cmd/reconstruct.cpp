@@ -221,6 +221,11 @@ void add_reconstruct(CLI::App& app) {
                 "coarse to fine: the level where the carried PSFs are ranked again before the best 8 go on to the "
                 "clicks (-1: pixels of 64 x 64 sensor pixels, 441.6 um, or the clicks' level + 2 where coarser)")
       ->capture_default_str()->check(CLI::Range(-1, 63));
+  c->add_option("--rank-level", a->session.settings.rank_level,
+                "the level where the 8 candidates from --select-level are ranked by their NLL before the best alone "
+                "goes on to the clicks (-1: pixels of 4 x 4 sensor pixels, 27.6 um, or the clicks' level where "
+                "coarser)")
+      ->capture_default_str()->check(CLI::Range(-1, 63));
   c->add_option("--carry-margin", a->session.settings.carry_margin_nll,
                 "coarse to fine: NLL margin of the PSFs carried from a coarse scan (0: its 8 best alone)")
       ->capture_default_str()->check(non_negative_number);

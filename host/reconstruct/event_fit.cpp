@@ -41,6 +41,10 @@ int select_level_of(int search_level, const ReconstructionSettings& s, const Dic
   return std::clamp(select_level(s, m, click_level), click_level, search_level);
 }
 
+int rank_level_of(int select_level, const ReconstructionSettings& s, const DictionaryManifest& m, int click_level) {
+  return std::clamp(rank_level(s, m, click_level), click_level, select_level);
+}
+
 EventFit::EventFit(const Event& e, int level, DictionaryService& d, const ReconstructionSettings& s)
     : d_(d), m_(d.manifest()), s_(s), level_(level) {
   const int w = m_.level_width(level);

@@ -51,6 +51,9 @@ int search_level_of(const DictionaryService& d, const ReconstructionSettings& s,
 // the search level. The device scan's choice of which weights to fit
 // (reconstructor.cpp) rests on the same level as the pruning (search.cpp).
 int select_level_of(int search_level, const ReconstructionSettings& s, const DictionaryManifest& m, int click_level);
+// The level the candidates are ranked on before the best goes on to the
+// clicks (rank_level(), between the clicks' level and the select level).
+int rank_level_of(int select_level, const ReconstructionSettings& s, const DictionaryManifest& m, int click_level);
 
 class EventFit {
  public:

@@ -59,6 +59,12 @@ struct ReconstructionSettings {
   // refine_candidates best go on to the clicks. -1: select_level()'s default
   // (441.6 um pixels, or the clicks' level + 2 where coarser).
   int select_level = -1;
+  // The refine_candidates go down from select_level to rank_level and are
+  // ranked there by their NLL; only the best goes on to the clicks (the
+  // others' shifts scaled to the clicks' level, as runners-up). -1:
+  // rank_level()'s default (27.6 um pixels, or the clicks' level where
+  // coarser).
+  int rank_level = -1;
   double carry_margin_nll = 50;  // measured: README "Reconstruction", coarse to fine
   int carry_max = 512;
   int newton_iterations = 60;    // cap per weight solve (projected Newton with backtracking)
@@ -142,6 +148,11 @@ inline constexpr double max_scan_shifts = 1e9;
 // + 2 up whose pixels span defaults::select_pixel_sensor_px sensor pixels
 // (capped at the coarsest stored).
 int select_level(const ReconstructionSettings& s, const DictionaryManifest& m, int click_level);
+// The level the candidates from select_level are ranked on before the best
+// goes on to the clicks: settings.rank_level, or when it is -1 the finest
+// from the clicks' level up whose pixels span defaults::rank_pixel_sensor_px
+// sensor pixels.
+int rank_level(const ReconstructionSettings& s, const DictionaryManifest& m, int click_level);
 
 // Where the time of a batch went.
 struct ReconstructionTimings {

@@ -80,6 +80,13 @@ int select_level(const ReconstructionSettings& s, const DictionaryManifest& m, i
   return level;
 }
 
+int rank_level(const ReconstructionSettings& s, const DictionaryManifest& m, int click_level) {
+  if (s.rank_level >= 0) return s.rank_level;
+  int level = click_level;
+  while (level + 1 < m.levels && (m.base_binning << level) < defaults::rank_pixel_sensor_px) ++level;
+  return level;
+}
+
 namespace {
 // The device's results of event j as scores (a PSF whose weight was not
 // fitted has NLL +inf).

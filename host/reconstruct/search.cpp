@@ -1,9 +1,11 @@
 // Pruning (paper eq. 19): the support scan scores every PSF at its best shift
 // on the search level (the backends: engine/ref/support_scan_ref.h and the
 // device kernels). The best refine_candidates of it go down level by level to
-// the click grid, the shift doubled and +-1 pixel re-searched at each level
+// the rank level, the shift doubled and +-1 pixel re-searched at each level
 // (first +-(step - 1) on the search level when the scan skipped shifts), with
-// the same shift search as the reference scan; the lowest click-level NLL wins.
+// the same shift search as the reference scan; the lowest NLL there wins and
+// goes on to the click grid the same way (the rank level is the clicks' own
+// unless they are finer than 27.6 um: defaults::rank_pixel_sensor_px).
 // Coarse to fine (a scan coarser than select_level): every PSF within the
 // carry margin goes down to select_level first and is ranked again there.
 // The binary model is exact at any level: a block clicks when any of its
@@ -98,17 +100,37 @@ Vertex EventFit::refine(std::vector<SupportScore> scored, std::vector<Vertex>& r
     ranked.resize(std::min(keep, ranked.size()));
     selected = std::move(ranked);
   }
-  auto background_click = rates(level_, vs_, search_floor());
+  // The candidates down to the rank level, ranked there by their NLL; the
+  // best goes on to the clicks.
+  const int Lr = rank_level_of(Lf, s_, m_, level_);
+  const auto background_click = rates(level_, vs_, search_floor());
+  auto click_nll = [&](Vertex& v) {
+    const Column& col = column(v.psf, v.shift);
+    return fit_one(col.p, col.s, background_click, v.alpha);
+  };
   std::vector<std::pair<double, Vertex>> tried;
-  for (const SupportScore& c : selected) {
-    Shift sh = c.shift;
-    for (int l = Lf - 1; l >= level_; --l) sh = search(c.psf, l, sh * 2, 1);
-    const Column& col = column(c.psf, sh);
-    double alpha = c.alpha;
-    double f = fit_one(col.p, col.s, background_click, alpha);
-    tried.push_back({f, {c.psf, sh, alpha}});
+  {
+    const auto background = Lr == level_ ? background_click : rates(Lr, vs_, search_floor());
+    for (const SupportScore& c : selected) {
+      Vertex v{c.psf, c.shift, c.alpha};
+      for (int l = Lf - 1; l >= Lr; --l) v.shift = search(c.psf, l, v.shift * 2, 1);
+      double f;
+      if (Lr == level_) {
+        f = click_nll(v);
+      } else {
+        const auto p = values_at(v.psf, Lr, v.shift);
+        f = fit_one(std::vector<double>(p.begin(), p.end()), sensor_mass(v.psf, Lr, v.shift), background, v.alpha);
+      }
+      tried.push_back({f, v});
+    }
   }
   std::stable_sort(tried.begin(), tried.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
+  if (Lr > level_ && !tried.empty()) {
+    Vertex& best = tried.front().second;
+    for (int l = Lr - 1; l >= level_; --l) best.shift = search(best.psf, l, best.shift * 2, 1);
+    click_nll(best);
+    for (size_t j = 1; j < tried.size(); ++j) tried[j].second.shift *= 1 << (Lr - level_);
+  }
   runners_up.clear();
   for (size_t j = 1; j < tried.size(); ++j) runners_up.push_back(tried[j].second);
   return tried.empty() ? Vertex{} : tried.front().second;

@@ -72,6 +72,19 @@ prism::Event make_event(const std::vector<Source>& sources, uint64_t seed, uint6
   return prism::test::sample_event(forward_truth(), sources, seed, id);
 }
 
+// `count` single-vertex events of 100 photons at positions uniform in x, y
+// within +-6 mm and depth within [depth_min, depth_max) mm.
+std::vector<prism::Event> central_events(int count, uint64_t position_seed, double depth_min, double depth_max,
+                                         uint64_t click_seed) {
+  std::vector<prism::Event> events;
+  std::mt19937_64 rng(position_seed);
+  std::uniform_real_distribution<double> u(0, 1);
+  for (uint64_t i = 0; i < uint64_t(count); ++i)
+    events.push_back(make_event(
+        {{{-6 + 12 * u(rng), -6 + 12 * u(rng), depth_min + (depth_max - depth_min) * u(rng)}, 100}}, click_seed, i));
+  return events;
+}
+
 // Coarse scan on level 2 (four times the click pixel), as the CLI's default.
 prism::ReconstructionSettings settings(int vertices) {
   prism::ReconstructionSettings s;
@@ -328,11 +341,7 @@ TEST_CASE("reconstruction coarse to fine: a scan on level 4 carried by its NLL m
   // Level 4 (16 x 16 click pixels per scan pixel) ranks the PSFs coarsely;
   // every PSF within the margin goes down to level 2 and is ranked again
   // there, as the exhaustive scan of level 2 ranks them.
-  std::vector<prism::Event> events;
-  std::mt19937_64 rng(5);
-  std::uniform_real_distribution<double> u(0, 1);
-  for (uint64_t i = 0; i < 12; ++i)
-    events.push_back(make_event({{{-6 + 12 * u(rng), -6 + 12 * u(rng), 19 + 17 * u(rng)}, 100}}, 83, i));
+  const auto events = central_events(12, 5, 19, 36, 83);
   auto coarse = settings(1);
   coarse.search_level = 4;
   prism::DictionaryService level4(*small_dictionary().reader, nullptr, 4, {});
@@ -347,6 +356,33 @@ TEST_CASE("reconstruction coarse to fine: a scan on level 4 carried by its NLL m
   }
   CAPTURE(same);
   CHECK(same >= 11);
+}
+
+TEST_CASE("reconstruction: the candidates ranked a level above the clicks, the best alone taken on, land where ranking at the clicks puts them") {
+  // rank_level 1: the 8 candidates are ranked on 220 um pixels and only the
+  // best goes on to the 110 um clicks; ranked on the clicks themselves, the
+  // same PSF and shift win in 10 of these 12 events. Of the two others, one
+  // is wrong both ways (26 mm too deep); in the other, 220 um prefers
+  // another plane, as far from the truth (2.0 against 1.8 mm), whose NLL on
+  // the clicks is 70 higher: what ranking above the clicks can cost (README
+  // "Clicks at the sensor's own pixels" measures it on 400 native events).
+  const auto events = central_events(12, 6, 5, 40, 84);
+  auto above = settings(1);
+  above.rank_level = 1;
+  int same = 0;
+  for (const auto& e : events) {
+    auto at_clicks = run(e, settings(1));
+    auto ranked_above = run(e, above);
+    CAPTURE(e.id);
+    REQUIRE(at_clicks.size() == 1);
+    REQUIRE(ranked_above.size() == 1);
+    same += at_clicks[0].psf == ranked_above[0].psf && at_clicks[0].shift_px == ranked_above[0].shift_px;
+    // The runners-up are source positions within the field, as at the clicks.
+    CHECK(ranked_above[0].runners_up.size() == at_clicks[0].runners_up.size());
+    for (const glm::dvec4& r : ranked_above[0].runners_up) CHECK(std::abs(r.x) < 30);
+  }
+  MESSAGE("ranked on level 1, the best alone taken to the clicks: the same PSF and shift in " << same << " of 12");
+  CHECK(same >= 10);
 }
 
 TEST_CASE("reconstruction's default scan and select levels: the scan within the shift budget, ranking on 441.6 um, any binning") {
@@ -375,6 +411,11 @@ TEST_CASE("reconstruction's default scan and select levels: the scan within the 
   prism::ReconstructionSettings given;
   given.select_level = 1;
   CHECK(prism::select_level(given, m, 0) == 1);
+  // The 8 candidates are ranked on the 110 um clicks themselves.
+  CHECK(prism::rank_level(by_default, m, 0) == 0);
+  CHECK(prism::rank_level(by_default, m, 3) == 3);
+  given.rank_level = 2;
+  CHECK(prism::rank_level(given, m, 0) == 2);
   m.levels = 4;
   CHECK(prism::default_search_level(m, 0, tau) == 3);
   // Clicks at the sensor's own 6.9 um pixels: the same 1.77 mm scan pixels.
@@ -386,6 +427,11 @@ TEST_CASE("reconstruction's default scan and select levels: the scan within the 
   CHECK(prism::select_level(by_default, m, 0) == 6);  // not 27.6 um: five levels of tiles fewer per carried PSF
   CHECK(m.pixel_mm(6) == doctest::Approx(0.4416));
   CHECK(prism::select_level(by_default, m, 5) == 7);
+  // ... and the 8 candidates on 27.6 um (4 x 4 sensor pixels), the best alone
+  // going on to the clicks: two levels of tiles fewer for seven of them.
+  CHECK(prism::rank_level(by_default, m, 0) == 2);
+  CHECK(m.pixel_mm(2) == doctest::Approx(0.0276));
+  CHECK(prism::rank_level(by_default, m, 3) == 3);
   // The paper's 1210-PSF grid has fewer near-face planes, so fewer shifts: level 3.
   m.base_binning = 16;
   m.width = 419, m.height = 298;
