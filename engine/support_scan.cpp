@@ -32,6 +32,12 @@ uint32_t pack_click(glm::ivec2 c) { return uint32_t(c.x) | (uint32_t(c.y) << 16)
 // after 65535 (gallivm's loop limiter, there against hung shaders), silently;
 // half of that leaves room for the weight fit's loops. GPUs have no such limit.
 constexpr uint64_t kCpuLoopBudget = 32768;
+// Shifts the serial scan scores per pass over the clicks (support_scan.comp's
+// SUB): a pass counts this many iterations per click should the compiler keep
+// the inner loop. An event with more clicks than kCpuLoopBudget /
+// kSerialShiftsPerPass is scored one shift per pass (the kernel decides per
+// event from the budget, its specialisation constant).
+constexpr uint64_t kSerialShiftsPerPass = 8;
 
 }  // namespace
 
@@ -53,17 +59,16 @@ struct SupportScanVulkan::Impl {
     else
       k = std::make_unique<vk::Kernel>(
           ctx, "support_scan", std::span<const uint32_t>(spv_support_scan, std::size(spv_support_scan)), 8,
-          sizeof(shared::ScanParams), std::vector<uint32_t>{half ? 1u : 0u, serial_scan ? 1u : 0u, serial_fit ? 1u : 0u});
+          sizeof(shared::ScanParams), std::vector<uint32_t>{half ? 1u : 0u, serial_scan ? 1u : 0u, serial_fit ? 1u : 0u, uint32_t(kCpuLoopBudget)});
     return *k;
   }
-  // The layouts of a run (ScanLayout): on a CPU device the fits are serial,
-  // and the scan where its PSFs average fewer shifts than a workgroup has
-  // invocations (measured on llvmpipe: README "Reconstruction", kernel layout).
-  std::pair<bool, bool> serial(double mean_shifts, uint64_t group) const {
+  // The layouts of a run (ScanLayout): serial scan and fits on a CPU device,
+  // workgroups elsewhere (measured on llvmpipe: README "Reconstruction",
+  // kernel layout).
+  std::pair<bool, bool> serial() const {
     if (which == ScanKernel::dense || layout == ScanLayout::group) return {false, false};
     if (layout == ScanLayout::serial) return {true, true};
-    if (!ctx.is_cpu()) return {false, false};
-    return {mean_shifts < double(group), true};
+    return {ctx.is_cpu(), ctx.is_cpu()};
   }
 };
 
@@ -130,15 +135,13 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
   }
 
   int max_half = 0;
-  double mean_shifts = 0;
   for (const ScanPsf& psf : level.psfs) {
     const int h = psf.radius_px / s.step_px;
     max_half = std::max(max_half, h);
-    mean_shifts += double(2 * h + 1) * double(2 * h + 1) / double(n_psf);
   }
   const uint64_t max_shifts = uint64_t(2 * max_half + 1) * uint64_t(2 * max_half + 1);
   const uint64_t group = 64;  // scan.glsl's GROUP
-  const auto [serial_scan, serial_fit] = impl_->serial(mean_shifts, group);
+  const auto [serial_scan, serial_fit] = impl_->serial();
   vk::Kernel& kernel = impl_->kernel(serial_scan, serial_fit);
 
   std::vector<ScanOut> raw(batch * n_psf);
@@ -208,8 +211,14 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
         if (clicks > kCpuLoopBudget)
           throw vk::Error("support scan: an event with " + std::to_string(clicks) + " clicks on the scan level needs " +
                           "more loop iterations per invocation than " + ctx.describe() + " runs; scan a coarser level");
-        // Serial: one invocation scores the whole block.
-        block = (serial_scan ? 1 : group) * std::max<uint64_t>(1, kCpuLoopBudget / clicks);
+        // Serial: one invocation scores the whole block, kSerialShiftsPerPass
+        // shifts per pass where the batch's largest event allows, else one.
+        if (!serial_scan)
+          block = group * std::max<uint64_t>(1, kCpuLoopBudget / clicks);
+        else if (clicks * kSerialShiftsPerPass <= kCpuLoopBudget)
+          block = kSerialShiftsPerPass * (kCpuLoopBudget / (kSerialShiftsPerPass * clicks));
+        else
+          block = std::max<uint64_t>(1, kCpuLoopBudget / clicks);
       }
       block = std::min(block, max_shifts);
     }

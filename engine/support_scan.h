@@ -98,10 +98,9 @@ enum class ScanKernel { sparse, dense };
 
 // The sparse kernel's layout on the device: a workgroup per (event, PSF),
 // its invocations splitting the shifts (phase 0) and the clicks (the weight
-// fit, phase 1), or one invocation per (event, PSF). automatic: on a CPU
-// device (llvmpipe) serial fits, and a serial scan where the PSFs average
-// fewer shifts than a workgroup has invocations (shaders/support_scan.comp
-// says why); workgroups elsewhere. The same results either way.
+// fit, phase 1), or one invocation per (event, PSF). automatic: serial on a
+// CPU device (llvmpipe; shaders/support_scan.comp says why), workgroups
+// elsewhere. The same results either way.
 enum class ScanLayout { automatic, group, serial };
 
 class SupportScanVulkan {

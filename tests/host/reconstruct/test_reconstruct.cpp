@@ -811,8 +811,9 @@ TEST_CASE("support scan on the device: sparse, dense and half agree with the CPU
   auto ref = cpu.first_scan(events);
   // The sparse kernel in workgroups throughout (what a GPU runs), serial
   // throughout, where the 1e4-photon event (6325 clicks) runs out of the
-  // serial fit's loop budget and its batch falls back, and this device's
-  // choice (on lavapipe at tau 6: the shifts in workgroups, the fits serial).
+  // serial fit's loop budget and its batch falls back, and is scored one
+  // shift per pass where the others take 8, and this device's choice (on
+  // lavapipe: serial).
   using L = prism::ScanLayout;
   for (auto [backend, half, layout] : {std::tuple{B::vulkan, false, L::group}, std::tuple{B::vulkan, false, L::serial},
                                        std::tuple{B::vulkan, true, L::serial}, std::tuple{B::vulkan, false, L::automatic},
