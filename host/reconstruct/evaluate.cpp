@@ -517,6 +517,11 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   if (s.search_level > select_level(s, m, o.level))
     run["search"]["carry"] = {{"select_level", select_level(s, m, o.level)}, {"margin_nll", s.carry_margin_nll},
                               {"max", s.carry_max}};
+  // The candidates ranked above the clicks only where these are finer than
+  // its pixels (a journal of 110 um clicks keeps its header).
+  const int selected_on = std::clamp(select_level(s, m, o.level), o.level, std::max(o.level, s.search_level));
+  const int ranked_on = std::clamp(rank_level(s, m, o.level), o.level, selected_on);
+  if (ranked_on > o.level) run["search"]["rank_level"] = ranked_on;
   const std::string on_mismatch = "rerun with the same options, or without --resume to start over";
   const WorkShare& share = o.share;
   // The protocol's trials done: point -> trial -> estimate. A record of a
