@@ -59,7 +59,8 @@ struct SupportScanVulkan::Impl {
     else
       k = std::make_unique<vk::Kernel>(
           ctx, "support_scan", std::span<const uint32_t>(spv_support_scan, std::size(spv_support_scan)), 8,
-          sizeof(shared::ScanParams), std::vector<uint32_t>{half ? 1u : 0u, serial_scan ? 1u : 0u, serial_fit ? 1u : 0u, uint32_t(kCpuLoopBudget)});
+          sizeof(shared::ScanParams),
+          std::vector<uint32_t>{half ? 1u : 0u, serial_scan ? 1u : 0u, serial_fit ? 1u : 0u, uint32_t(kCpuLoopBudget)});
     return *k;
   }
   // The layouts of a run (ScanLayout): serial scan and fits on a CPU device,
