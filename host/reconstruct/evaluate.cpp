@@ -15,6 +15,7 @@
 #include "engine/defaults.h"
 #include "host/dictionary/service.h"
 #include "host/events/simulate.h"
+#include "host/reconstruct/event_fit.h"
 #include "host/reconstruct/match.h"
 #include "host/scene/crlb_study.h"
 #include "host/util/format.h"
@@ -519,8 +520,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
                               {"max", s.carry_max}};
   // The candidates ranked above the clicks only where these are finer than
   // its pixels (a journal of 110 um clicks keeps its header).
-  const int selected_on = std::clamp(select_level(s, m, o.level), o.level, std::max(o.level, s.search_level));
-  const int ranked_on = std::clamp(rank_level(s, m, o.level), o.level, selected_on);
+  const int ranked_on = detail::rank_level_of(detail::select_level_of(s.search_level, s, m, o.level), s, m, o.level);
   if (ranked_on > o.level) run["search"]["rank_level"] = ranked_on;
   const std::string on_mismatch = "rerun with the same options, or without --resume to start over";
   const WorkShare& share = o.share;

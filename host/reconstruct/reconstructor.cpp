@@ -73,18 +73,24 @@ int default_search_level(const DictionaryManifest& m, int click_level, double ta
   return level;
 }
 
+namespace {
+// The finest level from `from` up whose pixels span at least sensor_px
+// sensor pixels per axis (capped at the coarsest stored).
+int level_spanning(const DictionaryManifest& m, int from, int sensor_px) {
+  int level = from;
+  while (level + 1 < m.levels && (m.base_binning << level) < sensor_px) ++level;
+  return level;
+}
+}  // namespace
+
 int select_level(const ReconstructionSettings& s, const DictionaryManifest& m, int click_level) {
   if (s.select_level >= 0) return s.select_level;
-  int level = click_level + 2;
-  while (level + 1 < m.levels && (m.base_binning << level) < defaults::select_pixel_sensor_px) ++level;
-  return level;
+  return level_spanning(m, click_level + 2, defaults::select_pixel_sensor_px);
 }
 
 int rank_level(const ReconstructionSettings& s, const DictionaryManifest& m, int click_level) {
   if (s.rank_level >= 0) return s.rank_level;
-  int level = click_level;
-  while (level + 1 < m.levels && (m.base_binning << level) < defaults::rank_pixel_sensor_px) ++level;
-  return level;
+  return level_spanning(m, click_level, defaults::rank_pixel_sensor_px);
 }
 
 namespace {
