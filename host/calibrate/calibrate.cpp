@@ -692,6 +692,33 @@ std::vector<MeasuredPsf> binned(const std::vector<MeasuredPsf>& psfs, const Anal
   return out;
 }
 
+// The model's cells (calibrate.h): the fit's parameters x evaluated again
+// with options.cells_check times the cells, and one Gauss-Newton step on
+// that model over the parameters `act` (those with an uncertainty): how far
+// it moves each. Zeros when not checked or when the finer model's matrix is
+// singular; records the check's cells and time in r.
+std::vector<double> cells_check(const OpticalSystem& start, const std::vector<MeasuredPsf>& psfs,
+                                const std::vector<CalibrationParameter>& free, const CalibrationOptions& options,
+                                const std::vector<double>& x, const std::vector<size_t>& act, CalibrationResult& r) {
+  const size_t P = free.size(), m = act.size();
+  std::vector<double> moved(P, 0.0);
+  if (options.cells_check <= 1 || m == 0) return moved;
+  const auto t0 = std::chrono::steady_clock::now();
+  CalibrationOptions finer = options;
+  finer.settings.rays_per_lenslet = options.settings.rays_per_lenslet * options.cells_check;
+  const Evaluation e = Fitter(start, psfs, free, finer).evaluate(x, true);
+  std::vector<double> A(m * m), step(m);
+  for (size_t a = 0; a < m; ++a) {
+    for (size_t b = 0; b < m; ++b) A[a * m + b] = e.gn[act[a] * P + act[b]];
+    step[a] = -e.grad[act[a]];
+  }
+  if (e.ok && solve_spd(A, step, m))
+    for (size_t a = 0; a < m; ++a) moved[act[a]] = std::abs(step[a]);
+  r.check_cells = finer.settings.rays();
+  r.check_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  return moved;
+}
+
 }  // namespace
 
 CalibrationResult calibrate(const OpticalSystem& start, const std::vector<MeasuredPsf>& psfs,
@@ -767,7 +794,12 @@ CalibrationResult calibrate(const OpticalSystem& start, const std::vector<Measur
         for (size_t c = 0; c < m; ++c) var += inv[a * m + b] * cur.meat[act[b] * P + act[c]] * inv[c * m + a];
       if (var > 0) sigma[act[a]] = std::sqrt(var);
     }
-  for (size_t j = 0; j < P; ++j) r.estimates.push_back({free[j], free[j].get(start), x[j], sigma[j], at_bound[j]});
+  const std::vector<double> cells = cells_check(start, psfs, free, options, x, act, r);
+  for (size_t j = 0; j < P; ++j) {
+    ParameterEstimate e{free[j], free[j].get(start), x[j], sigma[j], sigma[j], cells[j], at_bound[j]};
+    if (std::isfinite(e.sigma)) e.sigma = std::hypot(e.sigma_residuals, e.sigma_cells);
+    r.estimates.push_back(e);
+  }
   r.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count() - t0;
   return r;
 }

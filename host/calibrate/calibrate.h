@@ -30,6 +30,16 @@
 // third small (README "Calibration"). chi2 / dof is the goodness of fit, per
 // PSF and per lenslet in the result.
 //
+// The model's cells: a footprint of N cells per lenslet is itself an
+// approximation, and where the images are large and curved (f = 3 mm near
+// hemispheres) its error moves the optimum by more than the sandwich says
+// (it errs alike along an image's edge, not pixel by pixel). After the fit
+// the model is evaluated at the optimum with cells_check x N cells, and one
+// Gauss-Newton step on it says where that finer model's optimum lies. The
+// step's size is each parameter's uncertainty from the model's cells; the
+// reported sigma adds it to the sandwich's in quadrature. The fitted values
+// stay the N-cell model's: the one the refinement renders with.
+//
 // Derivatives: forward mode with respect to the scene's parameters
 // (Tangents), each lenslet's image rendered alone so that its own
 // parameters touch only its own pixels: on a device with the splat kernels'
@@ -120,6 +130,9 @@ struct CalibrationOptions {
   // rendered on pixels this many times finer (a power of two, at most the
   // binning), blurred there and binned (source_blur.h, defaults.h).
   unsigned blur_supersample = defaults::calibration_blur_supersample;
+  // After the fit: the model with this many times the cells, for the
+  // uncertainty its cells leave (above); 1: not checked.
+  unsigned cells_check = defaults::calibration_cells_check_factor;
   // The calibrate kernels on this device (engine/forward.h,
   // Derivatives::scene); null: the double-precision CPU reference.
   vk::Context* device = nullptr;
@@ -134,6 +147,9 @@ struct ParameterEstimate {
   // the range CalibrationParameter::bounds allows, so no interior optimum
   // exists to take an uncertainty at; the others' sigmas hold it fixed).
   double sigma = 0;
+  // Its two parts: the sandwich's (the residuals), and the model's cells'
+  // (how far the check's finer model moves it; 0 when not checked).
+  double sigma_residuals = 0, sigma_cells = 0;
   bool at_bound = false;
 };
 
@@ -160,6 +176,8 @@ struct CalibrationResult {
   int steps = 0;          // accepted, all levels
   bool converged = false; // at the finest level: the last step gained less than 1e-3 of chi2 / dof, or no step could
   double seconds = 0;
+  unsigned check_cells = 0;    // cells per 3 mm lenslet of the check's model (0: not checked)
+  double check_seconds = 0;    // of seconds, the check's
   double reduced_chi2() const { return dof ? chi2 / double(dof) : 0.0; }
 };
 

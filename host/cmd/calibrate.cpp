@@ -38,6 +38,7 @@ struct CalibrateArgs {
   double weight_floor = defaults::calibration_weight_floor;
   unsigned threads = std::max(1u, std::thread::hardware_concurrency());
   unsigned blur_supersample = defaults::calibration_blur_supersample;
+  unsigned cells_check = defaults::calibration_cells_check_factor;
   std::string backend = "auto";
   std::string device;
   std::string csv;
@@ -144,6 +145,7 @@ void run(const CalibrateArgs& a) {
   o.weight_floor = a.weight_floor;
   o.threads = a.threads;
   o.blur_supersample = std::min(a.blur_supersample, in.binning);
+  o.cells_check = a.cells_check;
   // auto: the calibrate kernels on a GPU; on a CPU device (lavapipe) the
   // reference on --threads cores is as fast (bench_calibrate, README).
   std::unique_ptr<vk::Context> ctx;
@@ -185,11 +187,12 @@ void run(const CalibrateArgs& a) {
   if (source_only) fitted.optics.effects = scene.optics.effects;
   write_text(a.out, to_json(fitted).dump(2) + "\n");
 
-  std::string table = "parameter,start,fitted,sigma,change_over_sigma,at_bound\n";
+  std::string table = "parameter,start,fitted,sigma,change_over_sigma,at_bound,sigma_residuals,sigma_cells\n";
   for (const auto& e : r.estimates)
     table += e.parameter.name() + "," + format_number(e.start, 12) + "," + format_number(e.value, 12) + "," +
              format_number(e.sigma) + "," + format_number((e.value - e.start) / e.sigma) + "," +
-             (e.at_bound ? "1" : "0") + "\n";
+             (e.at_bound ? "1" : "0") + "," + format_number(e.sigma_residuals) + "," + format_number(e.sigma_cells) +
+             "\n";
   if (!a.csv.empty()) write_text(a.csv, table);
 
   if (!a.residuals.empty()) {
@@ -228,12 +231,14 @@ void run(const CalibrateArgs& a) {
                {lens_series});
   }
 
-  std::printf("%-28s %14s %14s %12s %10s\n", "parameter", "start", "fitted", "sigma", "change/sd");
+  std::printf("%-28s %14s %14s %12s %10s %12s %12s\n", "parameter", "start", "fitted", "sigma", "change/sd",
+              "sd residuals", "sd cells");
   std::string on_bounds;
   size_t n_on_bounds = 0;
   for (const auto& e : r.estimates) {
-    std::printf("%-28s %14.6f %14.6f %12.3g %10.2f%s\n", e.parameter.name().c_str(), e.start, e.value, e.sigma,
-                (e.value - e.start) / e.sigma, e.at_bound ? "  at its bound" : "");
+    std::printf("%-28s %14.6f %14.6f %12.3g %10.2f %12.3g %12.3g%s\n", e.parameter.name().c_str(), e.start, e.value,
+                e.sigma, (e.value - e.start) / e.sigma, e.sigma_residuals, e.sigma_cells,
+                e.at_bound ? "  at its bound" : "");
     if (e.at_bound) on_bounds += (n_on_bounds++ ? ", " : "") + e.parameter.name();
   }
   if (n_on_bounds)
@@ -244,6 +249,10 @@ void run(const CalibrateArgs& a) {
   std::printf("chi2 %.6g -> %.6g over %zu pixels of %zu PSFs, chi2 / dof %.4g, %d steps%s, %.1f s\n", r.chi2_start,
               r.chi2, r.pixels, psfs.size(), r.reduced_chi2(), r.steps,
               r.converged ? " (converged)" : " (step limit reached)", r.seconds);
+  if (r.check_cells)
+    std::printf("sigma = the residuals' (sandwich) and the model's cells' in quadrature: the fit's %u cells per "
+                "lenslet checked against %u (%.1f s of it)\n",
+                o.settings.rays(), r.check_cells, r.check_seconds);
   if (source_only)
     std::printf("The calibration source's extent (sigma %.4g mm) is in the table, not in %s: events are point "
                 "sources. To simulate the calibration source, add the effect source_extent with that sigma.\n",
@@ -305,7 +314,15 @@ void add_calibrate(CLI::App& app) {
                 "on the README's test it gained little (README \"Calibration\")")
       ->check(CLI::IsMember({1u, 2u, 4u, 8u}))
       ->capture_default_str();
-  c->add_option("--csv", a->csv, "the parameters' table: start, fitted, sigma, change / sigma");
+  c->add_option("--cells-check", a->cells_check,
+                "after the fit, evaluate the model with this many times its cells (about as long as that many steps): "
+                "how far that moves each parameter is its uncertainty from the model's cells, added to sigma; 1: "
+                "no check")
+      ->check(CLI::Range(1u, 64u))
+      ->capture_default_str();
+  c->add_option("--csv", a->csv,
+                "the parameters' table: start, fitted, sigma, change / sigma, at_bound, and sigma's two parts "
+                "(residuals, the model's cells)");
   c->add_option("--residuals", a->residuals,
                 "a folder for the residual maps (residual-NNNN.png: (p - s b) / sigma per PSF, red above the model, "
                 "blue below, full at 3 sigma), psfs.csv, lenslets.csv and lenslets.png");
