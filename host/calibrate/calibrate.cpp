@@ -696,7 +696,8 @@ std::vector<MeasuredPsf> binned(const std::vector<MeasuredPsf>& psfs, const Anal
 // with options.cells_check times the cells, and one Gauss-Newton step on
 // that model over the parameters `act` (those with an uncertainty): how far
 // it moves each. Zeros when not checked or when the finer model's matrix is
-// singular; records the check's cells and time in r.
+// singular (then r.check_cells stays 0: the command says so); records the
+// check's cells and time in r.
 std::vector<double> cells_check(const OpticalSystem& start, const std::vector<MeasuredPsf>& psfs,
                                 const std::vector<CalibrationParameter>& free, const CalibrationOptions& options,
                                 const std::vector<double>& x, const std::vector<size_t>& act, CalibrationResult& r) {
@@ -712,9 +713,10 @@ std::vector<double> cells_check(const OpticalSystem& start, const std::vector<Me
     for (size_t b = 0; b < m; ++b) A[a * m + b] = e.gn[act[a] * P + act[b]];
     step[a] = -e.grad[act[a]];
   }
-  if (e.ok && solve_spd(A, step, m))
+  if (e.ok && solve_spd(A, step, m)) {
     for (size_t a = 0; a < m; ++a) moved[act[a]] = std::abs(step[a]);
-  r.check_cells = finer.settings.rays();
+    r.check_cells = finer.settings.rays();
+  }
   r.check_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   return moved;
 }

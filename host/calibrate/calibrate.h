@@ -176,7 +176,7 @@ struct CalibrationResult {
   int steps = 0;          // accepted, all levels
   bool converged = false; // at the finest level: the last step gained less than 1e-3 of chi2 / dof, or no step could
   double seconds = 0;
-  unsigned check_cells = 0;    // cells per 3 mm lenslet of the check's model (0: not checked)
+  unsigned check_cells = 0;    // cells per 3 mm lenslet of the check's model (0: not checked, or no step found)
   double check_seconds = 0;    // of seconds, the check's
   double reduced_chi2() const { return dof ? chi2 / double(dof) : 0.0; }
 };

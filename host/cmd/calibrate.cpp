@@ -253,6 +253,10 @@ void run(const CalibrateArgs& a) {
     std::printf("sigma = the residuals' (sandwich) and the model's cells' in quadrature: the fit's %u cells per "
                 "lenslet checked against %u (%.1f s of it)\n",
                 o.settings.rays(), r.check_cells, r.check_seconds);
+  else if (o.cells_check > 1)
+    std::printf("sigma = the residuals' (sandwich) alone: the model with %ux the cells gave no Gauss-Newton step "
+                "(no parameter with a sigma, or its matrix singular)\n",
+                o.cells_check);
   if (source_only)
     std::printf("The calibration source's extent (sigma %.4g mm) is in the table, not in %s: events are point "
                 "sources. To simulate the calibration source, add the effect source_extent with that sigma.\n",

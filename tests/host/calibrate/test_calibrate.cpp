@@ -277,6 +277,21 @@ TEST_CASE("calibration: a parameter the data push past its range ends on its bou
   CHECK(std::isinf(distance.sigma));
   CHECK_FALSE(r.estimates[1].at_bound);
   CHECK(std::isfinite(r.estimates[1].sigma));
+
+  // sigma is the residuals' and the model's cells' in quadrature; the check
+  // rendered 4x the cells; the parameter on its bound has no cells' part.
+  const auto& x = r.estimates[1];
+  CHECK(r.check_cells == 4 * o.settings.rays());
+  CHECK(x.sigma_cells > 0);
+  CHECK(x.sigma == doctest::Approx(std::hypot(x.sigma_residuals, x.sigma_cells)));
+  CHECK(distance.sigma_cells == 0);
+  // Without the check: the same fit, sigma the residuals' alone.
+  o.cells_check = 1;
+  const prism::CalibrationResult unchecked = prism::calibrate(start, psfs, free, o);
+  CHECK(unchecked.check_cells == 0);
+  CHECK(unchecked.estimates[1].value == x.value);
+  CHECK(unchecked.estimates[1].sigma_cells == 0);
+  CHECK(unchecked.estimates[1].sigma == x.sigma_residuals);
 }
 
 TEST_CASE("calibration: parameter groups, names and errors") {
