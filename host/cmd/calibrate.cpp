@@ -319,9 +319,9 @@ void add_calibrate(CLI::App& app) {
       ->check(CLI::IsMember({1u, 2u, 4u, 8u}))
       ->capture_default_str();
   c->add_option("--cells-check", a->cells_check,
-                "after the fit, evaluate the model with this many times its cells (about as long as that many steps): "
-                "how far that moves each parameter is its uncertainty from the model's cells, added to sigma; 1: "
-                "no check")
+                "after the fit, evaluate the model with this many times its cells (one evaluation with derivatives; "
+                "at 4x about two steps' time): how far that moves each parameter is its uncertainty from the model's "
+                "cells, added to sigma; 1: no check")
       ->check(CLI::Range(1u, 64u))
       ->capture_default_str();
   c->add_option("--csv", a->csv,
