@@ -366,6 +366,30 @@ struct Evaluation {
   std::vector<LensFit> lenses;
 };
 
+// The Gauss-Newton matrix `gn` (P x P) over the parameters `act` (m x m,
+// row-major).
+std::vector<double> over(const std::vector<double>& gn, const std::vector<size_t>& act, size_t P) {
+  const size_t m = act.size();
+  std::vector<double> A(m * m);
+  for (size_t a = 0; a < m; ++a)
+    for (size_t b = 0; b < m; ++b) A[a * m + b] = gn[act[a] * P + act[b]];
+  return A;
+}
+
+// The Levenberg-Marquardt step of `e` over `act`, damped by mu on the
+// diagonal (mu = 0: Gauss-Newton): -(H + mu diag H)^-1 grad, entry a for
+// parameter act[a]. False where that matrix is not positive definite.
+bool damped_step(const Evaluation& e, const std::vector<size_t>& act, size_t P, double mu, std::vector<double>& step) {
+  const size_t m = act.size();
+  std::vector<double> A = over(e.gn, act, P);
+  step.resize(m);
+  for (size_t a = 0; a < m; ++a) {
+    A[a * m + a] *= 1.0 + mu;
+    step[a] = -e.grad[act[a]];
+  }
+  return solve_spd(A, step, m);
+}
+
 // What the fit knows of a measured PSF's noise: its weight floor, and the
 // value below which its pixels are left out (unknown). The HDR merge stores 0
 // for a pixel too faint to measure, and near its threshold it keeps a pixel
@@ -633,13 +657,8 @@ int levenberg_marquardt(const Fitter& fitter, std::vector<double>& x, const std:
     const size_t m = act.size();
     bool accepted = false;
     while (m && !accepted && mu <= kMaxMu) {
-      std::vector<double> A(m * m), step(m);
-      for (size_t a = 0; a < m; ++a) {
-        for (size_t b = 0; b < m; ++b) A[a * m + b] = cur.gn[act[a] * P + act[b]];
-        A[a * m + a] *= 1.0 + mu;
-        step[a] = -cur.grad[act[a]];
-      }
-      if (!solve_spd(A, step, m)) {
+      std::vector<double> step;
+      if (!damped_step(cur, act, P, mu, step)) {
         mu = std::max(mu * 4, kRejectedMu);
         continue;
       }
@@ -708,12 +727,8 @@ std::vector<double> cells_check(const OpticalSystem& start, const std::vector<Me
   CalibrationOptions finer = options;
   finer.settings.rays_per_lenslet = options.settings.rays_per_lenslet * options.cells_check;
   const Evaluation e = Fitter(start, psfs, free, finer).evaluate(x, true);
-  std::vector<double> A(m * m), step(m);
-  for (size_t a = 0; a < m; ++a) {
-    for (size_t b = 0; b < m; ++b) A[a * m + b] = e.gn[act[a] * P + act[b]];
-    step[a] = -e.grad[act[a]];
-  }
-  if (e.ok && solve_spd(A, step, m)) {
+  std::vector<double> step;
+  if (e.ok && damped_step(e, act, P, 0.0, step)) {
     for (size_t a = 0; a < m; ++a) moved[act[a]] = std::abs(step[a]);
     r.check_cells = finer.settings.rays();
   }
@@ -779,9 +794,8 @@ CalibrationResult calibrate(const OpticalSystem& start, const std::vector<Measur
   }
   std::vector<double> sigma(P, std::numeric_limits<double>::infinity());
   const size_t m = act.size();
-  std::vector<double> A(m * m), inv(m * m);  // H over act, and its inverse (column by column)
-  for (size_t a = 0; a < m; ++a)
-    for (size_t b = 0; b < m; ++b) A[a * m + b] = cur.gn[act[a] * P + act[b]];
+  const std::vector<double> A = over(cur.gn, act, P);  // H over act
+  std::vector<double> inv(m * m);                      // and its inverse (column by column)
   bool invertible = true;
   for (size_t a = 0; a < m && invertible; ++a) {
     std::vector<double> e(m, 0.0);
