@@ -4,6 +4,7 @@
 #include <fstream>
 #include <nlohmann/json.hpp>
 
+#include "engine/hdr_times.h"
 #include "hw/camera.h"
 #include "hw/pixels.h"
 
@@ -33,9 +34,7 @@ void grab(Camera& cam, const std::filesystem::path& file, nlohmann::json& meta) 
 
 std::vector<double> log_exposures(double lo, double hi, unsigned m) {
   if (m == 0 || lo <= 0 || hi < lo) throw std::runtime_error("exposure range must satisfy 0 < min <= max and m >= 1");
-  std::vector<double> t(m);
-  for (unsigned i = 0; i < m; ++i) t[i] = m == 1 ? lo : lo * std::pow(hi / lo, double(i) / (m - 1));
-  return t;
+  return log_spaced_times(lo, hi, m);
 }
 
 std::filesystem::path capture_hdr(Camera& cam, Stage& stage, const CaptureOptions& opt, std::ostream& progress) {
@@ -67,8 +66,11 @@ std::filesystem::path capture_hdr(Camera& cam, Stage& stage, const CaptureOption
   };
   stage.set_source(true);
   for (unsigned i = 0; i < times.size(); ++i) shoot(times[i], "exposure_" + std::to_string(i) + ".raw", "exposures");
-  stage.set_source(false);  // darks at the longest exposure: its dark level is the one that matters most
-  for (unsigned i = 0; i < opt.darks; ++i) shoot(times.back(), "dark_" + std::to_string(i) + ".raw", "darks");
+  // Darks at several exposure times, so that the merge subtracts each pixel's
+  // dark current at each exposure's own time (engine/hdr_times.h says why).
+  stage.set_source(false);
+  const std::vector<double> dark_us = dark_times(times, opt.darks);
+  for (unsigned i = 0; i < dark_us.size(); ++i) shoot(dark_us[i], "dark_" + std::to_string(i) + ".raw", "darks");
 
   auto manifest = opt.out_dir / "stack.json";
   std::ofstream(manifest) << meta.dump(2) << "\n";

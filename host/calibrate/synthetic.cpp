@@ -23,9 +23,8 @@ HdrFrames synthetic_exposures(const OpticalSystem& truth, const TraceSettings& s
     b[size_t(key)] = px[0], peak = std::max(peak, px[0]);
   if (!(peak > 0)) throw std::invalid_argument("synthetic PSF: no light on the sensor from this source");
   for (double& v : b) v *= capture.peak_dn_per_s / peak;
-  return simulate_hdr_frames(b, grid.width, grid.height,
-                             log_spaced_times(capture.min_us * 1e-6, capture.max_us * 1e-6, int(capture.exposures)),
-                             std::vector<double>(capture.darks, capture.max_us * 1e-6), SyntheticSensor{}, seed);
+  const std::vector<double> times = log_spaced_times(capture.min_us * 1e-6, capture.max_us * 1e-6, capture.exposures);
+  return simulate_hdr_frames(b, grid.width, grid.height, times, dark_times(times, capture.darks), SyntheticSensor{}, seed);
 }
 
 MeasuredPsf synthetic_measured_psf(const OpticalSystem& truth, const TraceSettings& settings, const glm::dvec3& theta,

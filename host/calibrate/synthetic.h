@@ -16,10 +16,11 @@
 namespace prism {
 
 // How the synthetic camera records a stack: `exposures` times spread
-// log-uniformly over [min_us, max_us] (as capture-hdr takes them), `darks`
-// dark frames at the longest, the PSF's brightest pixel at peak_dn_per_s.
-// The longest exposure sets the faintest light the merge keeps: 16 DN over
-// max_us of the peak's rate (4e-5 of the peak by default).
+// log-uniformly over [min_us, max_us] and `darks` dark frames spread over
+// them (engine/hdr_times.h, as capture-hdr takes them), the PSF's brightest
+// pixel at peak_dn_per_s. The faintest light the merge keeps is 16 DN over
+// its third longest exposure (it needs 3 valid ones): 8.6e-4 of the peak by
+// default, 7e-5 with 9 exposures up to 2 s.
 struct SyntheticCapture {
   unsigned exposures = 7, darks = 3;
   double min_us = 20, max_us = 2e5;

@@ -5,6 +5,7 @@
 #include <memory>
 
 #include "host/cmd/commands.h"
+#include "host/cmd/options.h"
 #include "hw/camera.h"
 #include "hw/capture.h"
 
@@ -84,7 +85,7 @@ void add_camera(CLI::App& app) {
   CLI::App* hdr = cam->add_subcommand("capture-hdr", "capture an HDR calibration stack for one source position");
   hdr->add_option("--out", a->capture.out_dir, "output directory (stack.json + .raw frames)")->required();
   hdr->add_option("--exposures", a->capture.exposures, "number of exposure times")->capture_default_str();
-  hdr->add_option("--darks", a->capture.darks, "number of dark frames")->capture_default_str();
+  hdr->add_option("--darks", a->capture.darks, darks_help)->capture_default_str()->check(CLI::Range(1u, 64u));
   hdr->add_option("--min-us", a->min_us, "shortest exposure in us (default: the camera's minimum)");
   hdr->add_option("--max-us", a->max_us, "longest exposure in us (default: the camera's maximum)");
   hdr->add_option("--x-mm", a->capture.x_mm, "source x position (mm)");

@@ -1,5 +1,6 @@
 // prism dictionary merge-hdr: per-pixel HDR merge of calibration stacks
 // (paper Sec. III.A.2) into normalised PSFs, one OpenEXR + JSON sidecar each.
+#include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
@@ -104,6 +105,7 @@ void run(const MergeArgs& a) {
   std::printf("%-24s %8s %8s %8s %10s %10s %10s %8s %9s %12s\n", "stack", "x_mm", "y_mm", "depth", "kept",
               "saturated", "faint", "hot", "nonlinear", "sum_dn_per_s");
   size_t index = 0;
+  bool warned_constant_dark = false;
   for (const auto& [name, dir] : names) {
     ++index;
     std::string exr = (fs::path(a.out) / (name + ".exr")).string();
@@ -115,6 +117,17 @@ void run(const MergeArgs& a) {
     auto start = std::chrono::steady_clock::now();
     HdrStack stack = read_hdr_stack(dir);
     HdrResult r = merger ? merger->merge(stack.frames, a.hdr) : ref::hdr_merge(stack.frames, a.hdr);
+    const auto& dark_s = stack.frames.dark_s;
+    const bool one_dark_time = std::all_of(dark_s.begin(), dark_s.end(), [&](double t) { return t == dark_s.front(); });
+    if (!r.limits.dark_linear && one_dark_time && !warned_constant_dark) {
+      warned_constant_dark = true;
+      std::fprintf(stderr,
+                   "prism merge-hdr: note: %s's darks lie at one exposure time, so their level is subtracted from "
+                   "every exposure and each pixel's dark current is over-subtracted from the shorter ones by rate x "
+                   "(T_dark - T), which puts errors of a few per cent on the faint pixels (engine/hdr_times.h). Capture darks at two or "
+                   "more times (capture-hdr and simulate-hdr spread --darks over the exposures).\n",
+                   name.c_str());
+    }
     std::vector<float> valid(r.status.size());
     for (size_t i = 0; i < valid.size(); ++i) valid[i] = HdrResult::reason(r.status[i]) == HdrReason::kept;
     write_exr(exr, r.width, r.height, {{"Y", r.psf.data()}, {"valid", valid.data()}});

@@ -123,7 +123,7 @@ void add_dictionary_simulate_hdr(CLI::App& dictionary) {
   CLI::App* c = dictionary.add_subcommand(
       "simulate-hdr",
       "write the capture-hdr stacks a camera would record of a scene's PSFs at grid positions (exposures "
-      "log-spaced over --min-us .. --max-us and darks at the longest, of a noisy 12-bit sensor, the brightest pixel "
+      "log-spaced over --min-us .. --max-us and darks spread over those times, of a noisy 12-bit sensor, the brightest pixel "
       "at 2e6 DN/s), to rehearse a calibration");
   c->add_option("--scene", a->scene,
                 "the system as built, with the camera's pixels (built-in scene or JSON file; a 6.9 um sensor makes "
@@ -142,10 +142,11 @@ void add_dictionary_simulate_hdr(CLI::App& dictionary) {
   c->add_option("--exposures", a->capture.exposures, "number of exposure times")
       ->capture_default_str()
       ->check(CLI::Range(2u, 64u));
-  c->add_option("--darks", a->capture.darks, "number of dark frames")->capture_default_str()->check(CLI::Range(1u, 64u));
+  c->add_option("--darks", a->capture.darks, darks_help)->capture_default_str()->check(CLI::Range(1u, 64u));
   c->add_option("--min-us", a->capture.min_us, "shortest exposure in us")->capture_default_str()->check(positive_number);
   c->add_option("--max-us", a->capture.max_us,
-                "longest exposure in us: the faintest light kept is 16 DN over it, of the peak's 2e6 DN/s")
+                "longest exposure in us: the faintest light kept is 16 DN over the third longest exposure (the merge needs 3 "
+                "valid ones), of the peak's 2e6 DN/s")
       ->capture_default_str()
       ->check(positive_number);
   c->add_option("--seed", a->seed, "noise seed of the first position; position i gets seed + i")->capture_default_str();

@@ -30,6 +30,10 @@ struct SplatOptions {
 // What --rays becomes, said in each command's help: the aperture is cut
 // into n x n strata, n even, so 128 runs as 144.
 inline constexpr const char* rays_rounding = "rounded up to an even square of strata (128 runs as 144)";
+// capture-hdr's and simulate-hdr's --darks (engine/hdr_times.h).
+inline constexpr const char* darks_help =
+    "number of dark frames, at the longest, the shortest and exposure times between, so that the merge fits each "
+    "pixel's dark current (one: at the longest, its level subtracted from every exposure)";
 // What --device takes, said alike in every command's help.
 inline constexpr const char* device_help =
     "Vulkan device: auto (GPU if present), gpu, cpu (lavapipe), an index or part of a name (prism devices); "

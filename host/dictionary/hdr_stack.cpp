@@ -199,12 +199,6 @@ void write_hdr_stack(const std::string& dir, const HdrStack& s) {
   });
 }
 
-std::vector<double> log_spaced_times(double min_s, double max_s, int m) {
-  std::vector<double> t(size_t(std::max(m, 1)));
-  for (int i = 0; i < m; ++i) t[size_t(i)] = m == 1 ? min_s : min_s * std::pow(max_s / min_s, double(i) / (m - 1));
-  return t;
-}
-
 std::vector<double> synthetic_psf(int width, int height, double peak) {
   std::vector<double> p(size_t(width) * height, 0.0);
   struct Spot {

@@ -11,6 +11,7 @@
 #include <nlohmann/json.hpp>
 
 #include "engine/hdr_merge.h"
+#include "engine/hdr_times.h"  // log_spaced_times, dark_times: as capture-hdr takes them
 
 namespace prism {
 
@@ -50,8 +51,6 @@ struct SyntheticSensor {
   std::vector<size_t> hot_pixels;     // pixel indices
 };
 
-// m exposure times spread log-uniformly over [min_s, max_s], as capture-hdr does.
-std::vector<double> log_spaced_times(double min_s, double max_s, int m);
 // A known PSF in DN/s spanning more than four decades: two Gaussian spots,
 // a faint wide spot and a defocus disc on a zero background.
 std::vector<double> synthetic_psf(int width, int height, double peak_dn_per_s = 4e6);

@@ -267,6 +267,68 @@ TEST_CASE("HDR merge: darks at several times fit the dark current the constant m
   test::check_validation_clean();
 }
 
+TEST_CASE("HDR merge: darks spread over the exposures take the camera's own dark current off the faint pixels") {
+  // The sensor's ordinary 5 DN/s of dark current, a 2 s longest exposure (as
+  // the whole-prototype calibration takes them) and three darks: all at 2 s
+  // (capture-hdr's way before) or where dark_times puts them (now). A
+  // constant dark level takes rate x (2 s - T) too much off each shorter
+  // exposure: 7.6 and 9.4 DN off the second and third longest, beside a 16
+  // DN floor. A pixel's error then depends on where its exposures fall
+  // against the floor: a saw-tooth in brightness, one tooth per exposure step
+  // (4.2x), that the photon scale cannot absorb.
+  CalibrationScene s;
+  s.sensor.hot_pixels.clear();
+  s.times = log_spaced_times(20e-6, 2.0, 9);
+  const std::vector<double> spread = dark_times(s.times, 3);
+  CHECK(spread == std::vector<double>{s.times[8], s.times[4], s.times[0]});
+  // Brightness bands 1.5x wide from 1.5 to 48 times the floor's level on the
+  // third longest exposure (where the faintest kept pixels lie); each band's
+  // median error against that of the bright pixels (above 1% of the peak).
+  const double floor_level = HdrOptions{}.floor_min_dn / s.times[6];
+  const double peak = *std::max_element(s.truth.begin(), s.truth.end());
+  const std::vector<double> bands = {1.5, 2.25, 3.4, 5.1, 7.6, 11.4, 17.1, 25.6};
+  auto median = [](std::vector<double> v) {
+    std::nth_element(v.begin(), v.begin() + std::ptrdiff_t(v.size() / 2), v.end());
+    return v[v.size() / 2];
+  };
+  // The RMS over the bands of that difference, over three stacks' pixels.
+  auto band_rms = [&](const std::vector<double>& dark_s) {
+    s.dark_times = dark_s;
+    std::vector<std::vector<double>> band(bands.size());
+    std::vector<double> bright;
+    bool linear = false;
+    for (uint64_t seed : {11, 12, 13}) {
+      const HdrResult r = ref::hdr_merge(s.frames(seed), {});
+      linear = r.limits.dark_linear;
+      double kept_total = 0;
+      for (size_t i = 0; i < s.truth.size(); ++i)
+        if (HdrResult::reason(r.status[i]) == HdrReason::kept) kept_total += s.truth[i];
+      for (size_t i = 0; i < s.truth.size(); ++i) {
+        if (HdrResult::reason(r.status[i]) != HdrReason::kept) continue;
+        const double e = r.psf[i] / (s.truth[i] / kept_total) - 1, level = s.truth[i] / floor_level;
+        for (size_t k = 0; k < bands.size(); ++k)
+          if (level >= bands[k] && level < 1.5 * bands[k]) band[k].push_back(e);
+        if (s.truth[i] > 0.01 * peak) bright.push_back(e);
+      }
+    }
+    REQUIRE(bright.size() > 600);
+    double sum2 = 0;
+    for (const auto& v : band) {
+      REQUIRE(v.size() > 250);  // over 3 stacks: the median's noise about 0.5% (5-10% per faint pixel)
+      sum2 += std::pow(median(v) - median(bright), 2);
+    }
+    return std::pair{linear, std::sqrt(sum2 / double(bands.size()))};
+  };
+  const auto [one_time_linear, one_time] = band_rms(std::vector<double>(3, 2.0));
+  const auto [spread_linear, spread_out] = band_rms(spread);
+  MESSAGE("RMS over brightness bands of the faint pixels' median error: darks at 2 s " << one_time << ", spread "
+                                                                                         << spread_out);
+  CHECK_FALSE(one_time_linear);
+  CHECK(spread_linear);
+  CHECK(spread_out < 0.01);  // about 2x the medians' noise
+  CHECK(one_time > 0.015);
+}
+
 TEST_CASE("HDR merge: bad frames and options are refused with the field named") {
   HdrFrames f = frames();
   f.name = "stackdir";

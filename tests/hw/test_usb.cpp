@@ -178,7 +178,12 @@ TEST_SUITE("usb3 vision session") {
     CHECK(j["width"] == 64);
     CHECK(j["bit_depth"] == 16);
     REQUIRE(j["exposures"].size() == 7);
-    CHECK(j["darks"].size() == 3);
+    REQUIRE(j["darks"].size() == 3);
+    // Darks at the longest, the middle and the shortest exposure, so that the
+    // merge fits each pixel's dark current (engine/hdr_times.h).
+    CHECK(j["darks"][0]["exposure_us"].get<double>() == doctest::Approx(1e6));
+    CHECK(j["darks"][1]["exposure_us"].get<double>() == doctest::Approx(std::sqrt(10 * 1e6)).epsilon(1e-3));
+    CHECK(j["darks"][2]["exposure_us"].get<double>() == doctest::Approx(10));
     CHECK(j["exposures"][0]["exposure_us"].get<double>() == doctest::Approx(10));
     CHECK(j["exposures"][6]["exposure_us"].get<double>() == doctest::Approx(1e6));
     CHECK(j["exposures"][3]["exposure_us"].get<double>() == doctest::Approx(std::sqrt(10 * 1e6)).epsilon(1e-3));
