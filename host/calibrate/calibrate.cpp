@@ -408,12 +408,12 @@ struct Noise {
   double floor = 0;     // weight floor (calibrate.h)
   double reliable = 0;  // the faintest value fitted
 };
-Noise noise_of(const MeasuredPsf& psf, double weight_floor) {
+Noise noise_of(const MeasuredPsf& psf, const CalibrationOptions& o) {
   float peak = 0, faintest = std::numeric_limits<float>::infinity();
   for (float v : psf.p)
     if (v > 0) peak = std::max(peak, v), faintest = std::min(faintest, v);
   if (!(peak > 0)) throw std::invalid_argument("calibration: PSF " + psf.name + " has no light");
-  return {weight_floor * double(peak), defaults::calibration_reliable_over_faintest * double(faintest)};
+  return {o.weight_floor * double(peak), o.reliable_over_faintest * double(faintest)};
 }
 
 // A pixel's weight: the inverse of its variance's shape (calibrate.h).
@@ -478,9 +478,9 @@ struct Sums {
 };
 
 // Adds PSF `psf`'s terms under `model` to `sums` (when non-null).
-PsfTerms psf_terms(const MeasuredPsf& psf, const Model& model, double weight_floor, size_t lenses, size_t P,
+PsfTerms psf_terms(const MeasuredPsf& psf, const Model& model, const CalibrationOptions& o, size_t lenses, size_t P,
                    Sums* sums) {
-  const Noise noise = noise_of(psf, weight_floor);
+  const Noise noise = noise_of(psf, o);
   const auto [s, wbb] = best_scale(psf, model, noise);
   PsfTerms out;
   out.lens_chi2.assign(lenses, 0.0);
@@ -568,7 +568,7 @@ class Fitter {
       try {
         for (size_t k; (k = next++) < psfs_.size();) {
           const Model model = (*render_)(psfs_[k].theta_mm, free_, derivatives);
-          terms[k] = psf_terms(psfs_[k], model, o_.weight_floor, L, P, derivatives ? &mine : nullptr);
+          terms[k] = psf_terms(psfs_[k], model, o_, L, P, derivatives ? &mine : nullptr);
         }
       } catch (...) {
         std::lock_guard lock(sum);
@@ -611,6 +611,8 @@ void check_inputs(const OpticalSystem& start, const std::vector<MeasuredPsf>& ps
   if (psfs.empty()) throw std::invalid_argument("calibration: no PSF to fit");
   if (free.empty()) throw std::invalid_argument("calibration: no parameter to fit (--fit names none)");
   if (!(o.weight_floor > 0)) throw std::invalid_argument("calibration: the weight floor must be > 0");
+  if (!(o.reliable_over_faintest >= 1))
+    throw std::invalid_argument("calibration: the reliable level must be at least the faintest value kept (--reliable >= 1)");
   if (!std::has_single_bit(o.blur_supersample))
     throw std::invalid_argument("calibration: the blur's supersampling " + std::to_string(o.blur_supersample) +
                                 " is not a power of two");
@@ -699,10 +701,10 @@ int levenberg_marquardt(const Fitter& fitter, std::vector<double>& x, const std:
 // dictionary's levels are); a pixel with a censored sub-pixel is censored,
 // its bound the sum of what its sub-pixels may hold.
 std::vector<MeasuredPsf> binned(const std::vector<MeasuredPsf>& psfs, const AnalysisGrid& grid, int k,
-                                double weight_floor) {
+                                const CalibrationOptions& o) {
   std::vector<MeasuredPsf> out;
   for (const auto& p : psfs) {
-    const Noise n = noise_of(p, weight_floor);
+    const Noise n = noise_of(p, o);
     PsfLevel sl{0, grid.width, grid.height, std::vector<float>(p.p.size())};
     for (size_t i = 0; i < p.p.size(); ++i) sl.p[i] = known(p, i, n) ? 0.0f : float(n.reliable);
     PsfLevel l = bin_level(PsfLevel{0, grid.width, grid.height, p.p}, k);
@@ -758,7 +760,7 @@ CalibrationResult calibrate(const OpticalSystem& start, const std::vector<Measur
   r.chi2_start = Fitter(start, psfs, free, options).evaluate(x, false).chi2;
   Evaluation cur;
   for (int k = std::max(0, options.coarse_levels); k >= 0; --k) {
-    const std::vector<MeasuredPsf> level = k ? binned(psfs, grid, k, options.weight_floor) : std::vector<MeasuredPsf>{};
+    const std::vector<MeasuredPsf> level = k ? binned(psfs, grid, k, options) : std::vector<MeasuredPsf>{};
     CalibrationOptions at = options;
     at.settings.binning = options.settings.binning << k;
     const Fitter fitter(start, k ? level : psfs, free, at);
@@ -828,7 +830,7 @@ void calibration_residuals(const OpticalSystem& sys, const std::vector<MeasuredP
   for (size_t k = 0; k < psfs.size(); ++k) {
     const MeasuredPsf& psf = psfs[k];
     const Model model = render(psf.theta_mm, {}, false);
-    const Noise noise = noise_of(psf, options.weight_floor);
+    const Noise noise = noise_of(psf, options);
     const double s = best_scale(psf, model, noise).first;
     std::vector<float> out(psf.p.size());
     for (size_t i = 0; i < out.size(); ++i) {

@@ -12,7 +12,7 @@
 //   chi2 = sum_k sum_i w_ki (p_ki - s_k b_ki)^2,  w_ki = 1 / (p_ki + floor_k),
 // floor_k = defaults::calibration_weight_floor times the PSF's brightest
 // pixel: an HDR pixel's variance grows with its signal (shot noise) above a
-// floor. Pixels fainter than defaults::calibration_reliable_over_faintest
+// floor. Pixels fainter than CalibrationOptions::reliable_over_faintest
 // times the faintest value the HDR merge kept (near its threshold it keeps
 // only upward fluctuations) are censored: all the fit knows of them is that
 // they hold less than that value, so they count only where the model puts
@@ -125,6 +125,8 @@ struct CalibrationOptions {
   int max_steps = defaults::calibration_max_steps;  // per level
   int coarse_levels = defaults::calibration_coarse_levels;  // fitted first on pixels 2^k larger, k = this .. 1
   double weight_floor = defaults::calibration_weight_floor;  // relative to each PSF's brightest pixel; > 0
+  // Pixels below this times the faintest value a PSF holds are censored (above); >= 1.
+  double reliable_over_faintest = defaults::calibration_reliable_over_faintest;
   unsigned threads = 2;                                      // PSFs rendered at once (CPU reference)
   // With an extended source (source_extent): each lenslet's image is
   // rendered on pixels this many times finer (a power of two, at most the

@@ -36,6 +36,7 @@ struct CalibrateArgs {
   unsigned every = 1;
   int max_steps = defaults::calibration_max_steps;
   double weight_floor = defaults::calibration_weight_floor;
+  double reliable = defaults::calibration_reliable_over_faintest;
   unsigned threads = std::max(1u, std::thread::hardware_concurrency());
   unsigned blur_supersample = defaults::calibration_blur_supersample;
   unsigned cells_check = defaults::calibration_cells_check_factor;
@@ -143,6 +144,7 @@ void run(const CalibrateArgs& a) {
   o.settings.photons_emitted = scene.photons_emitted;
   o.max_steps = a.max_steps;
   o.weight_floor = a.weight_floor;
+  o.reliable_over_faintest = a.reliable;
   o.threads = a.threads;
   o.blur_supersample = std::min(a.blur_supersample, in.binning);
   o.cells_check = a.cells_check;
@@ -301,6 +303,11 @@ void add_calibrate(CLI::App& app) {
   c->add_option("--weight-floor", a->weight_floor,
                 "pixel weights are 1 / (value + floor), the floor this fraction of each PSF's brightest pixel")
       ->check(positive_number)
+      ->capture_default_str();
+  c->add_option("--reliable", a->reliable,
+                "pixels fainter than this times the faintest value a PSF holds are censored: they say only that the "
+                "light there is below that level (near the HDR merge's threshold it keeps only upward fluctuations)")
+      ->check(CLI::Range(1.0, 1e6))
       ->capture_default_str();
   c->add_option("--backend", a->backend,
                 "vulkan (the splat kernels' calibrate variants on the device), cpu (the double-precision reference "

@@ -311,6 +311,8 @@ TEST_CASE("calibration: parameter groups, names and errors") {
                        std::invalid_argument);
   CHECK_THROWS_WITH_AS(prism::calibrate(s, {wrong}, {}, o), doctest::Contains("no parameter to fit"),
                        std::invalid_argument);
+  o.reliable_over_faintest = 0.5;  // below the faintest value kept: nothing would be censored that should be
+  CHECK_THROWS_WITH_AS(prism::calibrate(s, {wrong}, p, o), doctest::Contains("--reliable >= 1"), std::invalid_argument);
 }
 
 TEST_CASE("prism calibrate: a dictionary of HDR-merged PSFs in, a scene every command accepts out") {
