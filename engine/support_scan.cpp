@@ -39,6 +39,17 @@ constexpr uint64_t kCpuLoopBudget = 32768;
 // event from the budget, its specialisation constant).
 constexpr uint64_t kSerialShiftsPerPass = 8;
 
+// The sparse kernel's bindings read as texel buffers (support_scan.comp):
+// the clicks (3), their rates and weights (4), and the dictionary's chunk
+// again (8) for the PSF values, as half floats where the chunk holds them.
+std::vector<VkFormat> sparse_texel_formats(bool half) {
+  std::vector<VkFormat> f(9, VK_FORMAT_UNDEFINED);
+  f[3] = VK_FORMAT_R32_UINT;
+  f[4] = VK_FORMAT_R32G32_SFLOAT;
+  f[8] = half ? VK_FORMAT_R16_SFLOAT : VK_FORMAT_R32_SFLOAT;
+  return f;
+}
+
 }  // namespace
 
 struct SupportScanVulkan::Impl {
@@ -58,9 +69,10 @@ struct SupportScanVulkan::Impl {
           sizeof(shared::ScanParams), std::vector<uint32_t>{half ? 1u : 0u});
     else
       k = std::make_unique<vk::Kernel>(
-          ctx, "support_scan", std::span<const uint32_t>(spv_support_scan, std::size(spv_support_scan)), 8,
+          ctx, "support_scan", std::span<const uint32_t>(spv_support_scan, std::size(spv_support_scan)), 9,
           sizeof(shared::ScanParams),
-          std::vector<uint32_t>{half ? 1u : 0u, serial_scan ? 1u : 0u, serial_fit ? 1u : 0u, uint32_t(kCpuLoopBudget)});
+          std::vector<uint32_t>{half ? 1u : 0u, serial_scan ? 1u : 0u, serial_fit ? 1u : 0u, uint32_t(kCpuLoopBudget)},
+          sparse_texel_formats(half));
     return *k;
   }
   // The layouts of a run (ScanLayout): serial scan and fits on a CPU device,
@@ -248,7 +260,7 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
           st.dispatch(k, {chunk, &psfs, b_images.get(), &results, &block_best}, &p, x, uint32_t(ne), z);
         else
           st.dispatch(k, {chunk, &psfs, b_events.get(), b_clicks.get(), b_rates.get(), &results, &block_best,
-                          &no_list},
+                          &no_list, chunk},
                       &p, x, uint32_t(ne), z);
       }
       st.barrier();
@@ -282,7 +294,7 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
                                     : std::min(p.list_count, max_x);
           const uint32_t y = serial ? 1u : (p.list_count + x - 1) / x;
           st.dispatch(k, {level.chunks.at(r.chunk), &psfs, b_events.get(), b_clicks.get(), b_rates.get(), &results,
-                          &block_best, &b_list},
+                          &block_best, &b_list, level.chunks.at(r.chunk)},
                       &p, x, y);
           first = end;
         }

@@ -27,17 +27,22 @@
 // launcher fits that candidate again in workgroups.
 #version 460
 #extension GL_GOOGLE_include_directive : require
+#extension GL_EXT_control_flow_attributes : require
 #define PRISM_FN
 #define BLOCK_BINDING 6
+#define PSF_TEXELS 8
 #include "likelihood.glsl"
 #include "scan.glsl"
 
 // Per event: its first click and click count in the two arrays below.
 layout(std430, binding = 2) readonly buffer Events { uvec2 event_clicks[]; };
-layout(std430, binding = 3) readonly buffer Clicks { uint click_xy[]; };       // x | y << 16 on the scan level
-// Per click: lambda of the event's current model (dark rate included) and the
-// gradient weight 1 / (1 - exp(-lambda)), formed once on the host in double.
-layout(std430, binding = 4) readonly buffer Rates { vec2 rate_weight[]; };
+// Per click, read as texel buffers (scan.glsl's PSF_TEXELS says why): x | y
+// << 16 on the scan level (R32_UINT), and lambda of the event's current
+// model (dark rate included) with the gradient weight 1 / (1 - exp(-lambda)),
+// formed once on the host in double (R32G32_SFLOAT).
+layout(binding = 3) uniform usamplerBuffer click_xy;
+layout(binding = 4) uniform samplerBuffer rate_weight_texels;
+vec2 rate_weight(uint i) { return texelFetch(rate_weight_texels, int(i)).xy; }
 layout(std430, binding = 5) buffer Out { ScanOut results[]; };                 // [event][PSF]
 // Phase 2: the candidates whose weights to fit, (event, PSF) pairs; the
 // entries of one dispatch lie in its chunk.
@@ -52,7 +57,7 @@ ivec2 best_shift;
 float best_mass;
 
 ivec2 click_at(uint c) {
-  uint v = click_xy[first_click + c];
+  uint v = texelFetch(click_xy, int(first_click + c)).r;
   return ivec2(int(v & 0xffffu), int(v >> 16u));
 }
 
@@ -95,7 +100,7 @@ vec3 objective_slope_curvature(float alpha) {
     ivec2 q = click_at(c) - best_shift;
     float p = psf_value(p_base, q.x, q.y);
     if (p <= 0.0f) continue;  // a click the PSF does not reach: no term in alpha
-    float lambda = rate_weight[first_click + c].x + alpha * p;
+    float lambda = rate_weight(first_click + c).x + alpha * p;
     part += lambda + log_click(lambda);
     slope_curv += vec2(p * click_weight(lambda), p * p * click_curvature(lambda));
   }
@@ -149,19 +154,19 @@ void score_block() {
     for (uint j = j0; j < j1; j += SUB) {
       ivec2 sh[SUB];
       float score[SUB];
-      for (uint k = 0u; k < SUB; ++k) {
+      [[unroll]] for (uint k = 0u; k < SUB; ++k) {
         sh[k] = lattice_shift(min(j + k, j1 - 1u), n);  // past the block: its last shift again, not kept
         score[k] = mass_shifted(psf.sat_word, sh[k].x, sh[k].y);
       }
       for (uint c = 0u; c < click_count; ++c) {
         ivec2 click = click_at(c);
-        float w = rate_weight[first_click + c].y;
-        for (uint k = 0u; k < SUB; ++k) {
+        float w = rate_weight(first_click + c).y;
+        [[unroll]] for (uint k = 0u; k < SUB; ++k) {
           ivec2 q = click - sh[k];
           score[k] -= w * psf_value(p_base, q.x, q.y);
         }
       }
-      for (uint k = 0u; k < SUB; ++k)
+      [[unroll]] for (uint k = 0u; k < SUB; ++k)
         if (j + k < j1 && score[k] < best) {
           best = score[k];
           arg = j + k;
@@ -175,7 +180,7 @@ void score_block() {
       float score = mass_shifted(psf.sat_word, sh.x, sh.y);
       for (uint c = 0u; c < click_count; ++c) {
         ivec2 q = click_at(c) - sh;
-        score -= rate_weight[first_click + c].y * psf_value(p_base, q.x, q.y);
+        score -= rate_weight(first_click + c).y * psf_value(p_base, q.x, q.y);
       }
       if (score < best) {
         best = score;
@@ -202,7 +207,7 @@ void bound_best() {
   BoundSums t = no_bound_sums();
   for (uint c = lane(); c < click_count; c += lanes()) {
     ivec2 q = click_at(c) - best_shift;
-    t = bound_sums_add(t, psf_value(p_base, q.x, q.y), rate_weight[first_click + c].x, alpha0);
+    t = bound_sums_add(t, psf_value(p_base, q.x, q.y), rate_weight(first_click + c).x, alpha0);
   }
   vec2 v = lanes_sum2(vec2(t.reached, t.q));
   t.reached = v.x, t.q = v.y;
@@ -246,7 +251,7 @@ void fit_listed() {
   vec2 reached_fixed = vec2(0.0f);
   for (uint c = lane(); c < click_count; c += lanes()) {
     ivec2 q = click_at(c) - best_shift;
-    float b = rate_weight[first_click + c].x;
+    float b = rate_weight(first_click + c).x;
     reached_fixed += psf_value(p_base, q.x, q.y) > 0.0f ? vec2(1.0f, 0.0f) : vec2(0.0f, b + log_click(b));
   }
   reached_fixed = lanes_sum2(reached_fixed);

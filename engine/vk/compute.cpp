@@ -81,8 +81,26 @@ void destroy(Context& ctx, RawBuffer& rb) {
   vkFreeMemory(ctx.device(), rb.memory, nullptr);
 }
 
-const VkBufferUsageFlags kStorage =
-    VK_BUFFER_USAGE_STORAGE_BUFFER_BIT | VK_BUFFER_USAGE_TRANSFER_SRC_BIT | VK_BUFFER_USAGE_TRANSFER_DST_BIT;
+const VkBufferUsageFlags kStorage = VK_BUFFER_USAGE_STORAGE_BUFFER_BIT | VK_BUFFER_USAGE_UNIFORM_TEXEL_BUFFER_BIT |
+                                     VK_BUFFER_USAGE_TRANSFER_SRC_BIT | VK_BUFFER_USAGE_TRANSFER_DST_BIT;
+
+// Bytes per texel of the formats Buffer::view offers.
+uint64_t texel_bytes(VkFormat f) {
+  switch (f) {
+    case VK_FORMAT_R16_SFLOAT: return 2;
+    case VK_FORMAT_R32_SFLOAT:
+    case VK_FORMAT_R32_UINT: return 4;
+    case VK_FORMAT_R32G32_SFLOAT:
+    case VK_FORMAT_R32G32_UINT: return 8;
+    default: throw Error("Buffer::view: format " + std::to_string(int(f)) + " is not one of the texel formats used here");
+  }
+}
+// Binding i of a kernel: a uniform texel buffer where texel_formats names a format for it.
+VkDescriptorType descriptor_type(const std::vector<VkFormat>& texel_formats, uint32_t i) {
+  return i < texel_formats.size() && texel_formats[i] != VK_FORMAT_UNDEFINED ? VK_DESCRIPTOR_TYPE_UNIFORM_TEXEL_BUFFER
+                                                                             : VK_DESCRIPTOR_TYPE_STORAGE_BUFFER;
+}
+
 const VkBufferUsageFlags kStaging = VK_BUFFER_USAGE_TRANSFER_SRC_BIT | VK_BUFFER_USAGE_TRANSFER_DST_BIT;
 
 }  // namespace
@@ -100,8 +118,29 @@ Buffer::Buffer(Context& ctx, uint64_t bytes) : ctx_(ctx), bytes_(bytes) {
 }
 
 Buffer::~Buffer() {
+  for (auto& [format, view] : views_) vkDestroyBufferView(ctx_.device(), view, nullptr);
   RawBuffer rb{buffer_, memory_, mapped_};
   destroy(ctx_, rb);
+}
+
+VkBufferView Buffer::view(VkFormat format) const {
+  std::lock_guard<std::mutex> lock(views_mutex_);
+  auto it = views_.find(format);
+  if (it != views_.end()) return it->second;
+  const uint64_t texels = bytes_ / texel_bytes(format);
+  if (texels > ctx_.properties().limits.maxTexelBufferElements)
+    throw Error("Buffer of " + std::to_string(bytes_) + " bytes holds " + std::to_string(texels) +
+                " texels, more than maxTexelBufferElements (" +
+                std::to_string(ctx_.properties().limits.maxTexelBufferElements) + ") of " + ctx_.describe() +
+                "; chunk the data");
+  VkBufferViewCreateInfo vi{VK_STRUCTURE_TYPE_BUFFER_VIEW_CREATE_INFO};
+  vi.buffer = buffer_;
+  vi.format = format;
+  vi.offset = 0;
+  vi.range = texels * texel_bytes(format);
+  VkBufferView view;
+  check(vkCreateBufferView(ctx_.device(), &vi, nullptr, &view), "vkCreateBufferView");
+  return views_.emplace(format, view).first->second;
 }
 
 void Buffer::copy(VkBuffer src, VkBuffer dst, uint64_t src_off, uint64_t dst_off, uint64_t bytes) const {
@@ -183,9 +222,10 @@ size_t PipelineCache::size() const {
 
 const PipelineCache::Pipeline& PipelineCache::get(const std::string& name, std::span<const uint32_t> spirv,
                                                   uint32_t buffer_count, uint32_t push_bytes,
-                                                  const std::vector<uint32_t>& specialisation) {
+                                                  const std::vector<uint32_t>& specialisation,
+                                                  const std::vector<VkFormat>& texel_formats) {
   std::lock_guard lock(mutex_);
-  Key key{std::vector<uint32_t>(spirv.begin(), spirv.end()), buffer_count, push_bytes, specialisation};
+  Key key{std::vector<uint32_t>(spirv.begin(), spirv.end()), buffer_count, push_bytes, specialisation, texel_formats};
   if (auto it = pipelines_.find(key); it != pipelines_.end()) return it->second;
 
   Pipeline p;
@@ -202,7 +242,7 @@ const PipelineCache::Pipeline& PipelineCache::get(const std::string& name, std::
   } undo{device_, p};
   std::vector<VkDescriptorSetLayoutBinding> bindings(buffer_count);
   for (uint32_t i = 0; i < buffer_count; ++i)
-    bindings[i] = {i, VK_DESCRIPTOR_TYPE_STORAGE_BUFFER, 1, VK_SHADER_STAGE_COMPUTE_BIT, nullptr};
+    bindings[i] = {i, descriptor_type(texel_formats, i), 1, VK_SHADER_STAGE_COMPUTE_BIT, nullptr};
   VkDescriptorSetLayoutCreateInfo li{VK_STRUCTURE_TYPE_DESCRIPTOR_SET_LAYOUT_CREATE_INFO};
   li.bindingCount = buffer_count;
   li.pBindings = bindings.data();
@@ -241,16 +281,17 @@ const PipelineCache::Pipeline& PipelineCache::get(const std::string& name, std::
 }
 
 Kernel::Kernel(Context& ctx, std::string name, std::span<const uint32_t> spirv, uint32_t buffer_count,
-               uint32_t push_bytes, std::vector<uint32_t> specialisation)
+               uint32_t push_bytes, std::vector<uint32_t> specialisation, std::vector<VkFormat> texel_formats)
     : ctx_(ctx),
       name_(std::move(name)),
       spirv_(spirv.begin(), spirv.end()),
       buffer_count_(buffer_count),
       push_bytes_(push_bytes),
-      specialisation_(std::move(specialisation)) {}
+      specialisation_(std::move(specialisation)),
+      texel_formats_(std::move(texel_formats)) {}
 
 const PipelineCache::Pipeline& Kernel::pipeline() {
-  if (!pipeline_) pipeline_ = &ctx_.pipelines().get(name_, spirv_, buffer_count_, push_bytes_, specialisation_);
+  if (!pipeline_) pipeline_ = &ctx_.pipelines().get(name_, spirv_, buffer_count_, push_bytes_, specialisation_, texel_formats_);
   return *pipeline_;
 }
 
@@ -263,11 +304,12 @@ Stream::Stream(Context& ctx, uint32_t max_dispatches) : ctx_(ctx), max_dispatche
   ai.level = VK_COMMAND_BUFFER_LEVEL_PRIMARY;
   ai.commandBufferCount = 1;
   check(vkAllocateCommandBuffers(ctx.device(), &ai, &cmd_), "vkAllocateCommandBuffers");
-  VkDescriptorPoolSize size{VK_DESCRIPTOR_TYPE_STORAGE_BUFFER, max_dispatches * 8};
+  const VkDescriptorPoolSize sizes[2] = {{VK_DESCRIPTOR_TYPE_STORAGE_BUFFER, max_dispatches * 8},
+                                         {VK_DESCRIPTOR_TYPE_UNIFORM_TEXEL_BUFFER, max_dispatches * 4}};
   VkDescriptorPoolCreateInfo pi{VK_STRUCTURE_TYPE_DESCRIPTOR_POOL_CREATE_INFO};
   pi.maxSets = max_dispatches;
-  pi.poolSizeCount = 1;
-  pi.pPoolSizes = &size;
+  pi.poolSizeCount = 2;
+  pi.pPoolSizes = sizes;
   check(vkCreateDescriptorPool(ctx.device(), &pi, nullptr, &pool_), "vkCreateDescriptorPool");
   if (ctx.timestamp_period_ns() > 0) {
     VkQueryPoolCreateInfo qi{VK_STRUCTURE_TYPE_QUERY_POOL_CREATE_INFO};
@@ -331,15 +373,25 @@ void Stream::dispatch(Kernel& k, std::initializer_list<const Buffer*> buffers, c
   VkDescriptorSet set;
   check(vkAllocateDescriptorSets(ctx_.device(), &ai, &set), "vkAllocateDescriptorSets");
   std::vector<VkDescriptorBufferInfo> infos;
-  for (const Buffer* b : buffers) infos.push_back({b->handle(), 0, VK_WHOLE_SIZE});
+  std::vector<VkBufferView> views;
+  for (const Buffer* b : buffers) {
+    infos.push_back({b->handle(), 0, VK_WHOLE_SIZE});
+    const uint32_t i = uint32_t(views.size());
+    views.push_back(i < k.texel_formats_.size() && k.texel_formats_[i] != VK_FORMAT_UNDEFINED
+                        ? b->view(k.texel_formats_[i])
+                        : VK_NULL_HANDLE);
+  }
   std::vector<VkWriteDescriptorSet> writes(infos.size());
   for (uint32_t i = 0; i < infos.size(); ++i) {
     writes[i] = {VK_STRUCTURE_TYPE_WRITE_DESCRIPTOR_SET};
     writes[i].dstSet = set;
     writes[i].dstBinding = i;
     writes[i].descriptorCount = 1;
-    writes[i].descriptorType = VK_DESCRIPTOR_TYPE_STORAGE_BUFFER;
-    writes[i].pBufferInfo = &infos[i];
+    writes[i].descriptorType = descriptor_type(k.texel_formats_, i);
+    if (views[i] != VK_NULL_HANDLE)
+      writes[i].pTexelBufferView = &views[i];
+    else
+      writes[i].pBufferInfo = &infos[i];
   }
   vkUpdateDescriptorSets(ctx_.device(), uint32_t(writes.size()), writes.data(), 0, nullptr);
 

@@ -30,6 +30,11 @@ class Buffer {
   void upload(const void* data, uint64_t bytes, uint64_t offset = 0);
   void download(void* data, uint64_t bytes, uint64_t offset = 0) const;
   template <class T> void upload(std::span<const T> v) { upload(v.data(), v.size_bytes()); }
+  // The whole buffer as a uniform texel buffer of `format` (a samplerBuffer
+  // or usamplerBuffer binding, Kernel's texel_formats): made at the first
+  // request and kept with the buffer. Throws where the buffer holds more
+  // texels than maxTexelBufferElements.
+  VkBufferView view(VkFormat format) const;
   template <class T> std::vector<T> download(size_t count) const {
     std::vector<T> v(count);
     download(v.data(), count * sizeof(T));
@@ -44,6 +49,8 @@ class Buffer {
   void* mapped_ = nullptr;
   bool host_cached_ = false;
   uint64_t bytes_ = 0;
+  mutable std::mutex views_mutex_;
+  mutable std::map<VkFormat, VkBufferView> views_;
 };
 
 // The compute pipelines of a context, each created once for its SPIR-V,
@@ -66,11 +73,12 @@ class PipelineCache {
   // The pipeline, created on the first request (thread-safe). `name` only
   // names it in errors.
   const Pipeline& get(const std::string& name, std::span<const uint32_t> spirv, uint32_t buffer_count,
-                      uint32_t push_bytes, const std::vector<uint32_t>& specialisation);
+                      uint32_t push_bytes, const std::vector<uint32_t>& specialisation,
+                      const std::vector<VkFormat>& texel_formats = {});
   size_t size() const;
 
  private:
-  using Key = std::tuple<std::vector<uint32_t>, uint32_t, uint32_t, std::vector<uint32_t>>;
+  using Key = std::tuple<std::vector<uint32_t>, uint32_t, uint32_t, std::vector<uint32_t>, std::vector<VkFormat>>;
   VkDevice device_;
   mutable std::mutex mutex_;
   std::map<Key, Pipeline> pipelines_;
@@ -81,10 +89,16 @@ class PipelineCache {
 // pipeline comes from the context's PipelineCache at the first dispatch: a
 // kernel never dispatched (the values-only variant of a model used for
 // derivatives) is never compiled.
+//
+// Bindings are storage buffers, except where texel_formats[i] names a format:
+// binding i is then a uniform texel buffer (samplerBuffer) reading its buffer
+// as that format. On a CPU device (Mesa's llvmpipe 22.x) a storage buffer
+// load runs one invocation at a time, a texel fetch as one vector gather: the
+// hot look-ups of a kernel go faster through a texel buffer there.
 class Kernel {
  public:
   Kernel(Context& ctx, std::string name, std::span<const uint32_t> spirv, uint32_t buffer_count,
-         uint32_t push_bytes, std::vector<uint32_t> specialisation = {});
+         uint32_t push_bytes, std::vector<uint32_t> specialisation = {}, std::vector<VkFormat> texel_formats = {});
   Kernel(const Kernel&) = delete;
   Kernel& operator=(const Kernel&) = delete;
 
@@ -99,6 +113,7 @@ class Kernel {
   uint32_t buffer_count_;
   uint32_t push_bytes_;
   std::vector<uint32_t> specialisation_;
+  std::vector<VkFormat> texel_formats_;
   const PipelineCache::Pipeline* pipeline_ = nullptr;
 };
 

@@ -51,8 +51,14 @@ DictionaryService::DictionaryService(const DictionaryReader& reader, vk::Context
                           " on the device (values and summed-area tables), more than the device budget of " +
                           mib(budget.device_bytes) + finer_hint());
 
-  // Pack the coarse level into chunks no larger than one storage buffer may be.
-  uint64_t chunk_cap = ctx ? std::min<uint64_t>(ctx->max_storage_buffer_bytes(), 128ull << 20) : 0;
+  // Pack the coarse level into chunks no larger than one storage buffer may
+  // be, nor than the scan kernel's texel view of its values may span
+  // (maxTexelBufferElements floats or half floats: support_scan.comp).
+  uint64_t chunk_cap = 0;
+  if (ctx) {
+    const uint64_t texel_cap = uint64_t(ctx->properties().limits.maxTexelBufferElements) * (device_half ? 2 : 4);
+    chunk_cap = std::min<uint64_t>({ctx->max_storage_buffer_bytes(), 128ull << 20, texel_cap});
+  }
   uint64_t per_chunk = ctx ? std::max<uint64_t>(1, chunk_cap / psf_bytes) : 0;
   std::vector<uint32_t> words(p_words + sat_words);
   for (size_t i = 0; i < n; ++i) {
