@@ -11,7 +11,7 @@
 //
 // --dark-rate sets the likelihood's floor per click pixel for every row
 // (ReconstructionSettings::dark_rate; the bound rows' pruning depends on it).
-// --groups runs only those groups of rows (backend, tier, coarse, bound, layout,
+// --groups runs only those groups of rows (backend, tier, coarse, bound, layout, loads, overlap,
 // step, precision, K, refine, native); the ratios print where their rows ran.
 //
 // native: clicks at the sensor's own 6.9 um pixels against a full-resolution
@@ -111,6 +111,7 @@ struct Config {
   // 0 none; 1 from the search's answer only; 2 with the runners-up and aliases.
   int refine = 0;
   ScanLayout layout = ScanLayout::automatic;  // the sparse kernel's layout (engine/support_scan.h)
+  ScanLoads loads = ScanLoads::texel;         // how the sparse kernel reads its look-ups (engine/support_scan.h)
   double carry_margin_nll = ReconstructionSettings{}.carry_margin_nll;  // coarse to fine (reconstruct.h)
   bool fit_all_weights = false;  // the scan fits every PSF's weight (the path before the NLL bound)
   int click_level = 0;           // the dictionary level the events' clicks are on
@@ -131,6 +132,7 @@ Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, c
   s.search_level = c.scan_level >= 0 ? c.scan_level : default_search_level(reader.manifest(), c.click_level, s.tau_mm);
   s.scan_step_px = c.step;
   s.scan_layout = c.layout;
+  s.scan_loads = c.loads;
   s.carry_margin_nll = c.carry_margin_nll;
   s.fit_all_weights = c.fit_all_weights;
   s.scan_chunk_events = c.scan_chunk_events;
@@ -226,7 +228,7 @@ int main(int argc, char** argv) {
     else {
       std::fprintf(stderr, "usage: bench_reconstruct [--device D] [--dictionary DIR] [--native-dictionary DIR] [--out DIR] "
                            "[--events-per-position N] [--native-positions N] [--dark-rate R] [--groups backend,tier,coarse,bound,layout,"
-                           "overlap,step,precision,K,refine,native]\n");
+                           "loads,overlap,step,precision,K,refine,native]\n");
       return a == "--help" || a == "-h" ? 0 : 2;
     }
   }
@@ -338,6 +340,14 @@ int main(int argc, char** argv) {
     Config c{"layout", "level " + std::to_string(level) + ", workgroup layout", B::vulkan, level, 1, false, 1, 3};
     c.layout = ScanLayout::group;
     workgroups[level] = &run(c, single, single_truth);
+  }
+  // The sparse kernel's look-ups through storage buffers (the way before the
+  // texel buffers; engine/support_scan.h, ScanLoads) against the tier rows.
+  std::map<int, const Row*> storage_loads;
+  for (int level : {2, 3, 4}) {
+    Config c{"loads", "level " + std::to_string(level) + ", storage-buffer loads", B::vulkan, level, 1, false, 1, 3};
+    c.loads = ScanLoads::storage;
+    storage_loads[level] = &run(c, single, single_truth);
   }
   // The host's work on each chunk of events beside the scan of the next, or
   // after it: chunks of 16 of the 48 events (the CLI's are 64 of 256).
@@ -504,6 +514,10 @@ int main(int argc, char** argv) {
     if (ran(*w) && ran(*tier[level]))
       std::printf("  level %d, this device's layout vs workgroups throughout: %.2fx faster, same vertices %s\n", level,
                   w->seconds_per_event / tier[level]->seconds_per_event, same_vertices(*w, *tier[level]) ? "yes" : "NO");
+  for (auto [level, s] : storage_loads)
+    if (ran(*s) && ran(*tier[level]))
+      std::printf("  level %d, texel-buffer look-ups vs storage buffers: %.2fx faster, same vertices %s\n", level,
+                  s->seconds_per_event / tier[level]->seconds_per_event, same_vertices(*s, *tier[level]) ? "yes" : "NO");
   for (auto [level, rows2] : overlap)
     if (ran(*rows2.first) && ran(*rows2.second))
       std::printf("  level %d, the host's work on a chunk beside the scan of the next vs after it: %.2fx faster, same "

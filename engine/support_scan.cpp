@@ -39,14 +39,15 @@ constexpr uint64_t kCpuLoopBudget = 32768;
 // event from the budget, its specialisation constant).
 constexpr uint64_t kSerialShiftsPerPass = 8;
 
-// The sparse kernel's bindings read as texel buffers (support_scan.comp):
-// the clicks (3), their rates and weights (4), and the dictionary's chunk
-// again (8) for the PSF values, as half floats where the chunk holds them.
+// The sparse kernel's texel bindings (support_scan.comp): the dictionary's
+// chunk again (8) for the PSF values, as half floats where the chunk holds
+// them, the clicks (9) and their rates and weights (10), the same buffers as
+// bindings 0, 3 and 4.
 std::vector<VkFormat> sparse_texel_formats(bool half) {
-  std::vector<VkFormat> f(9, VK_FORMAT_UNDEFINED);
-  f[3] = VK_FORMAT_R32_UINT;
-  f[4] = VK_FORMAT_R32G32_SFLOAT;
+  std::vector<VkFormat> f(11, VK_FORMAT_UNDEFINED);
   f[8] = half ? VK_FORMAT_R16_SFLOAT : VK_FORMAT_R32_SFLOAT;
+  f[9] = VK_FORMAT_R32_UINT;
+  f[10] = VK_FORMAT_R32G32_SFLOAT;
   return f;
 }
 
@@ -57,8 +58,10 @@ struct SupportScanVulkan::Impl {
   ScanKernel which;
   bool half;
   ScanLayout layout;
+  ScanLoads loads;
   std::map<std::pair<bool, bool>, std::unique_ptr<vk::Kernel>> kernels;  // by (serial scan, serial fit)
-  Impl(vk::Context& c, ScanKernel k, bool h, ScanLayout l) : ctx(c), which(k), half(h), layout(l) {}
+  Impl(vk::Context& c, ScanKernel k, bool h, ScanLayout l, ScanLoads d)
+      : ctx(c), which(k), half(h), layout(l), loads(d) {}
   vk::Kernel& kernel(bool serial_scan, bool serial_fit) {
     auto& k = kernels[{serial_scan, serial_fit}];
     if (k) return *k;
@@ -69,9 +72,10 @@ struct SupportScanVulkan::Impl {
           sizeof(shared::ScanParams), std::vector<uint32_t>{half ? 1u : 0u});
     else
       k = std::make_unique<vk::Kernel>(
-          ctx, "support_scan", std::span<const uint32_t>(spv_support_scan, std::size(spv_support_scan)), 9,
+          ctx, "support_scan", std::span<const uint32_t>(spv_support_scan, std::size(spv_support_scan)), 11,
           sizeof(shared::ScanParams),
-          std::vector<uint32_t>{half ? 1u : 0u, serial_scan ? 1u : 0u, serial_fit ? 1u : 0u, uint32_t(kCpuLoopBudget)},
+          std::vector<uint32_t>{half ? 1u : 0u, serial_scan ? 1u : 0u, serial_fit ? 1u : 0u, uint32_t(kCpuLoopBudget),
+                                loads == ScanLoads::texel ? 1u : 0u},
           sparse_texel_formats(half));
     return *k;
   }
@@ -85,8 +89,9 @@ struct SupportScanVulkan::Impl {
   }
 };
 
-SupportScanVulkan::SupportScanVulkan(vk::Context& ctx, ScanKernel kernel, bool half, ScanLayout layout)
-    : impl_(std::make_unique<Impl>(ctx, kernel, half, layout)) {}
+SupportScanVulkan::SupportScanVulkan(vk::Context& ctx, ScanKernel kernel, bool half, ScanLayout layout,
+                                     ScanLoads loads)
+    : impl_(std::make_unique<Impl>(ctx, kernel, half, layout, loads)) {}
 
 SupportScanVulkan::~SupportScanVulkan() = default;
 
@@ -260,7 +265,7 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
           st.dispatch(k, {chunk, &psfs, b_images.get(), &results, &block_best}, &p, x, uint32_t(ne), z);
         else
           st.dispatch(k, {chunk, &psfs, b_events.get(), b_clicks.get(), b_rates.get(), &results, &block_best,
-                          &no_list, chunk},
+                          &no_list, chunk, b_clicks.get(), b_rates.get()},
                       &p, x, uint32_t(ne), z);
       }
       st.barrier();
@@ -294,7 +299,7 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
                                     : std::min(p.list_count, max_x);
           const uint32_t y = serial ? 1u : (p.list_count + x - 1) / x;
           st.dispatch(k, {level.chunks.at(r.chunk), &psfs, b_events.get(), b_clicks.get(), b_rates.get(), &results,
-                          &block_best, &b_list, level.chunks.at(r.chunk)},
+                          &block_best, &b_list, level.chunks.at(r.chunk), b_clicks.get(), b_rates.get()},
                       &p, x, y);
           first = end;
         }

@@ -103,9 +103,17 @@ enum class ScanKernel { sparse, dense };
 // elsewhere. The same results either way.
 enum class ScanLayout { automatic, group, serial };
 
+// How the sparse kernel reads the PSF values, the clicks and their rates:
+// through uniform texel buffers (one vector gather per look-up on llvmpipe,
+// where a storage-buffer load runs one invocation at a time: 1.28x the
+// reconstruction, README "Reconstruction"), or as storage buffers, the way
+// before, kept to measure against. The same results either way.
+enum class ScanLoads { texel, storage };
+
 class SupportScanVulkan {
  public:
-  SupportScanVulkan(vk::Context& ctx, ScanKernel kernel, bool half, ScanLayout layout = ScanLayout::automatic);
+  SupportScanVulkan(vk::Context& ctx, ScanKernel kernel, bool half, ScanLayout layout = ScanLayout::automatic,
+                    ScanLoads loads = ScanLoads::texel);
   ~SupportScanVulkan();
 
   // results[e * psfs + m]. Events go to the device in batches whose buffers

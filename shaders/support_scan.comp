@@ -36,13 +36,17 @@
 
 // Per event: its first click and click count in the two arrays below.
 layout(std430, binding = 2) readonly buffer Events { uvec2 event_clicks[]; };
-// Per click, read as texel buffers (scan.glsl's PSF_TEXELS says why): x | y
-// << 16 on the scan level (R32_UINT), and lambda of the event's current
-// model (dark rate included) with the gradient weight 1 / (1 - exp(-lambda)),
-// formed once on the host in double (R32G32_SFLOAT).
-layout(binding = 3) uniform usamplerBuffer click_xy;
-layout(binding = 4) uniform samplerBuffer rate_weight_texels;
-vec2 rate_weight(uint i) { return texelFetch(rate_weight_texels, int(i)).xy; }
+// Per click: x | y << 16 on the scan level, and lambda of the event's
+// current model (dark rate included) with the gradient weight 1 / (1 -
+// exp(-lambda)), formed once on the host in double. Read, where TEXELS is
+// set, through the same buffers as texel buffers (bindings 9, R32_UINT, and
+// 10, R32G32_SFLOAT; scan.glsl's PSF_TEXELS says why).
+layout(std430, binding = 3) readonly buffer Clicks { uint click_words[]; };
+layout(std430, binding = 4) readonly buffer Rates { vec2 rate_words[]; };
+layout(binding = 9) uniform usamplerBuffer click_texels;
+layout(binding = 10) uniform samplerBuffer rate_texels;
+uint click_word(uint i) { return TEXELS == 1u ? texelFetch(click_texels, int(i)).r : click_words[i]; }
+vec2 rate_weight(uint i) { return TEXELS == 1u ? texelFetch(rate_texels, int(i)).xy : rate_words[i]; }
 layout(std430, binding = 5) buffer Out { ScanOut results[]; };                 // [event][PSF]
 // Phase 2: the candidates whose weights to fit, (event, PSF) pairs; the
 // entries of one dispatch lie in its chunk.
@@ -57,7 +61,7 @@ ivec2 best_shift;
 float best_mass;
 
 ivec2 click_at(uint c) {
-  uint v = texelFetch(click_xy, int(first_click + c)).r;
+  uint v = click_word(first_click + c);
   return ivec2(int(v & 0xffffu), int(v >> 16u));
 }
 

@@ -75,6 +75,8 @@ struct ReconstructionSettings {
                                  // candidates are then re-searched +-(step - 1) around their best
   ScanLayout scan_layout = ScanLayout::automatic;  // device layout of the scan's weight fits (engine/support_scan.h);
                                               // the same results either way
+  ScanLoads scan_loads = ScanLoads::texel;    // how the sparse kernel reads its look-ups (engine/support_scan.h);
+                                              // the same results either way
   // Device backends: each pass's events go to the device this many at a
   // time; with overlap_scans the host descends one chunk (tiles, weights,
   // depth) while the device scans the next, else each chunk is scanned,

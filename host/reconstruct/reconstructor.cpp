@@ -167,7 +167,7 @@ Reconstructor::Reconstructor(DictionaryService& dictionary, int click_level, Rec
     scan_level_.psfs[i].radius_px = detail::scan_radius_px(m, s_.tau_mm, i, Ls);
   device_ = std::make_unique<SupportScanVulkan>(
       *ctx, backend_ == ReconstructionBackend::dense ? ScanKernel::dense : ScanKernel::sparse, scan_level_.half,
-      s_.scan_layout);
+      s_.scan_layout, s_.scan_loads);
 }
 
 Reconstructor::~Reconstructor() = default;

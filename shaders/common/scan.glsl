@@ -52,19 +52,22 @@ struct ScanOut {
   float bound;  // a lower bound on nll (likelihood.glsl's nll_lower_bound; the dense kernel: nll itself)
 };
 
-// A kernel that defines PSF_TEXELS (a binding) reads the values through the
-// chunk seen as a uniform texel buffer, of floats or, with HALF, of half
-// floats: the same values, fetched as one vector gather on llvmpipe where a
-// storage buffer load runs one invocation at a time (vk::Kernel).
+// A kernel that defines PSF_TEXELS (a binding) reads the values, where
+// TEXELS is set, through the chunk seen as a uniform texel buffer, of floats
+// or, with HALF, of half floats: the same values, fetched as one vector
+// gather on llvmpipe where a storage buffer load runs one invocation at a
+// time (vk::Kernel, engine/support_scan.h's ScanLoads).
 #ifdef PSF_TEXELS
 layout(binding = PSF_TEXELS) uniform samplerBuffer psf_texels;
+layout(constant_id = 4) const uint TEXELS = 1u;
 #endif
 
 float psf_value(uint base, int x, int y) {
   if (x < 0 || y < 0 || x >= int(P.width) || y >= int(P.height)) return 0.0f;  // off the sensor: no light
   uint i = uint(y) * P.width + uint(x);
 #ifdef PSF_TEXELS
-  return HALF == 1u ? texelFetch(psf_texels, int(2u * base + i)).r / P.half_scale : texelFetch(psf_texels, int(base + i)).r;
+  if (TEXELS == 1u)
+    return HALF == 1u ? texelFetch(psf_texels, int(2u * base + i)).r / P.half_scale : texelFetch(psf_texels, int(base + i)).r;
 #endif
   if (HALF == 1u) {
     vec2 pair = unpackHalf2x16(words[base + (i >> 1u)]);

@@ -853,6 +853,44 @@ TEST_CASE("support scan on the device: sparse, dense and half agree with the CPU
   prism::test::check_validation_clean();
 }
 
+TEST_CASE("support scan on the device: texel-buffer and storage-buffer look-ups give the same scan, bit for bit") {
+  // The sparse kernel reads the PSF values, clicks and rates through texel
+  // buffers by default (engine/support_scan.h, ScanLoads): the same words,
+  // so the same sums in the same order as through storage buffers, float and
+  // half values, both layouts, the default bound-limited fits.
+  using L = prism::ScanLayout;
+  using D = prism::ScanLoads;
+  const std::vector<prism::Event> events = scan_events();
+  for (bool half : {false, true})
+    for (L layout : {L::serial, L::group}) {
+      CAPTURE(half);
+      CAPTURE(layout == L::group);
+      std::vector<std::vector<prism::SupportScore>> scans[2];
+      for (D loads : {D::texel, D::storage}) {
+        auto st = settings(1);
+        st.scan_layout = layout;
+        st.scan_loads = loads;
+        DeviceRun d(prism::ReconstructionBackend::vulkan, st, half);
+        scans[loads == D::storage] = d.reconstructor.first_scan(events);
+      }
+      REQUIRE(scans[0].size() == scans[1].size());
+      size_t compared = 0, differ = 0;
+      for (size_t i = 0; i < scans[0].size(); ++i) {
+        REQUIRE(scans[0][i].size() == scans[1][i].size());
+        for (size_t m = 0; m < scans[0][i].size(); ++m) {
+          const auto &a = scans[0][i][m], &b = scans[1][i][m];
+          ++compared;
+          // NaN-free: an unfitted PSF has nll +inf in both.
+          differ += a.psf != b.psf || a.shift != b.shift || a.nll != b.nll || a.alpha != b.alpha ||
+                    a.nll_bound != b.nll_bound;
+        }
+      }
+      CHECK(compared > 0);
+      CHECK_MESSAGE(differ == 0, differ << " of " << compared << " (event, PSF) results differ between the loads");
+    }
+  prism::test::check_validation_clean();
+}
+
 TEST_CASE("support scan on the device: weights fitted only where the NLL bound can still win, same ranking") {
   // The default scan fits a PSF's weight only when its lower bound on the
   // NLL (likelihood.glsl's nll_lower_bound) is within reach of the best
