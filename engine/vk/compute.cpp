@@ -90,8 +90,7 @@ uint64_t texel_bytes(VkFormat f) {
     case VK_FORMAT_R16_SFLOAT: return 2;
     case VK_FORMAT_R32_SFLOAT:
     case VK_FORMAT_R32_UINT: return 4;
-    case VK_FORMAT_R32G32_SFLOAT:
-    case VK_FORMAT_R32G32_UINT: return 8;
+    case VK_FORMAT_R32G32_SFLOAT: return 8;
     default: throw Error("Buffer::view: format " + std::to_string(int(f)) + " is not one of the texel formats used here");
   }
 }
@@ -375,11 +374,10 @@ void Stream::dispatch(Kernel& k, std::initializer_list<const Buffer*> buffers, c
   std::vector<VkDescriptorBufferInfo> infos;
   std::vector<VkBufferView> views;
   for (const Buffer* b : buffers) {
+    const uint32_t i = uint32_t(infos.size());
     infos.push_back({b->handle(), 0, VK_WHOLE_SIZE});
-    const uint32_t i = uint32_t(views.size());
-    views.push_back(i < k.texel_formats_.size() && k.texel_formats_[i] != VK_FORMAT_UNDEFINED
-                        ? b->view(k.texel_formats_[i])
-                        : VK_NULL_HANDLE);
+    const bool texel = descriptor_type(k.texel_formats_, i) == VK_DESCRIPTOR_TYPE_UNIFORM_TEXEL_BUFFER;
+    views.push_back(texel ? b->view(k.texel_formats_[i]) : VK_NULL_HANDLE);
   }
   std::vector<VkWriteDescriptorSet> writes(infos.size());
   for (uint32_t i = 0; i < infos.size(); ++i) {
