@@ -9,7 +9,8 @@
 //      own rays (the acceptance's measure of the defaults);
 //   3. the cost of each optional effect per ray;
 //   4. where a render of the refinement's model spends its time: the
-//      footprint's passes, one by one.
+//      footprint's passes, one by one, and the share of the large pass (the
+//      rim's pieces still large after the split, rasterised in tiles).
 // Prints tables; every figure names the machine and the device. Times are
 // medians over repeats (these machines are noisy).
 #include <algorithm>
@@ -49,6 +50,7 @@ struct Options {
   bool skip_convergence = false;
   std::vector<std::string> sections{"throughput", "effects", "convergence", "passes"};
   std::vector<unsigned> binnings{16, 4, 1};
+  std::vector<unsigned> passes_binnings{16};  // the passes table's pixels (1: the sensor's own, 3-4x longer per render)
   std::vector<Variant> variants{Variant::thin, Variant::real, Variant::real_diffraction};
 };
 
@@ -236,15 +238,15 @@ void effects(vk::Context& ctx, const Options& o) {
 // dispatch's device time, by pass: the first over the cells, the split
 // levels (the real lenses' rim cells and their large pieces, retraced and
 // rasterised), the cut cells.
-void passes(vk::Context& ctx, const Options& o) {
+void passes_at(vk::Context& ctx, const Options& o, unsigned binning) {
   Scene scene = builtin_scene("prototype");
   TraceSettings t = TraceSettings::defaults_for(Splat::footprint);
   t.rays_per_lenslet = defaults::refine_rays_per_lenslet;
-  t.binning = 16;
+  t.binning = binning;
   ForwardVulkan fw(ctx, scene.optics, t);
-  std::printf("\n## 4. Where a refinement render's time goes: prototype (real lenses), %u cells/lenslet, 110 um, "
+  std::printf("\n## 4. Where a refinement render's time goes: prototype (real lenses), %u cells/lenslet, %.1f um, "
               "with derivatives; device ms per pass\n",
-              t.rays());
+              t.rays(), 1e3 * fw.grid().pixel_mm);
   for (glm::dvec3 theta : {glm::dvec3(4.0, -6.0, 2.0), glm::dvec3(7.2, 12.3, 35.5), glm::dvec3(3.0, 7.0, 45.0)}) {
     fw.psf(theta);  // warm up: compilation, the lists grown to fit
     std::vector<std::string> names;
@@ -271,10 +273,19 @@ void passes(vk::Context& ctx, const Options& o) {
       for (const auto& row : ms) v.push_back(row[i]);
       total += med[i] = bench::median(v);
     }
-    for (size_t i = 0; i < names.size(); ++i)
+    double large = 0;
+    for (size_t i = 0; i < names.size(); ++i) {
       std::printf("  %-36s %8.1f ms %6.1f%%\n", names[i].c_str(), med[i], 100 * med[i] / total);
+      if (names[i].rfind("psf_footprint_large", 0) == 0) large += med[i];
+    }
     std::printf("  %-36s %8.1f ms\n", "all passes", total);
+    std::printf("  the large pass's share: %.1f%% (the render costs %.2fx what it would without it)\n", 100 * large / total,
+                total / (total - large));
   }
+}
+
+void passes(vk::Context& ctx, const Options& o) {
+  for (unsigned binning : o.passes_binnings) passes_at(ctx, o, binning);
 }
 
 }  // namespace
@@ -293,6 +304,10 @@ int main(int argc, char** argv) {
     else if (a == "--binnings") {
       o.binnings.clear();
       for (const std::string& v : comma_list(next())) o.binnings.push_back(unsigned(std::stoul(v)));
+    }
+    else if (a == "--passes-binnings") {
+      o.passes_binnings.clear();
+      for (const std::string& v : comma_list(next())) o.passes_binnings.push_back(unsigned(std::stoul(v)));
     }
     else if (a == "--variants") {
       o.variants.clear();
@@ -315,7 +330,7 @@ int main(int argc, char** argv) {
     }
     else {
       std::printf("usage: bench_forward [--device D] [--max-rays N] [--max-rays-native N] [--binnings 16,4,1] "
-                  "[--variants thin,real,real+diffraction] [--repeats R] [--skip-convergence] "
+                  "[--passes-binnings 16] [--variants thin,real,real+diffraction] [--repeats R] [--skip-convergence] "
                   "[--sections throughput,effects,convergence,passes]\n");
       return a == "--help" ? 0 : 2;
     }

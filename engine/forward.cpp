@@ -21,6 +21,12 @@
 #include "spv/psf_footprint_cut_as_built_blur.spv.h"
 #include "spv/psf_footprint_cut_calibrate.spv.h"
 #include "spv/psf_footprint_cut_calibrate_blur.spv.h"
+#include "spv/psf_footprint_large.spv.h"
+#include "spv/psf_footprint_large_blur.spv.h"
+#include "spv/psf_footprint_large_as_built.spv.h"
+#include "spv/psf_footprint_large_as_built_blur.spv.h"
+#include "spv/psf_footprint_large_calibrate.spv.h"
+#include "spv/psf_footprint_large_calibrate_blur.spv.h"
 #include "spv/psf_footprint_split.spv.h"
 #include "spv/psf_footprint_split_blur.spv.h"
 #include "spv/psf_footprint_split_as_built.spv.h"
@@ -193,8 +199,9 @@ struct ForwardVulkan::Impl {
   uint64_t list_limit_bytes;  // the footprint's lists: at most the budget and maxStorageBufferRange
 
   // The footprint splat's later passes and their lists (footprint_raster.glsl):
-  // the split pass (psf_footprint_split.comp) and the cut pass
-  // (psf_footprint_cut.comp).
+  // the split pass (psf_footprint_split.comp), the cut pass
+  // (psf_footprint_cut.comp) and the large pass (psf_footprint_large.comp,
+  // the tiles of pieces still large after the split, listed after its entries).
   struct List {
     std::unique_ptr<vk::Buffer> buffer;  // header (count, capacity, 2 unused) + entries of 16 bytes
     uint32_t capacity = 0;
@@ -211,7 +218,7 @@ struct ForwardVulkan::Impl {
     }
   };
   struct Footprint {
-    vk::Kernel split, split_values, cut, cut_values;
+    vk::Kernel split, split_values, cut, cut_values, large, large_values;
     List splits, cuts;
     uint32_t chunks = 1;  // the first pass over the cells in this many chunks (record_splat)
     static std::span<const uint32_t> split_spirv(Variant v, const OpticalSystem& sys) {
@@ -222,6 +229,10 @@ struct ForwardVulkan::Impl {
       static const KernelBuilds builds = PRISM_KERNEL_BUILDS(psf_footprint_cut);
       return pick_build(builds, v, sys);
     }
+    static std::span<const uint32_t> large_spirv(Variant v, const OpticalSystem& sys) {
+      static const KernelBuilds builds = PRISM_KERNEL_BUILDS(psf_footprint_large);
+      return pick_build(builds, v, sys);
+    }
     Footprint(vk::Context& c, const OpticalSystem& sys, Variant v, uint32_t first_capacity)
         : split(c, "psf_footprint_split", split_spirv(v, sys), 7, sizeof(shared::TraceParams),
                 specialisation(sys, true)),
@@ -229,7 +240,10 @@ struct ForwardVulkan::Impl {
                        specialisation(sys, false)),
           cut(c, "psf_footprint_cut", cut_spirv(v, sys), 7, sizeof(shared::TraceParams), specialisation(sys, true)),
           cut_values(c, "psf_footprint_cut (values)", cut_spirv(v, sys), 7, sizeof(shared::TraceParams),
-                     specialisation(sys, false)) {
+                     specialisation(sys, false)),
+          large(c, "psf_footprint_large", large_spirv(v, sys), 7, sizeof(shared::TraceParams), specialisation(sys, true)),
+          large_values(c, "psf_footprint_large (values)", large_spirv(v, sys), 7, sizeof(shared::TraceParams),
+                       specialisation(sys, false)) {
       splits.grow(c, first_capacity);
       cuts.grow(c, first_capacity);
     }
@@ -364,9 +378,24 @@ struct ForwardVulkan::Impl {
           need = std::max(split_count, cut_count);
           break;
         }
+        // The last level listed the tiles of its pieces still large, and the
+        // cut pass lists those of its large parts after them.
+        const uint32_t tiles_first = q.split_first;
         if (cut_count > 0) {
           stream.barrier();
           dispatch(derivatives ? f.cut : f.cut_values, q, groups(cut_count), 1);
+          ms += submit(stream);
+          split_count = f.splits.count();
+        }
+        if (split_count > f.splits.capacity) {
+          need = split_count;
+          break;
+        }
+        if (split_count > tiles_first) {
+          q.split_first = tiles_first;
+          q.split_end = split_count;
+          stream.barrier();
+          dispatch(derivatives ? f.large : f.large_values, q, groups(split_count - tiles_first), 1);
         }
       }
       if (need == 0) return ms;

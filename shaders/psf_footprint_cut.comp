@@ -1,8 +1,9 @@
 // Footprint splatting, the cut pass: triangles and split pieces some of
 // whose corners' rays an aperture or total internal reflection stops (from
 // psf_footprint.comp and psf_footprint_split.comp). The part that passes is
-// found by bisection and rasterised (footprint_pieces.glsl). One invocation
-// per entry.
+// found by bisection and rasterised (footprint_pieces.glsl); a part still
+// large is listed as tiles for psf_footprint_large.comp. One invocation per
+// entry.
 #version 460
 #extension GL_GOOGLE_include_directive : require
 #extension GL_EXT_shader_atomic_float : require
@@ -23,6 +24,6 @@ void main() {
     listed_piece(cuts[e], t, from, lens, image_base, half_offset, blur_half_px);
     int passed = int(t.a.ok) + int(t.b.ok) + int(t.c.ok);
     if (passed == 0 || passed == 3) continue;
-    rasterise_cut(image_base, from, lens, t.a, t.b, t.c, t.pa, t.pb, t.pc, t.area_mm2, blur_half_px, half_offset);
+    rasterise_cut(image_base, from, lens, t.a, t.b, t.c, t.pa, t.pb, t.pc, t.area_mm2, blur_half_px, half_offset, cuts[e]);
   }
 }

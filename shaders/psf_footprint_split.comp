@@ -7,7 +7,8 @@
 // keeps its loops short (lavapipe ends a shader's loops, silently, after
 // 65535 iterations in all per batch of invocations). Pieces over the
 // sensor's far edge are clipped to it (footprint_pieces.glsl); a piece with
-// stopped corners goes on to the cut list (psf_footprint_cut.comp).
+// stopped corners goes on to the cut list (psf_footprint_cut.comp); one still
+// large after the last split is listed as tiles for psf_footprint_large.comp.
 #version 460
 #extension GL_GOOGLE_include_directive : require
 #extension GL_EXT_shader_atomic_float : require
@@ -25,9 +26,9 @@ void give_piece(uvec4 entry, Piece t, uint image_base, float blur_half_px, uint 
     if (at < cut_capacity) cuts[at] = entry;
     return;
   }
-  // (Still large after the last split: at its centroid, in rasterise_clipped.)
+  // (Still large after the last split: its tiles listed for the large pass, in rasterise_clipped.)
   rasterise_clipped(image_base, t.a, t.b, t.c, d_scale(d_add(d_add(t.a.w, t.b.w), t.c.w), t.area_mm2 / 3.0f),
-                    blur_half_px, half_offset);
+                    blur_half_px, half_offset, entry, 0u);
 }
 
 void main() {

@@ -4,6 +4,7 @@
 // turn and the diagonal each cell is split along come from the shared
 // sampling code, like the point rays' sample points.
 #include <algorithm>
+#include <numeric>
 #include <array>
 #include <cmath>
 #include <functional>
@@ -243,7 +244,10 @@ struct FootprintTarget {
     std::vector<D> ts{D(0.0), D(1.0)};
     auto crossings = [&](D from, D delta, double lo, double hi, double far) {
       if (delta.v == 0) return;
-      for (double line = std::ceil(std::min(lo, hi)); line <= std::floor(std::max(lo, hi)); ++line) {
+      // The lines on the sensor only: the pieces off it are dropped below
+      // (a rim piece's sliver can reach far beyond it).
+      for (double line = std::max(std::ceil(std::min(lo, hi)), 0.0); line <= std::min(std::floor(std::max(lo, hi)), std::floor(far));
+           ++line) {
         D t = (D(line) - from) / delta;
         if (t.v > 0 && t.v < 1) ts.push_back(t);
       }
@@ -253,12 +257,17 @@ struct FootprintTarget {
     };
     crossings(p.u, du, p.u.v, q.u.v, u_max);
     crossings(p.v, dv, p.v.v, q.v.v, v_max);
-    std::sort(ts.begin(), ts.end(), [](const D& a, const D& b) { return a.v < b.v; });
-    for (size_t k = 0; k + 1 < ts.size(); ++k) {
-      const double mid = 0.5 * (ts[k].v + ts[k + 1].v);
+    // Sorted by value through their indices: a D with many derivatives is
+    // dear to move (a calibration's long thin pieces cross hundreds of lines).
+    std::vector<size_t> order(ts.size());
+    std::iota(order.begin(), order.end(), size_t(0));
+    std::stable_sort(order.begin(), order.end(), [&](size_t a, size_t b) { return ts[a].v < ts[b].v; });
+    for (size_t k = 0; k + 1 < order.size(); ++k) {
+      const D &t0 = ts[order[k]], &t1 = ts[order[k + 1]];
+      const double mid = 0.5 * (t0.v + t1.v);
       const double u = p.u.v + mid * du.v, v = p.v.v + mid * dv.v;
       if (u < 0 || v < 0 || u >= u_max || v >= v_max) continue;
-      add(int(std::floor(u)), int(std::floor(v)), weight * (ts[k + 1] - ts[k]), half);
+      add(int(std::floor(u)), int(std::floor(v)), weight * (t1 - t0), half);
     }
   }
   // `weight` spread uniformly over triangle (a, b, c), shared by box pixels.
@@ -294,9 +303,36 @@ struct FootprintTarget {
       blurred(a, b, c, weight, half);
       return;
     }
-    for (int row = std::max(0, int(std::floor(lo_v))); row <= std::min(img.height - 1, int(std::floor(hi_v))); ++row)
-      for (int col = std::max(0, int(std::floor(lo_u))); col <= std::min(img.width - 1, int(std::floor(hi_u))); ++col) {
+    const double orientation =
+        (b.u.v - a.u.v) * (c.v.v - a.v.v) - (c.u.v - a.u.v) * (b.v.v - a.v.v) < 0 ? -1.0 : 1.0;
+    for (int row = std::max(0, int(std::floor(lo_v))); row <= std::min(img.height - 1, int(std::floor(hi_v))); ++row) {
+      // The columns the triangle spans within this row (a large rim piece's
+      // box is mostly empty), one pixel wider each side than the values say.
+      double row_lo = hi_u, row_hi = lo_u;
+      for (size_t k = 0; k < 3; ++k) {
+        const Point2 &p = tri[k], &q = tri[(k + 1) % 3];
+        for (double t : {0.0, 1.0, (row - p.v.v) / (q.v.v - p.v.v), (row + 1.0 - p.v.v) / (q.v.v - p.v.v)}) {
+          if (!(t >= 0 && t <= 1)) continue;
+          const double u = p.u.v + t * (q.u.v - p.u.v), v = p.v.v + t * (q.v.v - p.v.v);
+          if (v >= row - 1e-9 && v <= row + 1 + 1e-9) row_lo = std::min(row_lo, u), row_hi = std::max(row_hi, u);
+        }
+      }
+      for (int col = std::max({0, int(std::floor(lo_u)), int(std::floor(row_lo)) - 1});
+           col <= std::min({img.width - 1, int(std::floor(hi_u)), int(std::floor(row_hi)) + 1}); ++col) {
         const double x0 = col, x1 = std::min(col + 1.0, u_max), y0 = row, y1 = std::min(row + 1.0, v_max);
+        // A pixel wholly inside: its own area, which no corner moves (a
+        // large piece's inner pixels; the clipping below gives the same).
+        auto inside_triangle = [&](double u, double v) {
+          for (size_t k = 0; k < 3; ++k) {
+            const Point2 &p = tri[k], &q = tri[(k + 1) % 3];
+            if (orientation * ((q.u.v - p.u.v) * (v - p.v.v) - (q.v.v - p.v.v) * (u - p.u.v)) < 0) return false;
+          }
+          return true;
+        };
+        if (inside_triangle(x0, y0) && inside_triangle(x1, y0) && inside_triangle(x0, y1) && inside_triangle(x1, y1)) {
+          add(col, row, weight * D((x1 - x0) * (y1 - y0)) / area, half);
+          continue;
+        }
         auto poly = clip_half_plane(tri, [&](const Point2& p) { return p.u - D(x0); });
         poly = clip_half_plane(poly, [&](const Point2& p) { return D(x1) - p.u; });
         poly = clip_half_plane(poly, [&](const Point2& p) { return p.v - D(y0); });
@@ -305,6 +341,7 @@ struct FootprintTarget {
         const D inside = polygon_area(poly);
         if (inside.v > 0) add(col, row, weight * inside / area, half);
       }
+    }
   }
 };
 
@@ -349,15 +386,8 @@ SparseImage psf_footprint(const OpticalSystem& sys, const TraceSettings& setting
         };
         const int half = int((i + j) & 1u);
         // One triangle: split while its image is large (LARGE_TRIANGLE_PX,
-        // SPLIT_DEPTH), cut where an aperture or TIR stops its rays, a piece
-        // still large given to its centroid.
-        auto centroid = [&](const GridCorner& a, const GridCorner& b, const GridCorner& c, D weight) {
-          const double cu = (a.u.v + b.u.v + c.u.v) / 3, cv = (a.v.v + b.v.v + c.v.v) / 3;
-          if (target.blur_half_px > 0)
-            add_blurred_point(img, D(cu), D(cv), target.blur_half_px, weight, half, target.u_max, target.v_max);
-          else if (cu >= 0 && cv >= 0 && cu < target.u_max && cv < target.v_max)
-            target.add(int(cu), int(cv), weight, half);
-        };
+        // SPLIT_DEPTH), cut where an aperture or TIR stops its rays; every
+        // piece, one still large after the last split too, rasterised exactly.
         auto large = [](const GridCorner* k) {
           double lo_u = 1e300, hi_u = -1e300, lo_v = 1e300, hi_v = -1e300;
           for (int q = 0; q < 3; ++q)
@@ -367,9 +397,7 @@ SparseImage psf_footprint(const OpticalSystem& sys, const TraceSettings& setting
           return std::max(hi_u - lo_u, hi_v - lo_v) > double(shared::LARGE_TRIANGLE_PX);
         };
         auto draw = [&](const GridCorner& a, const GridCorner& b, const GridCorner& c, D weight) {
-          const GridCorner k[3] = {a, b, c};
-          if (large(k)) centroid(a, b, c, weight);
-          else target.triangle(a, b, c, weight, half);
+          target.triangle(a, b, c, weight, half);
         };
         std::function<void(GridCorner*, glm::dvec2*, double, int)> piece = [&](GridCorner* k, glm::dvec2* p,
                                                                                double area_mm2, int depth) {

@@ -73,10 +73,14 @@ const float THIN_TRIANGLE = 0.01f;
 // direction (a cell where the map is far from linear: near-grazing rays at a
 // strong lens's rim, a fold) is split into four at its aperture edges'
 // midpoints, up to SPLIT_DEPTH times: more rays where the light needs them.
-// A piece still that large at the last level gives its light to the pixel of
-// its centroid. The split pass takes one level at a time (one piece per
-// invocation, its children that are still large listed for the next), so
-// only the pieces that exist are traced.
+// A piece still that large at the last level is rasterised like any other,
+// by the kernels in tiles (the large pass, footprint_raster.glsl): its light
+// spread uniformly over its image, where giving it to its centroid's pixel
+// left the faint annulus of an f = 3 mm lens's near-face image 300% off at
+// any cell count (README "Calibration"). The split pass takes one level at a
+// time (one piece per invocation, its children that are still large listed
+// for the next), so only the pieces that exist are traced. Piece codes hold
+// 12 bits (footprint_raster.glsl): SPLIT_DEPTH at most 4.
 const float LARGE_TRIANGLE_PX = 16.0f;
 const int SPLIT_DEPTH = 3;
 

@@ -2,6 +2,10 @@
 // psf_footprint_cut.comp): the pieces of a listed triangle, and how a cut or
 // clipped piece gives its light to the pixels.
 //
+// A piece still large after the last split: listed as tiles for the large
+// pass (footprint_raster.glsl, LARGE_TILE_PX), which rasterises it exactly,
+// one tile per invocation.
+//
 // An aperture cut: the boundary is found by bisection along each edge between
 // a corner whose ray passes and one whose ray does not (CUT_STEPS halvings of
 // the aperture segment), and the part that passes (a triangle, or a quad as
@@ -17,12 +21,38 @@
 
 const int CUT_STEPS = 8;  // the cut within 1/256 of the cell edge: boundary cells only
 
+// The tiles of large piece (a, b, c), part `part` of list entry `entry`,
+// within the sensor, this band and a blur's reach, listed for the large
+// pass after the split's entries.
+void list_tiles(uvec4 entry, uint part, Corner a, Corner b, Corner c, float blur_half_px) {
+  float reach = DIFFRACTION ? blur_half_px + 1.0f : 0.0f;
+  vec2 lo = min(min(vec2(a.u.v, a.v.v), vec2(b.u.v, b.v.v)), vec2(c.u.v, c.v.v)) - reach;
+  vec2 hi = max(max(vec2(a.u.v, a.v.v), vec2(b.u.v, b.v.v)), vec2(c.u.v, c.v.v)) + reach;
+  int band_end = min(P.band_row0 + P.band_rows, P.grid_h) - 1;
+  ivec2 first = max(ivec2(floor(lo)), ivec2(0, max(P.band_row0, 0))) / LARGE_TILE_PX;
+  ivec2 last = min(ivec2(floor(hi)), ivec2(P.grid_w - 1, band_end)) / LARGE_TILE_PX;
+  if (any(lessThan(last, first))) return;
+  uint tiles = uint((last.x - first.x + 1) * (last.y - first.y + 1));
+  uint at = atomicAdd(split_count, tiles);
+  uint columns = uint(last.x - first.x + 1);
+  for (uint k = 0u; k < tiles && at + k < split_capacity; ++k)
+    splits[at + k] = with_tile(entry, part, uvec2(first) + uvec2(k % columns, k / columns));
+}
+
 // `weight` spread over triangle (a, b, c), clipped to u <= u_max, v <= v_max
 // (light beyond is lost; the rest keeps the whole triangle's light per area).
-void rasterise_clipped(uint image_base, Corner a, Corner b, Corner c, Dual weight, float blur_half_px, uint half_offset) {
-  if (is_large(a, b, c)) {  // a piece no further split (footprint.glsl): at its centroid
-    deposit_at_centroid(image_base, a, b, c, weight, blur_half_px, half_offset);
+// `entry` is the list entry the triangle is (part `part` of): where it is a
+// tile, only that tile's pixels are given light; where it is not and the
+// triangle is large, its tiles are listed for the large pass instead.
+void rasterise_clipped(uint image_base, Corner a, Corner b, Corner c, Dual weight, float blur_half_px, uint half_offset,
+                       uvec4 entry, uint part) {
+  if (!is_tile(entry) && is_large(a, b, c)) {
+    list_tiles(entry, part, a, b, c, blur_half_px);
     return;
+  }
+  if (is_tile(entry)) {
+    ivec2 first = ivec2(entry_tile(entry)) * LARGE_TILE_PX;
+    raster_window = ivec4(first, first + (LARGE_TILE_PX - 1));
   }
 #if PRISM_BLUR  // the blurred pixels end at the far edges themselves
   blur_triangle(image_base, a, b, c, weight, blur_half_px, half_offset);
@@ -73,10 +103,12 @@ void rasterise_clipped(uint image_base, Corner a, Corner b, Corner c, Dual weigh
 float twice_area(vec2 a, vec2 b, vec2 c) { return abs((b.x - a.x) * (c.y - a.y) - (c.x - a.x) * (b.y - a.y)); }
 
 // Triangle (a, b, c) with some corners stopped: the part that passes, found
-// by bisection along a-b and a-c from the odd corner out, with its share of
-// `area_mm2` of aperture.
-void rasterise_cut(uint image_base, CellSource from, Lenslet lens, Corner a, Corner b, Corner c, vec2 pa, vec2 pb, vec2 pc,
-                   float area_mm2, float blur_half_px, uint half_offset) {
+// by bisection along a-b and a-c from the odd corner out, as one triangle
+// or, where one corner is stopped, two (parts: 1 or 2); triangle q of it
+// (p0, p1, p2), with its share of `area_mm2` of aperture. False where the
+// triangle has no aperture area.
+bool cut_part(CellSource from, Lenslet lens, Corner a, Corner b, Corner c, vec2 pa, vec2 pb, vec2 pc, float area_mm2, int q,
+              out uint parts, out Corner p0, out Corner p1, out Corner p2, out float part_mm2) {
   int passed = int(a.ok) + int(b.ok) + int(c.ok);
   // The odd one out first, cyclic order kept: a stopped with b, c through
   // (passed == 2), or a through with b, c stopped (passed == 1).
@@ -117,20 +149,31 @@ void rasterise_cut(uint image_base, CellSource from, Lenslet lens, Corner a, Cor
     }
   }
   float whole = twice_area(pa, pb, pc);
-  if (!(whole > 0.0f)) return;
+  parts = odd_ok ? 1u : 2u;
   // The part that passes: triangle a, cut0, cut1; or quad cut0, b, c, cut1
-  // as two triangles, each with its own aperture area. One call site in a
-  // loop (why: shaders/CMakeLists.txt).
-  for (int q = 0; q < (odd_ok ? 1 : 2); ++q) {
-    Corner p0 = odd_ok ? a : cut0;
-    Corner p1 = odd_ok ? cut0 : (q == 0 ? b : c);
-    Corner p2 = odd_ok ? cut1 : (q == 0 ? c : cut1);
-    vec2 q0 = odd_ok ? pa : cut_p0;
-    vec2 q1 = odd_ok ? cut_p0 : (q == 0 ? pb : pc);
-    vec2 q2 = odd_ok ? cut_p1 : (q == 0 ? pc : cut_p1);
-    float part = area_mm2 * twice_area(q0, q1, q2) / whole;
-    rasterise_clipped(image_base, p0, p1, p2, d_scale(d_add(d_add(p0.w, p1.w), p2.w), part / 3.0f), blur_half_px,
-                      half_offset);
+  // as two triangles, each with its own aperture area.
+  p0 = odd_ok ? a : cut0;
+  p1 = odd_ok ? cut0 : (q == 0 ? b : c);
+  p2 = odd_ok ? cut1 : (q == 0 ? c : cut1);
+  vec2 q0 = odd_ok ? pa : cut_p0;
+  vec2 q1 = odd_ok ? cut_p0 : (q == 0 ? pb : pc);
+  vec2 q2 = odd_ok ? cut_p1 : (q == 0 ? pc : cut_p1);
+  part_mm2 = area_mm2 * twice_area(q0, q1, q2) / whole;
+  return whole > 0.0f;
+}
+
+// Triangle (a, b, c) of list entry `entry` with some corners stopped: the
+// parts that pass (cut_part) given to the pixels. The bisection runs once
+// per part, a loop around one call site of each (why: shaders/CMakeLists.txt).
+void rasterise_cut(uint image_base, CellSource from, Lenslet lens, Corner a, Corner b, Corner c, vec2 pa, vec2 pb, vec2 pc,
+                   float area_mm2, float blur_half_px, uint half_offset, uvec4 entry) {
+  uint parts = 1u;
+  for (uint q = 0u; q < parts; ++q) {
+    Corner p0, p1, p2;
+    float part_mm2;
+    if (!cut_part(from, lens, a, b, c, pa, pb, pc, area_mm2, int(q), parts, p0, p1, p2, part_mm2)) return;
+    rasterise_clipped(image_base, p0, p1, p2, d_scale(d_add(d_add(p0.w, p1.w), p2.w), part_mm2 / 3.0f), blur_half_px,
+                      half_offset, entry, q + 1u);
   }
 }
 
@@ -180,7 +223,7 @@ void trace_three(CellSource from, Lenslet lens, vec2 qa, vec2 qb, vec2 qc, out C
 // point.
 void listed_piece(uvec4 entry, out Piece t, out CellSource from, out Lenslet lens, out uint image_base,
                   out uint half_offset, out float blur_half_px) {
-  uint s = entry.x;
+  uint s = entry_source(entry);
   DesignRange design = designs[source_design[P.source_offset + s]];
   lens = lenses[entry.y];
   uint in_design = entry.y - design.first_lens;

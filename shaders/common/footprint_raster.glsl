@@ -52,7 +52,36 @@ layout(std430, binding = 6) buffer Cuts {
 uint piece_code(uint t, uint path, uint depth) { return t | (path << 1u) | (depth << (1u + 2u * uint(SPLIT_DEPTH))); }
 uint piece_triangle(uint code) { return code & 1u; }
 uint piece_path(uint code) { return (code >> 1u) & ((1u << (2u * uint(SPLIT_DEPTH))) - 1u); }
-uint piece_depth(uint code) { return code >> (1u + 2u * uint(SPLIT_DEPTH)); }
+uint piece_depth(uint code) { return (code >> (1u + 2u * uint(SPLIT_DEPTH))) & 7u; }
+
+// A piece still large at the last level of the split (footprint.glsl) is
+// rasterised by the large pass (psf_footprint_large.comp) one tile of
+// LARGE_TILE_PX x LARGE_TILE_PX grid pixels per invocation: a rim piece can
+// span hundreds of pixels, more than one invocation may loop over on
+// lavapipe. Its tiles are listed after the split's entries, each entry the
+// piece's (source, lens, cell, piece code) with, in the upper halves of the
+// source and code words, its tile's column + 1 and row (tiles of the grid
+// from pixel (0, 0); a column of 0: the piece's own entry, not a tile) and
+// which part of the piece it is: the whole (0) or part 1 or 2 of what an
+// aperture cut passes (rasterise_cut).
+const int LARGE_TILE_PX = 64;
+uint entry_source(uvec4 entry) { return entry.x & 0xffffu; }  // sources per dispatch < 65536 (forward.cpp)
+uvec4 with_tile(uvec4 entry, uint part, uvec2 tile) {
+  return uvec4(entry_source(entry) | ((tile.x + 1u) << 16u), entry.y, entry.z,
+               (entry.w & 0xfffu) | (part << 12u) | (tile.y << 16u));
+}
+bool is_tile(uvec4 entry) { return (entry.x >> 16u) != 0u; }
+uvec2 entry_tile(uvec4 entry) { return uvec2((entry.x >> 16u) - 1u, entry.w >> 16u); }
+uint entry_part(uvec4 entry) { return (entry.w >> 12u) & 3u; }
+
+// The pixels the footprint kernels may give light to, absolute grid columns
+// and rows, first and last (c0, r0, c1, r1): all of them, or in the large
+// pass one tile.
+ivec4 raster_window = ivec4(-(1 << 30), -(1 << 30), 1 << 30, 1 << 30);
+void deposit_windowed(uint image_base, int col, int row, Dual value, uint half_offset) {
+  if (col < raster_window.x || row < raster_window.y || col > raster_window.z || row > raster_window.w) return;
+  deposit(image_base, col, row, value, half_offset);
+}
 
 // A traced corner: landing point in grid pixels (u, v from the sensor's
 // top-left corner), weight density (photons per mm^2 of aperture), and
@@ -173,9 +202,9 @@ void rasterise_polygon(uint image_base, Dual pu[MAX_SIDES], Dual pv[MAX_SIDES], 
   int rows = int(floor(v_hi)) - row0 + 1;
   int cols = int(floor(u_hi)) - col0 + 1;
   ivec2 band = band_rows(row0, rows);
-  int k_first = max(0, -col0);
-  int k_last = min(cols - 1, P.grid_w - 1 - col0);
-  for (int r = band.x; r <= band.y; ++r) {
+  int k_first = max(max(0, -col0), raster_window.x - col0);
+  int k_last = min(min(cols - 1, P.grid_w - 1 - col0), raster_window.z - col0);
+  for (int r = max(band.x, raster_window.y - row0); r <= min(band.y, raster_window.w - row0); ++r) {
     // Each edge's part within the row: its x range and signed dy.
     Dual seg_l[MAX_SIDES];
     Dual seg_r[MAX_SIDES];
@@ -226,40 +255,54 @@ void rasterise_polygon(uint image_base, Dual pu[MAX_SIDES], Dual pv[MAX_SIDES], 
       }
       if (!from_left) covered = d_neg(covered);
       if (covered.v != 0.0f || covered.d != vec3(0.0f))
-        deposit(image_base, col0 + k, row0 + r, d_mul(scale, covered), half_offset);
+        deposit_windowed(image_base, col0 + k, row0 + r, d_mul(scale, covered), half_offset);
     }
   }
 }
 
+// The part [t.x, t.y] of segment x0 + t dx, t in `t`, within [0, hi]
+// (Liang-Barsky, one axis); an empty part has t.x.v >= t.y.v.
+void clip_segment(Dual x0, Dual dx, float hi, inout Dual t[2]) {
+  if (dx.v == 0.0f) {
+    if (x0.v < 0.0f || x0.v > hi) t[1] = t[0];
+    return;
+  }
+  Dual at_lo = d_div(d_neg(x0), dx);
+  Dual at_hi = d_div(d_sub(d_const(hi), x0), dx);
+  Dual enter = dx.v > 0.0f ? at_lo : at_hi;
+  Dual leave = dx.v > 0.0f ? at_hi : at_lo;
+  if (enter.v > t[0].v) t[0] = enter;
+  if (leave.v < t[1].v) t[1] = leave;
+}
+
 // `weight` spread uniformly along segment (x0, y0) -> (x1, y1), grid pixels,
-// up to the sensor's far edges (u_max, v_max): each pixel gets the share of
-// the segment's length inside it. A walk through the pixels it crosses.
+// within the sensor (up to its far edges u_max, v_max; light off it is
+// lost): each pixel gets the share of the segment's length inside it. A walk
+// through the pixels it crosses, from where it enters the sensor to where it
+// leaves (a rim piece's sliver can reach far beyond it).
 void rasterise_segment(uint image_base, Dual x0, Dual y0, Dual x1, Dual y1, Dual weight, float u_max, float v_max,
                        uint half_offset) {
   Dual dx = d_sub(x1, x0);
   Dual dy = d_sub(y1, y0);
-  // The part on the sensor's side of its far edges (light beyond is lost).
-  Dual t_end = d_const(1.0f);
-  if (x1.v > u_max && dx.v > 0.0f) t_end = d_div(d_sub(d_const(u_max), x0), dx);
-  if (y1.v > v_max && dy.v > 0.0f) {
-    Dual t = d_div(d_sub(d_const(v_max), y0), dy);
-    if (t.v < t_end.v) t_end = t;
-  }
-  if (!(t_end.v > 0.0f)) return;
-  int cx = int(floor(x0.v));
-  int cy = int(floor(y0.v));
+  Dual t[2] = Dual[2](d_const(0.0f), d_const(1.0f));
+  clip_segment(x0, dx, u_max, t);
+  clip_segment(y0, dy, v_max, t);
+  Dual t_end = t[1];
+  if (!(t_end.v > t[0].v)) return;
+  int cx = int(floor(x0.v + t[0].v * dx.v));
+  int cy = int(floor(y0.v + t[0].v * dy.v));
   int step_x = dx.v > 0.0f ? 1 : -1;
   int step_y = dy.v > 0.0f ? 1 : -1;
   // Parameters where the segment next crosses a column line and a row line.
   Dual tx = dx.v != 0.0f ? d_div(d_sub(d_const(float(step_x > 0 ? cx + 1 : cx)), x0), dx) : d_const(2.0f);
   Dual ty = dy.v != 0.0f ? d_div(d_sub(d_const(float(step_y > 0 ? cy + 1 : cy)), y0), dy) : d_const(2.0f);
-  Dual t_prev = d_const(0.0f);
-  int cells = abs(int(floor(x1.v)) - cx) + abs(int(floor(y1.v)) - cy) + 1;
+  Dual t_prev = t[0];
+  int cells = abs(int(floor(x0.v + t_end.v * dx.v)) - cx) + abs(int(floor(y0.v + t_end.v * dy.v)) - cy) + 2;
   for (int k = 0; k < cells && t_prev.v < t_end.v; ++k) {
     bool along_x = tx.v <= ty.v;
     Dual t_next = along_x ? tx : ty;
     if (t_next.v > t_end.v) t_next = t_end;
-    deposit(image_base, cx, cy, d_mul(weight, d_sub(t_next, t_prev)), half_offset);
+    deposit_windowed(image_base, cx, cy, d_mul(weight, d_sub(t_next, t_prev)), half_offset);
     t_prev = t_next;
     if (along_x) {
       cx += step_x;
@@ -289,7 +332,7 @@ void blur_polygon(uint image_base, Dual pu[MAX_SIDES], Dual pv[MAX_SIDES], int n
   Dual scale = d_div(weight, area);
   int rows = int(floor(box.w + h)) - row0 + 1;
   ivec2 band = band_rows(row0, rows);
-  for (int r = band.x; r <= band.y; ++r) {
+  for (int r = max(band.x, raster_window.y - row0); r <= min(band.y, raster_window.w - row0); ++r) {
     float rlo = float(r);
     float rhi = min(float(r + 1), v_max);
     // The polygon's extent along the row's reach [rlo - h, rhi + h].
@@ -308,8 +351,8 @@ void blur_polygon(uint image_base, Dual pu[MAX_SIDES], Dual pv[MAX_SIDES], int n
     }
     if (!(row_lo <= row_hi)) continue;
     float middle = 0.5f * (row_lo + row_hi);
-    int k_first = max(int(floor(row_lo - h)), -col0);
-    int k_last = min(int(floor(row_hi + h)), P.grid_w - 1 - col0);
+    int k_first = max(max(int(floor(row_lo - h)), -col0), raster_window.x - col0);
+    int k_last = min(min(int(floor(row_hi + h)), P.grid_w - 1 - col0), raster_window.z - col0);
     for (int k = k_first; k <= k_last; ++k) {
       float clo = float(k);
       float chi = min(float(k + 1), u_max);
@@ -323,7 +366,7 @@ void blur_polygon(uint image_base, Dual pu[MAX_SIDES], Dual pv[MAX_SIDES], int n
         light = d_add(light, d_mul(blurred_path(pu[i], pv[i], du, dv, clo, chi, rlo, rhi, h, mode), dv));
       }
       if (light.v != 0.0f || light.d != vec3(0.0f))
-        deposit(image_base, col0 + k, row0 + r, d_mul(scale, light), half_offset);
+        deposit_windowed(image_base, col0 + k, row0 + r, d_mul(scale, light), half_offset);
     }
   }
 }
@@ -354,7 +397,7 @@ void blur_segment(uint image_base, Dual x0, Dual y0, Dual x1, Dual y1, Dual weig
     for (int k = k_first; k <= k_last; ++k) {
       Dual share = blurred_path(u0, v0, du, dv, float(k), min(float(k + 1), u_max), rlo, rhi, h, BLUR_LIGHT);
       if (share.v != 0.0f || share.d != vec3(0.0f))
-        deposit(image_base, col0 + k, row0 + r, d_mul(weight, share), half_offset);
+        deposit_windowed(image_base, col0 + k, row0 + r, d_mul(weight, share), half_offset);
     }
   }
 }
@@ -390,20 +433,6 @@ bool is_large(Corner a, Corner b, Corner c) {
   if (b.ok) u_lo = min(u_lo, b.u.v), u_hi = max(u_hi, b.u.v), v_lo = min(v_lo, b.v.v), v_hi = max(v_hi, b.v.v);
   if (c.ok) u_lo = min(u_lo, c.u.v), u_hi = max(u_hi, c.u.v), v_lo = min(v_lo, c.v.v), v_hi = max(v_hi, c.v.v);
   return max(u_hi - u_lo, v_hi - v_lo) > LARGE_TRIANGLE_PX;
-}
-
-// All of `weight` in the pixel of the centroid of (a, b, c), if on the
-// sensor; with diffraction blurred around it (half side blur_half_px).
-void deposit_at_centroid(uint image_base, Corner a, Corner b, Corner c, Dual weight, float blur_half_px,
-                         uint half_offset) {
-  float cu = (a.u.v + b.u.v + c.u.v) / 3.0f;
-  float cv = (a.v.v + b.v.v + c.v.v) / 3.0f;
-#if PRISM_BLUR
-  deposit_blurred_point(image_base, d_const(cu), d_const(cv), blur_half_px, weight, half_offset);
-  return;
-#endif
-  if (cu >= 0.0f && cv >= 0.0f && cu < sensor_u_max() && cv < sensor_v_max())
-    deposit(image_base, int(floor(cu)), int(floor(cv)), weight, half_offset);
 }
 
 // Whether triangle (a, b, c) of signed area `area` is thin (THIN_TRIANGLE).
