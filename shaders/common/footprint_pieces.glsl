@@ -28,10 +28,12 @@ void list_tiles(uvec4 entry, uint part, Corner a, Corner b, Corner c, float blur
   float reach = DIFFRACTION ? blur_half_px + 1.0f : 0.0f;
   vec2 lo = min(min(vec2(a.u.v, a.v.v), vec2(b.u.v, b.v.v)), vec2(c.u.v, c.v.v)) - reach;
   vec2 hi = max(max(vec2(a.u.v, a.v.v), vec2(b.u.v, b.v.v)), vec2(c.u.v, c.v.v)) + reach;
-  int band_end = min(P.band_row0 + P.band_rows, P.grid_h) - 1;
-  ivec2 first = max(ivec2(floor(lo)), ivec2(0, max(P.band_row0, 0))) / LARGE_TILE_PX;
-  ivec2 last = min(ivec2(floor(hi)), ivec2(P.grid_w - 1, band_end)) / LARGE_TILE_PX;
-  if (any(lessThan(last, first))) return;
+  // Clamped in float: a near-grazing corner can land further off than an int holds.
+  vec2 first_px = max(floor(lo), vec2(0.0f, float(max(P.band_row0, 0))));
+  vec2 last_px = min(floor(hi), vec2(float(P.grid_w - 1), float(min(P.band_row0 + P.band_rows, P.grid_h) - 1)));
+  if (!all(lessThanEqual(first_px, last_px))) return;
+  ivec2 first = ivec2(first_px) / LARGE_TILE_PX;
+  ivec2 last = ivec2(last_px) / LARGE_TILE_PX;
   uint tiles = uint((last.x - first.x + 1) * (last.y - first.y + 1));
   uint at = atomicAdd(split_count, tiles);
   uint columns = uint(last.x - first.x + 1);

@@ -1,4 +1,5 @@
 import prism, numpy as np, json, time, sys
+BACKEND = sys.argv[2] if len(sys.argv) > 2 else "cpu"
 d = prism.scene('prototype-as-built').to_dict()
 # one f = 3 mm lenslet near the middle (x 9, y 1.7), source under it near the face
 f3 = [l for l in d['lenslets'] if abs(l['focal_mm'] - 3) < 0.2]
@@ -6,7 +7,7 @@ l = min(f3, key=lambda l: abs(l['x_mm'] - 9) + abs(l['y_mm'] - 1.7))
 d['lenslets'] = [l]
 src = (l['x_mm'] + 2.0, l['y_mm'] - 3.0, float(sys.argv[1]) if len(sys.argv) > 1 else 6.0)
 print('lenslet', l, 'source', src)
-def render(cells, strat, backend='cpu'):
+def render(cells, strat, backend=BACKEND):
     t = time.time()
     b = prism.psf(d, src, rays=cells, binning=16, splat='footprint', stratification=strat, backend=backend).astype(np.float64)
     print(f'  rendered {cells} cells strat {strat} ({backend}) in {time.time()-t:.1f} s, sum {b.sum():.4f}')
