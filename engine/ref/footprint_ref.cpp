@@ -4,7 +4,6 @@
 // turn and the diagonal each cell is split along come from the shared
 // sampling code, like the point rays' sample points.
 #include <algorithm>
-#include <numeric>
 #include <array>
 #include <cmath>
 #include <functional>
@@ -257,13 +256,9 @@ struct FootprintTarget {
     };
     crossings(p.u, du, p.u.v, q.u.v, u_max);
     crossings(p.v, dv, p.v.v, q.v.v, v_max);
-    // Sorted by value through their indices: a D with many derivatives is
-    // dear to move (a calibration's long thin pieces cross hundreds of lines).
-    std::vector<size_t> order(ts.size());
-    std::iota(order.begin(), order.end(), size_t(0));
-    std::stable_sort(order.begin(), order.end(), [&](size_t a, size_t b) { return ts[a].v < ts[b].v; });
-    for (size_t k = 0; k + 1 < order.size(); ++k) {
-      const D &t0 = ts[order[k]], &t1 = ts[order[k + 1]];
+    std::stable_sort(ts.begin(), ts.end(), [](const D& a, const D& b) { return a.v < b.v; });
+    for (size_t k = 0; k + 1 < ts.size(); ++k) {
+      const D &t0 = ts[k], &t1 = ts[k + 1];
       const double mid = 0.5 * (t0.v + t1.v);
       const double u = p.u.v + mid * du.v, v = p.v.v + mid * dv.v;
       if (u < 0 || v < 0 || u >= u_max || v >= v_max) continue;
@@ -396,9 +391,6 @@ SparseImage psf_footprint(const OpticalSystem& sys, const TraceSettings& setting
               hi_v = std::max(hi_v, k[q].v.v);
           return std::max(hi_u - lo_u, hi_v - lo_v) > double(shared::LARGE_TRIANGLE_PX);
         };
-        auto draw = [&](const GridCorner& a, const GridCorner& b, const GridCorner& c, D weight) {
-          target.triangle(a, b, c, weight, half);
-        };
         std::function<void(GridCorner*, glm::dvec2*, double, int)> piece = [&](GridCorner* k, glm::dvec2* p,
                                                                                double area_mm2, int depth) {
           const int passed = int(k[0].ok) + int(k[1].ok) + int(k[2].ok);
@@ -417,7 +409,7 @@ SparseImage psf_footprint(const OpticalSystem& sys, const TraceSettings& setting
             return;
           }
           if (passed == 3) {
-            draw(k[0], k[1], k[2], (k[0].w + k[1].w + k[2].w) * D(area_mm2 / 3));
+            target.triangle(k[0], k[1], k[2], (k[0].w + k[1].w + k[2].w) * D(area_mm2 / 3), half);
             return;
           }
           // The odd one out first (cyclic order kept).
@@ -443,13 +435,13 @@ SparseImage psf_footprint(const OpticalSystem& sys, const TraceSettings& setting
           if (!(whole > 0)) return;
           if (odd_ok) {
             const double a = area_mm2 * cross2(pq[0], cut_p[0], cut_p[1]) / whole;
-            draw(q[0], cut[0], cut[1], (q[0].w + cut[0].w + cut[1].w) * D(a / 3));
+            target.triangle(q[0], cut[0], cut[1], (q[0].w + cut[0].w + cut[1].w) * D(a / 3), half);
             return;
           }
           const double a1 = area_mm2 * cross2(cut_p[0], pq[1], pq[2]) / whole;
           const double a2 = area_mm2 * cross2(cut_p[0], pq[2], cut_p[1]) / whole;
-          draw(cut[0], q[1], q[2], (cut[0].w + q[1].w + q[2].w) * D(a1 / 3));
-          draw(cut[0], q[2], cut[1], (cut[0].w + q[2].w + cut[1].w) * D(a2 / 3));
+          target.triangle(cut[0], q[1], q[2], (cut[0].w + q[1].w + q[2].w) * D(a1 / 3), half);
+          target.triangle(cut[0], q[2], cut[1], (cut[0].w + q[2].w + cut[1].w) * D(a2 / 3), half);
         };
         auto triangle = [&](uint32_t ai, uint32_t aj, uint32_t bi, uint32_t bj, uint32_t ci, uint32_t cj) {
           GridCorner k[3] = {corner(ai, aj), corner(bi, bj), corner(ci, cj)};
