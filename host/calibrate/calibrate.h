@@ -176,6 +176,7 @@ struct CalibrationResult {
   size_t pixels = 0;      // weighed, all PSFs
   size_t dof = 0;         // pixels - parameters - scales
   int steps = 0;          // accepted, all levels
+  int stretched = 0;      // of those, taken further along their line where chi2 fell faster than predicted
   bool converged = false; // at the finest level: the last step gained less than 1e-3 of chi2 / dof, or no step could
   double seconds = 0;
   unsigned check_cells = 0;    // cells per 3 mm lenslet of the check's model (0: not checked, or no step found)

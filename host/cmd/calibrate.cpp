@@ -248,8 +248,8 @@ void run(const CalibrateArgs& a) {
                 "sigma): %s. Add PSFs that show those lenslets (other positions, longer exposures) or leave their "
                 "group out of --fit\n",
                 n_on_bounds, on_bounds.c_str());
-  std::printf("chi2 %.6g -> %.6g over %zu pixels of %zu PSFs, chi2 / dof %.4g, %d steps%s, %.1f s\n", r.chi2_start,
-              r.chi2, r.pixels, psfs.size(), r.reduced_chi2(), r.steps,
+  std::printf("chi2 %.6g -> %.6g over %zu pixels of %zu PSFs, chi2 / dof %.4g, %d steps (%d stretched)%s, %.1f s\n",
+              r.chi2_start, r.chi2, r.pixels, psfs.size(), r.reduced_chi2(), r.steps, r.stretched,
               r.converged ? " (converged)" : " (step limit reached)", r.seconds);
   if (r.check_cells)
     std::printf("sigma = the residuals' (sandwich) and the model's cells' in quadrature: the fit's %u cells per "

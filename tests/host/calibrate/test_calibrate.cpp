@@ -114,11 +114,17 @@ TEST_CASE("calibration recovers an as-built array from HDR-merged PSFs within 3 
   REQUIRE(free.size() == nominal.lenslets.size() * 5 + 6);
   const auto r = prism::calibrate(nominal, psfs, free, o);
   MESSAGE("chi2 " << r.chi2_start << " -> " << r.chi2 << ", chi2/dof " << r.reduced_chi2() << ", " << r.steps
-                  << " steps, " << r.seconds << " s, of which the check of the model's cells (" << r.check_cells
+                  << " steps (" << r.stretched << " stretched), " << r.seconds
+                  << " s, of which the check of the model's cells (" << r.check_cells
                   << " cells) " << r.check_seconds << " s");
   CHECK(r.chi2 < 0.05 * r.chi2_start);
   if (prism::test::under_sanitizer) return;  // a smaller problem, for memory errors: the numbers at full size
   CHECK(r.converged);
+  // Gauss-Newton overstates chi2's curvature here (the f = 3 mm lenslet's
+  // misfit): steps taken further along their line (calibrate.cpp, stretch)
+  // brought the fit from 58 steps to 35, to the same chi2.
+  CHECK(r.stretched > 0);
+  CHECK(r.steps < 50);
 
   size_t far_at_start = 0;
   std::string beyond_residuals;  // parameters beyond 3 sigma of the sandwich alone
