@@ -652,7 +652,10 @@ constexpr double kGainsOfNoise = 4;
 // a parabola gives chi2's own curvature along the step; where its minimum lies
 // beyond the end (by more than kStretchFrom), the point there (at most
 // kStretchMost steps out, clamped to the bounds) is tried, values only, and
-// kept if chi2 is lower still.
+// kept if chi2 is lower still. (The refinement's optimiser meets the same
+// and stretches its next step instead, levenberg_marquardt.h: its every
+// render carries derivatives. Here values cost about a fifth of a step's
+// evaluation, so the further point is tried at once.)
 constexpr double kStretchFrom = 1.5, kStretchMost = 16;
 // Returns whether it was.
 bool stretch(const Fitter& fitter, const std::vector<double>& x, const std::vector<double>& lo,
