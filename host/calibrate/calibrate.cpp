@@ -647,17 +647,16 @@ constexpr double kGainsOfNoise = 4;
 // rims counted at --reliable 2, it overstates chi2's curvature: accepted
 // steps gained 1.8-1.9 times what the quadratic model predicted (chi2 almost
 // linear along them) and the fit crept to the step limit (README
-// "Calibration"). From
-// chi2 at the start, its slope along the step and its value at the step's end,
-// a parabola gives chi2's own curvature along the step; where its minimum lies
-// beyond the end (by more than kStretchFrom), the point there (at most
-// kStretchMost steps out, clamped to the bounds) is tried, values only, and
-// kept if chi2 is lower still. (The refinement's optimiser meets the same
-// and stretches its next step instead, levenberg_marquardt.h: its every
-// render carries derivatives. Here values cost about a fifth of a step's
-// evaluation, so the further point is tried at once.)
+// "Calibration"). From chi2 at the start, its slope along the step and its
+// value at the step's end, a parabola gives chi2's own curvature along the
+// step; where its minimum lies beyond the end (by more than kStretchFrom),
+// the point there (at most kStretchMost steps out, clamped to the bounds) is
+// tried, values only, and taken (xt, trial) if chi2 is lower still; returns
+// whether it was. (The refinement's optimiser meets the same and stretches
+// its next step instead, levenberg_marquardt.h: its every render carries
+// derivatives. Here values cost about a fifth of a step's evaluation, so the
+// further point is tried at once.)
 constexpr double kStretchFrom = 1.5, kStretchMost = 16;
-// Returns whether it was.
 bool stretch(const Fitter& fitter, const std::vector<double>& x, const std::vector<double>& lo,
              const std::vector<double>& hi, const std::vector<size_t>& act, const Evaluation& cur,
              std::vector<double>& xt, Evaluation& trial) {

@@ -19,8 +19,9 @@
 // more light there, as a measurement at that value would. Each s_k has its optimum in
 // closed form and is profiled out; the geometric parameters are found by
 // Levenberg-Marquardt on the profiled chi2 with its Gauss-Newton matrix H
-// (the scales' share removed by their Schur complement), first on pixels
-// 4x and 2x larger with the lens tilts held, then on the model's.
+// (the scales' share removed by their Schur complement), a step taken
+// further along its line where chi2 falls faster than H predicts, first on
+// pixels 4x and 2x larger with the lens tilts held, then on the model's.
 //
 // Uncertainty: the sandwich H^-1 M H^-1, M = sum over pixels of (w r)^2 J J^T,
 // right whatever the variance's true shape (the weights fix only a guess of
