@@ -35,6 +35,7 @@ struct CalibrateArgs {
   unsigned rays = 0;
   unsigned every = 1;
   int max_steps = defaults::calibration_max_steps;
+  int coarse_levels = defaults::calibration_coarse_levels;
   double weight_floor = defaults::calibration_weight_floor;
   double reliable = defaults::calibration_reliable_over_faintest;
   unsigned threads = std::max(1u, std::thread::hardware_concurrency());
@@ -143,6 +144,7 @@ void run(const CalibrateArgs& a) {
   o.settings.binning = in.binning;
   o.settings.photons_emitted = scene.photons_emitted;
   o.max_steps = a.max_steps;
+  o.coarse_levels = a.coarse_levels;
   o.weight_floor = a.weight_floor;
   o.reliable_over_faintest = a.reliable;
   o.threads = a.threads;
@@ -297,8 +299,15 @@ void add_calibrate(CLI::App& app) {
       ->check(CLI::Range(1u, 1000000u))
       ->capture_default_str();
   c->add_option("--max-steps", a->max_steps,
-                "Levenberg-Marquardt steps accepted at most on each of the three pixel sizes (4x, 2x, 1x the model's)")
+                "Levenberg-Marquardt steps accepted at most on each pixel size (with the default --coarse-levels: "
+                "4x, 2x, 1x the model's)")
       ->check(CLI::Range(1, 10000))
+      ->capture_default_str();
+  c->add_option("--coarse-levels", a->coarse_levels,
+                "fit first on pixels 2^k times the model's, k = this .. 1 (the disc edges make chi2 a staircase at "
+                "the pixel scale: from a nominal start the model's pixels alone land elsewhere); 0: the model's "
+                "pixels only, to refine a scene already fitted (lens tilts are held on the coarser pixels)")
+      ->check(CLI::Range(0, 4))
       ->capture_default_str();
   c->add_option("--weight-floor", a->weight_floor,
                 "pixel weights are 1 / (value + floor), the floor this fraction of each PSF's brightest pixel")

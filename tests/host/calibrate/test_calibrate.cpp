@@ -359,6 +359,16 @@ TEST_CASE("prism calibrate: a dictionary of HDR-merged PSFs in, a scene every co
   for (const char* file : {"residual-0000.png", "residual-0005.png", "psfs.csv", "lenslets.csv", "lenslets.png"})
     CHECK_MESSAGE(fs::exists(dir / "residuals" / file), file);
 
+  // A fitted scene refined on the model's pixels alone (--coarse-levels 0,
+  // README "Calibration"): it starts at the optimum and stays there.
+  const std::string refined = (dir / "refined.json").string(), csv_refined = (dir / "params-refined.csv").string();
+  run = prism::test::run_prism("calibrate --dictionary " + (dir / "dict").string() + " --scene " + out +
+                               " --coarse-levels 0 --out " + refined + " --csv " + csv_refined + " --backend cpu");
+  INFO(run.output);
+  REQUIRE(run.status == 0);
+  CHECK(run.output.find("(converged)") != std::string::npos);
+  check_table(csv_refined, truth, prism::load_scene(refined).optics);
+
   // A fitted source extent is the calibration source's: in the table, not
   // in the scene written (events are point sources).
   const std::string out2 = (dir / "fitted-extent.json").string(), csv2 = (dir / "params-extent.csv").string();
@@ -378,6 +388,10 @@ TEST_CASE("prism calibrate: a dictionary of HDR-merged PSFs in, a scene every co
                                     " --fit lens_zoom");
   CHECK(bad.status != 0);
   CHECK(bad.output.find("no parameter group 'lens_zoom'") != std::string::npos);
+  bad = prism::test::run_prism("calibrate --dictionary " + (dir / "dict").string() + " --out " + out +
+                               " --coarse-levels 5");
+  CHECK(bad.status != 0);
+  CHECK(bad.output.find("--coarse-levels") != std::string::npos);
   bad = prism::test::run_prism("calibrate --dictionary " + (dir / "dict").string() + " --out " + out + " --level 20");
   CHECK(bad.status != 0);
   CHECK(bad.output.find("--level: 20 is beyond the dictionary's levels 0..") != std::string::npos);
