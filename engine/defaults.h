@@ -95,12 +95,15 @@ inline constexpr double dictionary_depth_planes_mm[] = {0,  1,  2,  3,  4,    5,
 // The support scan's default level (host/reconstruct/reconstruct.h,
 // default_search_level): the finest whose shifts over all PSFs, per click of
 // an event, stay within this. The default 2783-PSF dictionary at 110 um
-// clicks holds 1.1e6 / 3.3e5 / 1.2e5 / 4.8e4 on levels 2..5, which took
-// 215 / 67 / 24 / 32 ms per event on 300 volume events (llvmpipe, 2 threads;
-// coarse to fine, README "Reconstruction"): coarser than level 4 the scan
-// gains little and more PSFs must be carried down. The 1210-PSF one gets
-// level 3 (5.8e4; level 4 was 1.3x faster there, level 2 2.8x slower).
-inline constexpr double search_shifts_per_click = 1.5e5;
+// clicks holds 1.03e6 / 2.75e5 / 8.3e4 / 3.0e4 on levels 2..5 (radius
+// tau * magnification rounded to the nearest pixel, the lattice of every
+// shift place() can give). On 1000 volume events level 4 took 1/7.3 of
+// level 2's time with the same catastrophic count and median error;
+// coarser, the scan gains little and more PSFs must be carried down
+// (README "Reconstruction", "The scan's lattice"). The 1210-PSF paper grid
+// holds 1.32e5 / 3.8e4 on levels 2 / 3 and gets level 3 (level 2 was 3.2x
+// slower there, with 113 against 108 events beyond 3 mm).
+inline constexpr double search_shifts_per_click = 1.0e5;
 // Coarse to fine (host/reconstruct/reconstruct.h, select_level): the PSFs
 // carried from a coarse scan are ranked again on pixels of this many sensor
 // pixels per axis (441.6 um on the prototype's 6.9 um sensor), or on the

@@ -28,7 +28,7 @@ namespace prism::detail {
 
 int scan_radius_px(const DictionaryManifest& m, double tau_mm, size_t psf, int level) {
   double depth = m.grid.depth_mm[size_t(m.grid.node(psf).z)];
-  const double radius = std::ceil(tau_mm * m.scene.optics.magnification(depth) / m.pixel_mm(level) - 1e-9);
+  const double radius = std::floor(tau_mm * m.scene.optics.magnification(depth) / m.pixel_mm(level) + 0.5 + 1e-9);
   // Beyond the image's size every shift puts the PSF off the grid: no more to scan.
   return int(std::min(radius, double(std::max(m.level_width(level), m.level_height(level)))));
 }

@@ -20,7 +20,9 @@
 #include "engine/ref/likelihood_ref.h"
 #include "engine/support_scan.h"
 #include "host/dictionary/build.h"
+#include "host/dictionary/placement.h"
 #include "host/events/simulate.h"
+#include "host/reconstruct/event_fit.h"
 #include "host/reconstruct/match.h"
 #include "host/reconstruct/reconstruct.h"
 #include "support.h"
@@ -361,11 +363,17 @@ TEST_CASE("reconstruction coarse to fine: a scan on level 4 carried by its NLL m
 TEST_CASE("reconstruction: the candidates ranked a level above the clicks, the best alone taken on, land where ranking at the clicks puts them") {
   // rank_level 1: the 8 candidates are ranked on 220 um pixels and only the
   // best goes on to the 110 um clicks; ranked on the clicks themselves, the
-  // same PSF and shift win in 10 of these 12 events. Of the two others, one
-  // is wrong both ways (26 mm too deep); in the other, 220 um prefers
-  // another plane, as far from the truth (2.0 against 1.8 mm), whose NLL on
-  // the clicks is 70 higher: what ranking above the clicks can cost (README
-  // "Clicks at the sensor's own pixels" measures it on 400 native events).
+  // same PSF and shift win in 8 of these 12 events. Of the four others, two
+  // lie shallower than the dictionary's planes and are wrong both ways
+  // (depth 5.4: 27 mm off; depth 14.6: 5.5-5.9 mm off); in one, 220 um
+  // prefers another plane, as far from the truth (2.0 against 1.8 mm), whose
+  // NLL on the clicks is 70 higher: what ranking above the clicks can cost
+  // (README "Clicks at the sensor's own pixels" measures it on 400 native
+  // events); in the last, ranked above ends lower in NLL on the clicks
+  // (913.1 against 919.0; 0.76 against 0.65 mm off). With the scan's radius
+  // rounded up rather than to the nearest pixel (before the radius was made
+  // the lattice place() gives, README "Reconstruction") the event at depth
+  // 14.6 and the last agreed, and the count was 10.
   const auto events = central_events(12, 6, 5, 40, 84);
   auto above = settings(1);
   above.rank_level = 1;
@@ -382,7 +390,7 @@ TEST_CASE("reconstruction: the candidates ranked a level above the clicks, the b
     for (const glm::dvec4& r : ranked_above[0].runners_up) CHECK(std::abs(r.x) < 30);
   }
   MESSAGE("ranked on level 1, the best alone taken to the clicks: the same PSF and shift in " << same << " of 12");
-  CHECK(same >= 10);
+  CHECK(same >= 8);
 }
 
 TEST_CASE("reconstruction's default scan and select levels: the scan within the shift budget, ranking on 441.6 um, any binning") {
@@ -446,6 +454,52 @@ TEST_CASE("reconstruction's default scan and select levels: the scan within the 
   CHECK(prism::scan_shifts(m, 0, 1e6) == doctest::Approx(side * side * double(m.grid.size())));
   CHECK(prism::scan_shifts(m, 0, 1e300) == prism::scan_shifts(m, 0, 1e6));
   CHECK(prism::scan_shifts(m, 0, 1e6) > prism::max_scan_shifts);
+}
+
+TEST_CASE("reconstruction's scan radius: every shift place() gives a source within tau of its node, and no more") {
+  // The scan tries each PSF at every shift within scan_radius_px. A source
+  // within tau of its nearest node must land inside that lattice (else the
+  // scan cannot find it), and a shift no such source reaches is work spent
+  // on the neighbouring node's lattice. Sweep sources across every node's
+  // +-tau (both axes) on each plane and level, placed as the reconstruction
+  // places them (place_on_plane at the plane's depth).
+  prism::DictionaryManifest m;
+  m.scene = prism::builtin_scene("prototype");
+  m.base_binning = 16;
+  m.width = 419, m.height = 298;
+  m.levels = 8;
+  const double tau = prism::ReconstructionSettings{}.tau_mm;
+  for (const auto& grid : {prism::DictionaryGrid::fine_near_face(), prism::DictionaryGrid::paper()}) {
+    m.grid = grid;
+    REQUIRE(grid.x_mm.size() > 1);
+    REQUIRE(grid.x_mm[1] - grid.x_mm[0] == doctest::Approx(2 * tau));  // tau is half the lateral pitch
+    const double lo = grid.x_mm.front() - tau, hi = grid.x_mm.back() + tau;
+    for (int level = 0; level < m.levels; ++level)
+      for (int plane = 0; plane < int(grid.depth_mm.size()); ++plane) {
+        const double depth = grid.depth_mm[size_t(plane)];
+        int radius = -1, reached = 0;
+        const int steps = 4000;
+        for (int i = 0; i <= steps; ++i) {
+          const double x = lo + (hi - lo) * i / steps;
+          for (const glm::dvec2 xy : {glm::dvec2(x, grid.y_mm[0]), glm::dvec2(grid.x_mm[0], x)}) {
+            const prism::DictionaryPlacement p = prism::place_on_plane(m, level, xy, plane, depth);
+            const int r = prism::detail::scan_radius_px(m, tau, p.index, level);
+            if (radius < 0) radius = r;
+            REQUIRE(r == radius);  // one radius per plane and level
+            const int reach = std::max(std::abs(p.shift_px.x), std::abs(p.shift_px.y));
+            CAPTURE(level);
+            CAPTURE(depth);
+            CAPTURE(xy.x);
+            CAPTURE(xy.y);
+            REQUIRE(reach <= radius);
+            reached = std::max(reached, reach);
+          }
+        }
+        CAPTURE(level);
+        CAPTURE(depth);
+        CHECK(reached == radius);  // tight: the outermost ring is reached
+      }
+  }
 }
 
 TEST_CASE("reconstruction: two vertices at distinct places, K = 2") {
