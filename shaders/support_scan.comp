@@ -140,10 +140,13 @@ bool locate(bool serial) {
 // Serial: SUB shifts at a time, each click read once for all of them (its
 // position and weight), the SUB scores in registers. Each score is the same
 // sum in the same order as one shift at a time; measured on llvmpipe, phase
-// 0 takes half the time (README "Reconstruction", the scan kernel). An event
-// with more clicks than SCAN_BUDGET / SUB goes one shift at a time (a pass
-// counts SUB iterations per click should the compiler keep the inner loop;
-// the launcher's blocks are then at most SCAN_BUDGET / clicks shifts).
+// 0 takes half the time (README "Reconstruction", the scan kernel). The
+// shifts left after the whole passes of SUB go one at a time (a lattice of
+// (2n + 1)^2 shifts leaves one: for 9 shifts, 9 look-ups per click instead
+// of 16). An event with more clicks than SCAN_BUDGET / SUB goes one shift at
+// a time (a pass counts SUB iterations per click should the compiler keep the
+// inner loop; the launcher's blocks are then at most SCAN_BUDGET / clicks
+// shifts; the shifts left of a block cost fewer iterations than its pass).
 const uint SUB = 8u;
 void score_block() {
   const bool serial = SERIAL_SCAN == 1u;
@@ -154,12 +157,17 @@ void score_block() {
   uint j0 = gl_WorkGroupID.z * P.block_shifts, j1 = min(j0 + P.block_shifts, shifts);
   float best = 1.0f / 0.0f;
   uint arg = 0xffffffffu;
+  uint j_single = j0;  // where the one-shift-per-pass loop below starts
   if (serial && click_count * SUB <= SCAN_BUDGET) {
-    for (uint j = j0; j < j1; j += SUB) {
+    // Whole passes of SUB shifts; the few left (a lattice of (2n + 1)^2
+    // shifts leaves one) go one per pass below, rather than a pass of SUB
+    // look-ups per click for them.
+    for (; j_single + SUB <= j1; j_single += SUB) {
+      uint j = j_single;
       ivec2 sh[SUB];
       float score[SUB];
       [[unroll]] for (uint k = 0u; k < SUB; ++k) {
-        sh[k] = lattice_shift(min(j + k, j1 - 1u), n);  // past the block: its last shift again, not kept
+        sh[k] = lattice_shift(j + k, n);
         score[k] = mass_shifted(psf.sat_word, sh[k].x, sh[k].y);
       }
       for (uint c = 0u; c < click_count; ++c) {
@@ -171,15 +179,16 @@ void score_block() {
         }
       }
       [[unroll]] for (uint k = 0u; k < SUB; ++k)
-        if (j + k < j1 && score[k] < best) {
+        if (score[k] < best) {
           best = score[k];
           arg = j + k;
         }
     }
-  } else {
+  }
+  {
     // One shift per pass over the clicks: each invocation of a workgroup its
-    // own shifts, or the serial invocation all of them.
-    for (uint j = j0 + (serial ? 0u : gl_LocalInvocationID.x); j < j1; j += (serial ? 1u : GROUP)) {
+    // own shifts, or the serial invocation those left.
+    for (uint j = j_single + (serial ? 0u : gl_LocalInvocationID.x); j < j1; j += (serial ? 1u : GROUP)) {
       ivec2 sh = lattice_shift(j, n);
       float score = mass_shifted(psf.sat_word, sh.x, sh.y);
       for (uint c = 0u; c < click_count; ++c) {
