@@ -41,7 +41,10 @@ struct Column {
   double s = 0;
 };
 
-// tau on the sensor in pixels of `level` for the depth plane of PSF `psf`.
+// tau on the sensor in pixels of `level` for the depth plane of PSF `psf`,
+// rounded to the nearest pixel as place_on_plane rounds a source's offset:
+// exactly the shifts a source within tau of the node can be given (the ring
+// beyond is the neighbouring node's; tests/host/reconstruct).
 int scan_radius_px(const DictionaryManifest& m, double tau_mm, size_t psf, int level);
 // The level the scan runs on: settings.search_level, or the service's coarse
 // level when it is -1; never finer than the clicks.
