@@ -194,9 +194,10 @@ std::vector<float> DictionaryService::values(size_t i, int level, std::span<cons
     const Tile* tile = nullptr;
   };
   std::array<Seen, 32> seen{};
-  for (size_t k = 0; k < pixels.size(); ++k) {
+  // Pixel k's half in its tile, or null where no light reaches it.
+  auto locate = [&](size_t k, float& scale) -> const uint16_t* {
     glm::ivec2 px = pixels[k];
-    if (px.x < 0 || px.y < 0 || px.x >= w || px.y >= h) continue;  // off the sensor: no light
+    if (px.x < 0 || px.y < 0 || px.x >= w || px.y >= h) return nullptr;  // off the sensor: no light
     const int tx = px.x / t, ty = px.y / t;
     Seen& slot = seen[size_t(tx * 7 + ty) % seen.size()];
     if (slot.tx != tx || slot.ty != ty) {
@@ -205,7 +206,7 @@ std::vector<float> DictionaryService::values(size_t i, int level, std::span<cons
         const int d = coarse_level_ - level, cx = px.x >> d, cy = px.y >> d;
         if (tables_->lit[i].count(cx, cy, cx + 1, cy + 1) == 0) {
           ++stats_.dark_pixels;
-          continue;
+          return nullptr;
         }
       }
       const uint64_t evictions = stats_.evictions;
@@ -213,9 +214,34 @@ std::vector<float> DictionaryService::values(size_t i, int level, std::span<cons
       if (stats_.evictions != evictions) seen.fill(Seen{});
       slot = {tx, ty, tile_read};
     }
-    half h;
-    h.setBits(slot.tile->bits[size_t(px.y - ty * t) * t + size_t(px.x - tx * t)]);
-    out[k] = float(h) * slot.tile->scale;
+    scale = slot.tile->scale;
+    return &slot.tile->bits[size_t(px.y - ty * t) * t + size_t(px.x - tx * t)];
+  };
+  auto read = [](const uint16_t* at, float scale) {
+    half v;
+    v.setBits(*at);
+    return float(v) * scale;
+  };
+  // The tiles' lines are mostly not in the processor's caches (the search
+  // visits hundreds of PSFs per event): every pixel's line is requested
+  // first and read after, so that the misses overlap. Should a fetch evict
+  // a tile, addresses found before it may be gone: then pixel by pixel.
+  std::vector<const uint16_t*> at(pixels.size());
+  const uint64_t evictions = stats_.evictions, dark = stats_.dark_pixels;
+  for (size_t k = 0; k < pixels.size(); ++k) {
+    at[k] = locate(k, out[k]);
+    if (at[k]) __builtin_prefetch(at[k]);
+  }
+  if (stats_.evictions == evictions) {
+    for (size_t k = 0; k < pixels.size(); ++k) out[k] = at[k] ? read(at[k], out[k]) : 0.0f;
+  } else {
+    seen.fill(Seen{});
+    stats_.dark_pixels = dark;  // counted again below
+    for (size_t k = 0; k < pixels.size(); ++k) {
+      float scale = 0;
+      const uint16_t* a = locate(k, scale);
+      out[k] = a ? read(a, scale) : 0.0f;
+    }
   }
   return out;
 }
