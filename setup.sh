@@ -44,7 +44,7 @@ fi
 # off-grid point, reconstruct them on the device with the search alone
 # (accuracy and events per second), and evaluate 8 events at random
 # positions over the volume with the continuous refinement (the scene's
-# model; errors against the truth and the CRLB by depth band). About 5-7
+# model; errors against the truth and the CRLB by depth band). About 4
 # minutes after the build on 2 CPU cores (issue 12): the paper's evaluation
 # protocol and the CRLB of its designs take about 2 minutes each more and
 # are printed as the next commands to run. Results go to out/.

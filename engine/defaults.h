@@ -97,12 +97,12 @@ inline constexpr double dictionary_depth_planes_mm[] = {0,  1,  2,  3,  4,    5,
 // an event, stay within this. The default 2783-PSF dictionary at 110 um
 // clicks holds 1.03e6 / 2.75e5 / 8.3e4 / 3.0e4 on levels 2..5 (radius
 // tau * magnification rounded to the nearest pixel, the lattice of every
-// shift place() can give). On 1000 volume events level 4 took 1/7.3 of
-// level 2's time with the same catastrophic count and median error;
-// coarser, the scan gains little and more PSFs must be carried down
-// (README "Reconstruction", "The scan's lattice"). The 1210-PSF paper grid
-// holds 1.32e5 / 3.8e4 on levels 2 / 3 and gets level 3 (level 2 was 3.2x
-// slower there, with 113 against 108 events beyond 3 mm).
+// shift place() can give). On 1000 volume events level 4 took a seventh to
+// a tenth of level 2's time (two series) with the same catastrophic count
+// and median error; coarser, the scan gains little and more PSFs must be
+// carried down (README "Reconstruction", "The scan's lattice"). The
+// 1210-PSF paper grid holds 1.32e5 / 3.8e4 on levels 2 / 3 and gets level 3
+// (level 2 was 3.2-3.3x slower there, 113 against 108 events beyond 3 mm).
 inline constexpr double search_shifts_per_click = 1.0e5;
 // Coarse to fine (host/reconstruct/reconstruct.h, select_level): the PSFs
 // carried from a coarse scan are ranked again on pixels of this many sensor
