@@ -559,31 +559,31 @@ class Fitter {
     e.psfs.resize(psfs_.size());
     std::vector<PsfTerms> terms(psfs_.size());
     render_->set_scene(sys);
+    // Each PSF's sums apart, added in PSF order after the threads: the same
+    // parameters give the same bits whichever thread took which PSF.
+    std::vector<Sums> per_psf(derivatives ? psfs_.size() : 0, Sums(P));
     std::atomic<size_t> next{0};
-    std::mutex sum;
+    std::mutex failing;
     std::exception_ptr failure;
-    Sums total(derivatives ? P : 0);
     auto work = [&] {
-      Sums mine(derivatives ? P : 0);
       try {
         for (size_t k; (k = next++) < psfs_.size();) {
           const Model model = (*render_)(psfs_[k].theta_mm, free_, derivatives);
-          terms[k] = psf_terms(psfs_[k], model, o_, L, P, derivatives ? &mine : nullptr);
+          terms[k] = psf_terms(psfs_[k], model, o_, L, P, derivatives ? &per_psf[k] : nullptr);
         }
       } catch (...) {
-        std::lock_guard lock(sum);
+        std::lock_guard lock(failing);
         failure = std::current_exception();
         next = psfs_.size();
-        return;
       }
-      std::lock_guard lock(sum);
-      total.add(mine);
     };
     std::vector<std::thread> threads;
     for (unsigned i = 1; i < render_->threads(o_.threads); ++i) threads.emplace_back(work);
     work();
     for (auto& t : threads) t.join();
     if (failure) std::rethrow_exception(failure);
+    Sums total(derivatives ? P : 0);
+    for (const Sums& s : per_psf) total.add(s);
     e.grad = std::move(total.grad), e.gn = std::move(total.gn), e.meat = std::move(total.meat);
     e.ok = true;
     e.chi2 = 0;
