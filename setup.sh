@@ -17,7 +17,7 @@ fi
 # Open MPI for `mpirun -n N prism ...` (README "MPI").
 packages=(cmake g++ make pkg-config
   libvulkan-dev mesa-vulkan-drivers vulkan-validationlayers glslang-tools
-  libglm-dev libopenexr-dev openexr libusb-1.0-0-dev doctest-dev nlohmann-json3-dev libcli11-dev
+  libglm-dev libopenexr-dev openexr libdeflate-dev libusb-1.0-0-dev doctest-dev nlohmann-json3-dev libcli11-dev
   libpng-dev libplplot-dev plplot-driver-cairo libpugixml-dev libzip-dev
   umockdev libumockdev-dev
   pybind11-dev python3-dev python3-numpy python3-pytest python3-matplotlib

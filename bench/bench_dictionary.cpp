@@ -2,11 +2,17 @@
 // the CPU reference), bytes on disk per PSF for each base resolution, and read
 // throughput for whole levels and for tile fetches around clicks; then each
 // tier's ray noise per splat (what the full-resolution tier is worth); then
-// the build with each file written beside the next render against after it.
+// the build with each file written beside the next render against after it;
+// then every tile of levels 0-3 decoded by PsfFile::read_tile (libdeflate,
+// host/dictionary/exr_zip.h) against OpenEXR's own readTile.
 //
-//   bench_dictionary [--device D] [--sections 1,2,3]
+//   bench_dictionary [--device D] [--sections 1,2,3,4] (section 4 reads section 1's dictionaries)
+#include <OpenEXR/ImfFrameBuffer.h>
+#include <OpenEXR/ImfTiledInputFile.h>
+
 #include <cmath>
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
 #include <random>
 
@@ -26,15 +32,59 @@ double mean_file_bytes(const DictionaryReader& r) {
   for (size_t i = 0; i < r.manifest().grid.size(); ++i) bytes += double(fs::file_size(r.path_of(i)));
   return bytes / double(r.manifest().grid.size());
 }
+
+// Every tile of levels 0-3 of every PSF, decoded by PsfFile::read_tile and by
+// OpenEXR's readTile into the same tile_px x tile_px buffer (median seconds
+// of 3 sweeps each; the files open throughout, so neither path pays opens).
+struct DecodeRow {
+  int binning = 0;
+  long tiles = 0;
+  double exr_zip_s = 0, openexr_s = 0;
+  bool same = true;
+};
+DecodeRow decode_times(const DictionaryReader& r, int binning) {
+  const DictionaryManifest& m = r.manifest();
+  const int t = m.tile_px, levels = std::min(4, m.levels);
+  std::vector<PsfFile> files;
+  std::vector<std::unique_ptr<Imf::TiledInputFile>> exr;
+  for (size_t i = 0; i < m.grid.size(); ++i) {
+    files.emplace_back(r, i);
+    exr.push_back(std::make_unique<Imf::TiledInputFile>(r.path_of(i).c_str()));
+  }
+  std::vector<uint16_t> a(size_t(t) * t), b(size_t(t) * t);
+  DecodeRow row{binning};
+  auto sweep = [&](auto&& read) {
+    for (size_t i = 0; i < files.size(); ++i)
+      for (int l = 0; l < levels; ++l)
+        for (int ty = 0; ty * t < m.level_height(l); ++ty)
+          for (int tx = 0; tx * t < m.level_width(l); ++tx) read(i, l, tx, ty);
+  };
+  auto openexr = [&](size_t i, int l, int tx, int ty, std::vector<uint16_t>& out) {
+    std::fill(out.begin(), out.end(), uint16_t(0));
+    Imf::FrameBuffer fb;
+    fb.insert("Y", Imf::Slice(Imf::HALF, (char*)(out.data() - tx * t - size_t(ty) * t * t), 2, 2 * size_t(t)));
+    exr[i]->setFrameBuffer(fb);
+    exr[i]->readTile(tx, ty, l, l);
+  };
+  sweep([&](size_t i, int l, int tx, int ty) {
+    files[i].read_tile(l, tx, ty, a);
+    openexr(i, l, tx, ty, b);
+    row.same = row.same && a == b;
+    ++row.tiles;
+  });
+  row.exr_zip_s = bench::median_seconds(3, [&] { sweep([&](size_t i, int l, int tx, int ty) { files[i].read_tile(l, tx, ty, a); }); });
+  row.openexr_s = bench::median_seconds(3, [&] { sweep([&](size_t i, int l, int tx, int ty) { openexr(i, l, tx, ty, b); }); });
+  return row;
+}
 }  // namespace
 
 int main(int argc, char** argv) {
-  std::string device, sections = "1,2,3";
+  std::string device, sections = "1,2,3,4";
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     if ((a == "--device" || a == "--sections") && i + 1 < argc) (a == "--device" ? device : sections) = argv[++i];
     else {
-      std::fprintf(stderr, "usage: bench_dictionary [--device D] [--sections 1,2,3]\n");
+      std::fprintf(stderr, "usage: bench_dictionary [--device D] [--sections 1,2,3,4]\n");
       return a == "--help" || a == "-h" ? 0 : 2;
     }
   }
@@ -44,7 +94,8 @@ int main(int argc, char** argv) {
   std::printf("# bench_dictionary\n# machine: %s\n# device: %s\n# times: medians; PSFs at 4096 rays per lenslet\n",
               bench::machine_line().c_str(), ctx.describe().c_str());
   std::string root = (fs::temp_directory_path() / "prism-bench-dictionary").string();
-  if (runs('1')) {
+  std::vector<DecodeRow> decodes;  // section 4, on section 1's dictionaries
+  if (runs('1') || runs('4')) {
     std::printf("\n%-8s %10s %12s %12s %12s %9s %13s %10s %13s %13s %7s\n", "binning", "level 0", "build s/PSF",
                 "Vulkan trace", "CPU ref", "ratio", "disk MiB/PSF", "read MB/s", "tile reads/s", "reopened/s", "ratio");
     for (int binning : {16, 4, 1}) {
@@ -88,6 +139,7 @@ int main(int argc, char** argv) {
                   report.seconds_per_psf, gpu, cpu, cpu / gpu, bytes / 1048576.0, level0_bytes / read_s / 1e6, tiles_open,
                   tiles_reopened, tiles_open / tiles_reopened);
       std::fflush(stdout);
+      if (runs('4')) decodes.push_back(decode_times(r, binning));
       fs::remove_all(dir);
     }
     std::printf("\n1210 PSFs: multiply the per-PSF figures by 1210 (e.g. disk and build time of the whole grid).\n");
@@ -95,6 +147,15 @@ int main(int argc, char** argv) {
                 "trace and splat one PSF (ratio = CPU ref / Vulkan trace). read = decode a whole level 0.\n"
                 "tile reads: single-tile fetches with the files kept open (the service's way) and with each file\n"
                 "opened and its header checked for every fetch (ratio = kept open / reopened).\n");
+  }
+
+  if (!decodes.empty()) {
+    std::printf("\n## 4. Tile decode: every tile of levels 0-3 of section 1's PSFs (the files kept open), by\n"
+                "PsfFile::read_tile (chunk through OpenEXR's core, inflated by libdeflate) and by OpenEXR's readTile\n");
+    std::printf("%-8s %8s %14s %14s %8s %10s\n", "binning", "tiles", "exr_zip us", "OpenEXR us", "ratio", "same bits");
+    for (const DecodeRow& d : decodes)
+      std::printf("%-8d %8ld %14.2f %14.2f %7.2fx %10s\n", d.binning, d.tiles, 1e6 * d.exr_zip_s / double(d.tiles),
+                  1e6 * d.openexr_s / double(d.tiles), d.openexr_s / d.exr_zip_s, d.same ? "yes" : "NO");
   }
 
   if (runs('2')) {

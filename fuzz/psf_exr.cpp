@@ -1,6 +1,6 @@
-// Dictionary PSF files (OpenEXR, host/dictionary/store.h) as the store reads
-// them: a one-entry dictionary of a 64 x 48 px sensor whose only file is the
-// input.
+// Dictionary PSF files (OpenEXR, host/dictionary/store.h) as the store and
+// the search's tile reads take them: a one-entry dictionary of a 64 x 48 px
+// sensor whose only file is the input.
 #include "fuzz/fuzz.h"
 #include "fuzz/tiny_dictionary.h"
 
@@ -21,6 +21,12 @@ void psf_exr(const uint8_t* data, size_t size) {
     for (int l = 0; l < m.levels; ++l) (void)r.read_level(0, l);
     (void)r.read_window(0, 0, 8, 8, 16, 16);
     (void)r.photons_on_sensor(0);
+    // Every tile as the search reads them (exr_zip's decode).
+    prism::PsfFile f(r, 0);
+    std::vector<uint16_t> tile(size_t(m.tile_px) * size_t(m.tile_px));
+    for (int l = 0; l < m.levels; ++l)
+      for (int ty = 0; ty * m.tile_px < m.level_height(l); ++ty)
+        for (int tx = 0; tx * m.tile_px < m.level_width(l); ++tx) f.read_tile(l, tx, ty, tile);
   } catch (const std::runtime_error&) {
   }
 }

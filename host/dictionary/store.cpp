@@ -10,15 +10,19 @@
 #include <OpenEXR/ImfTiledInputFile.h>
 #include <OpenEXR/ImfTiledOutputFile.h>
 #include <OpenEXR/ImfVecAttribute.h>
+#include <OpenEXR/openexr.h>
 
 #include <algorithm>
+#include <bit>
 #include <cmath>
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <map>
 
 #include "engine/defaults.h"
+#include "host/dictionary/exr_zip.h"
 #include "host/util/format.h"
 #include "host/util/image_io.h"
 #include "host/util/json_file.h"
@@ -492,8 +496,20 @@ PsfWindow DictionaryReader::read_window(size_t i, int level, int x0, int y0, int
   return PsfFile(*this, i).read_window(level, x0, y0, width, height);
 }
 
+// The file twice: OpenEXR's reader checks it and serves read_window; its C
+// core hands read_tile a tile's chunk as stored, which exr_zip decodes.
 struct PsfFile::Open : OpenPsf {
-  using OpenPsf::OpenPsf;
+  exr_context_t core = nullptr;
+  std::vector<uint8_t> packed, bytes;
+  Open(const std::string& path, const DictionaryManifest& m, size_t index) : OpenPsf(path, m, index) {
+    exr_context_initializer_t init = EXR_DEFAULT_CONTEXT_INITIALIZER;
+    init.error_handler_fn = [](exr_const_context_t, exr_result_t, const char*) {};  // reported by the calls' results
+    if (const exr_result_t r = exr_start_read(&core, path.c_str(), &init); r != EXR_ERR_SUCCESS)
+      throw DictionaryError(path + ": " + exr_get_default_error_message(r));
+  }
+  ~Open() { exr_finish(&core); }
+  Open(const Open&) = delete;
+  Open& operator=(const Open&) = delete;
 };
 
 PsfFile::PsfFile(const DictionaryReader& reader, size_t i)
@@ -556,15 +572,39 @@ void PsfFile::read_tile(int level, int tx, int ty, std::span<uint16_t> out) {
     if (tx < 0 || ty < 0 || tx * t >= lw || ty * t >= lh)
       throw DictionaryError(path_ + ": no tile (" + std::to_string(tx) + ", " + std::to_string(ty) + ") on level " +
                             std::to_string(level));
-    // Edge tiles are partial: the frame buffer covers the whole t x t block,
-    // zeros left where the level ends.
+    // Edge tiles are partial: zeros where the level ends.
     std::fill(out.begin(), out.end(), uint16_t(0));
-    const int bx = tx * t, by = ty * t;
-    Imf::FrameBuffer fb;
-    fb.insert("Y", Imf::Slice(Imf::HALF, (char*)(out.data() - bx - size_t(by) * t), sizeof(half),
-                              sizeof(half) * size_t(t)));
-    file.setFrameBuffer(fb);
-    file.readTile(tx, ty, level, level);
+    exr_chunk_info_t chunk;
+    auto check = [&](exr_result_t r) {
+      if (r != EXR_ERR_SUCCESS) throw std::runtime_error(exr_get_default_error_message(r));
+    };
+    check(exr_read_tile_chunk_info(f_->core, 0, tx, ty, level, level, &chunk));
+    const bool zip = chunk.compression == EXR_COMPRESSION_ZIP || chunk.compression == EXR_COMPRESSION_ZIPS;
+    const size_t w = size_t(chunk.width), h = size_t(chunk.height), n = w * h * sizeof(half);
+    if ((!zip && chunk.compression != EXR_COMPRESSION_NONE) || w > size_t(t) || h > size_t(t) ||
+        chunk.unpacked_size != n) {
+      // Another codec, from another writer: OpenEXR's own decoder.
+      const int bx = tx * t, by = ty * t;
+      Imf::FrameBuffer fb;
+      fb.insert("Y", Imf::Slice(Imf::HALF, (char*)(out.data() - bx - size_t(by) * t), sizeof(half),
+                                sizeof(half) * size_t(t)));
+      file.setFrameBuffer(fb);
+      file.readTile(tx, ty, level, level);
+      return;
+    }
+    static_assert(std::endian::native == std::endian::little, "tiles are copied as OpenEXR stores them, little-endian");
+    const std::string what = "tile (" + std::to_string(tx) + ", " + std::to_string(ty) + ") of level " +
+                             std::to_string(level);
+    // A writer stores a chunk as it is when deflating would not shrink it.
+    if (chunk.packed_size > n || (!zip && chunk.packed_size != n))
+      throw std::runtime_error(what + ": " + std::to_string(chunk.packed_size) + " bytes stored for " +
+                               std::to_string(n));
+    f_->packed.resize(chunk.packed_size);
+    f_->bytes.resize(n);
+    check(exr_read_chunk(f_->core, 0, &chunk, f_->packed.data()));
+    exr_zip::decode(f_->packed, f_->bytes, what);  // as it is when packed_size == n
+    for (size_t y = 0; y < h; ++y)
+      std::memcpy(out.data() + y * size_t(t), f_->bytes.data() + y * w * sizeof(half), w * sizeof(half));
   });
 }
 

@@ -309,6 +309,18 @@ TEST_CASE("dictionary info --verify finds a flipped bit and a file that is not w
   CHECK(bad.status == 1);
   CHECK(bad.output.find("1 of ") != std::string::npos);
   CHECK(bad.output.find(damaged) != std::string::npos);
+  {  // The search's own tile reads (exr_zip, libdeflate) find it too, naming the file and the tile.
+    prism::PsfFile f(r, 2);
+    const int t = r.manifest().tile_px;
+    std::vector<uint16_t> tile(size_t(t) * size_t(t));
+    auto read_every_tile = [&] {
+      for (int l = 0; l < r.manifest().levels; ++l)
+        for (int ty = 0; ty * t < r.manifest().level_height(l); ++ty)
+          for (int tx = 0; tx * t < r.manifest().level_width(l); ++tx) f.read_tile(l, tx, ty, tile);
+    };
+    CHECK_THROWS_WITH_AS(read_every_tile(), doctest::Contains((damaged + ": cannot read the PSF file (tile (").c_str()),
+                         prism::DictionaryError);
+  }
 
   // Two entries swapped on disk: each holds another source's PSF.
   fs::copy_file(d.dir + "/" + r.manifest().file_of(0), damaged, fs::copy_options::overwrite_existing);
