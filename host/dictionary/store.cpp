@@ -524,8 +524,9 @@ uint64_t PsfFile::bytes(const DictionaryManifest& m) {
   uint64_t tiles = 0;
   for (int l = 0; l < m.levels; ++l)
     tiles += uint64_t(ceil_div(m.level_width(l), m.tile_px)) * uint64_t(ceil_div(m.level_height(l), m.tile_px));
-  // 8-byte offsets per tile; a tile's compressed and decoded buffers (half).
-  return 8 * tiles + 3 * uint64_t(m.tile_px) * uint64_t(m.tile_px) * sizeof(half);
+  // 8-byte offsets per tile in each of the two readers (OpenEXR's and its
+  // core's); a tile's compressed and decoded buffers (half).
+  return 2 * 8 * tiles + 3 * uint64_t(m.tile_px) * uint64_t(m.tile_px) * sizeof(half);
 }
 
 PsfWindow PsfFile::read_window(int level, int x0, int y0, int width, int height) {
