@@ -477,6 +477,9 @@ struct Sums {
   }
 };
 
+// Runs of PSFs whose derivative sums are kept apart in an evaluation.
+constexpr size_t kSumBlocks = 64;
+
 // Adds PSF `psf`'s terms under `model` to `sums` (when non-null).
 PsfTerms psf_terms(const MeasuredPsf& psf, const Model& model, const CalibrationOptions& o, size_t lenses, size_t P,
                    Sums* sums) {
@@ -559,22 +562,26 @@ class Fitter {
     e.psfs.resize(psfs_.size());
     std::vector<PsfTerms> terms(psfs_.size());
     render_->set_scene(sys);
-    // Each PSF's sums apart, added in PSF order after the threads: the same
-    // parameters give the same bits whichever thread took which PSF.
-    std::vector<Sums> per_psf(derivatives ? psfs_.size() : 0, Sums(P));
+    // The PSFs in at most kSumBlocks runs of consecutive ones, each run's
+    // sums apart, added in order after the threads: the same parameters give
+    // the same bits whichever thread took which run (the runs depend on the
+    // PSFs' count alone), and the sums' memory stays kSumBlocks x 2 P^2.
+    const size_t N = psfs_.size(), blocks = std::min(N, kSumBlocks);
+    std::vector<Sums> per_block(derivatives ? blocks : 0, Sums(P));
     std::atomic<size_t> next{0};
     std::mutex failing;
     std::exception_ptr failure;
     auto work = [&] {
       try {
-        for (size_t k; (k = next++) < psfs_.size();) {
-          const Model model = (*render_)(psfs_[k].theta_mm, free_, derivatives);
-          terms[k] = psf_terms(psfs_[k], model, o_, L, P, derivatives ? &per_psf[k] : nullptr);
-        }
+        for (size_t b; (b = next++) < blocks;)
+          for (size_t k = b * N / blocks; k < (b + 1) * N / blocks; ++k) {
+            const Model model = (*render_)(psfs_[k].theta_mm, free_, derivatives);
+            terms[k] = psf_terms(psfs_[k], model, o_, L, P, derivatives ? &per_block[b] : nullptr);
+          }
       } catch (...) {
         std::lock_guard lock(failing);
         failure = std::current_exception();
-        next = psfs_.size();
+        next = blocks;
       }
     };
     std::vector<std::thread> threads;
@@ -583,7 +590,7 @@ class Fitter {
     for (auto& t : threads) t.join();
     if (failure) std::rethrow_exception(failure);
     Sums total(derivatives ? P : 0);
-    for (const Sums& s : per_psf) total.add(s);
+    for (const Sums& s : per_block) total.add(s);
     e.grad = std::move(total.grad), e.gn = std::move(total.gn), e.meat = std::move(total.meat);
     e.ok = true;
     e.chi2 = 0;
