@@ -229,6 +229,10 @@ void add_reconstruct(CLI::App& app) {
   c->add_option("--carry-margin", a->session.settings.carry_margin_nll,
                 "coarse to fine: NLL margin of the PSFs carried from a coarse scan (0: its 8 best alone)")
       ->capture_default_str()->check(non_negative_number);
+  c->add_flag_callback("--carry-once", [a] { a->session.settings.staged_carry = false; },
+                       "coarse to fine: apply --carry-margin to the scan alone, carrying every PSF within it down to "
+                       "--select-level and all 8 candidates to --rank-level, instead of again at every level (the "
+                       "way before; for comparison)");
   c->add_option("--tau-mm", a->session.settings.tau_mm, "lateral search half-width around each grid node, source mm")
       ->capture_default_str()->check(non_negative_number);
   c->add_option("--dark-rate", a->session.settings.dark_rate, dark_rate_help)->capture_default_str()->check(positive_number);

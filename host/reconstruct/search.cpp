@@ -53,20 +53,14 @@ Vertex EventFit::refine(std::vector<SupportScore> scored, std::vector<Vertex>& r
     LevelSource source(*this, level);
     return ref::best_shift(source, psf, clicks_at(level), weights_at(level), center, reach);
   };
-  // Down to the select level, each shift doubled and re-searched +-1 pixel.
-  std::vector<SupportScore> selected;
-  for (size_t j = 0; j < carry; ++j) {
-    SupportScore c = scored[j];
-    if (step > 1) c.shift = search(c.psf, Ls, c.shift, step - 1);
-    for (int l = Ls - 1; l >= Lf; --l) c.shift = search(c.psf, l, c.shift * 2, 1);
-    selected.push_back(c);
-  }
-  if (Lf < Ls) {
-    // Ranked again by the NLL at the select level, the weight refitted there:
-    // in the order of their lower bounds on it (ref::nll_lower_bound), until
-    // the next bound exceeds the keep-th NLL fitted so far; the rest cannot be
-    // among the keep best, and are dropped unfitted.
-    const auto background = rates(Lf, vs_, search_floor());
+  // Ranks candidates by their NLL at `level` (the weight refitted there), in
+  // the order of their lower bounds on it (ref::nll_lower_bound): fitted until
+  // the next bound exceeds both the keep-th NLL so far and, with a margin
+  // (>= 0), the best NLL so far plus the margin; the rest cannot be among those
+  // kept, and are dropped unfitted. Keeps the keep best, and with a margin
+  // every one within it of the best. Returned in NLL order.
+  auto rank_at = [&](int level, const std::vector<SupportScore>& cands, double margin) {
+    const auto background = rates(level, vs_, search_floor());
     struct Carried {
       double bound;
       size_t j;
@@ -74,20 +68,25 @@ Vertex EventFit::refine(std::vector<SupportScore> scored, std::vector<Vertex>& r
       double s;
     };
     std::vector<Carried> carried;
-    for (size_t j = 0; j < selected.size(); ++j) {
-      const SupportScore& c = selected[j];
-      const auto v = values_at(c.psf, Lf, c.shift);
-      Carried k{0, j, std::vector<double>(v.begin(), v.end()), sensor_mass(c.psf, Lf, c.shift)};
+    for (size_t j = 0; j < cands.size(); ++j) {
+      const SupportScore& c = cands[j];
+      const auto v = values_at(c.psf, level, c.shift);
+      Carried k{0, j, std::vector<double>(v.begin(), v.end()), sensor_mass(c.psf, level, c.shift)};
       k.bound = ref::nll_lower_bound(k.p, k.s, background, s_.alpha_max);
       if (std::isnan(k.bound)) k.bound = -INFINITY;  // bounds nothing: fitted first
       carried.push_back(std::move(k));
     }
     std::stable_sort(carried.begin(), carried.end(), [](const Carried& a, const Carried& b) { return a.bound < b.bound; });
     std::vector<double> best_nlls;  // the keep lowest NLLs fitted so far, ascending
+    auto threshold = [&] {
+      double t = best_nlls.size() >= keep ? best_nlls.back() : INFINITY;
+      return margin >= 0 && !best_nlls.empty() ? std::max(t, best_nlls.front() + margin) : t;
+    };
+    std::vector<SupportScore> fitted_c = cands;
     std::vector<size_t> fitted;
     for (Carried& k : carried) {
-      if (best_nlls.size() >= keep && k.bound > best_nlls.back()) break;
-      SupportScore& c = selected[k.j];
+      if (best_nlls.size() >= keep && k.bound > threshold()) break;
+      SupportScore& c = fitted_c[k.j];
       c.nll = fit_one(k.p, k.s, background, c.alpha);
       fitted.push_back(k.j);
       best_nlls.insert(std::upper_bound(best_nlls.begin(), best_nlls.end(), c.nll), c.nll);
@@ -95,11 +94,26 @@ Vertex EventFit::refine(std::vector<SupportScore> scored, std::vector<Vertex>& r
     }
     std::sort(fitted.begin(), fitted.end());  // the carry's order, for the same ties as fitting all
     std::vector<SupportScore> ranked;
-    for (size_t j : fitted) ranked.push_back(selected[j]);
+    for (size_t j : fitted) ranked.push_back(fitted_c[j]);
     std::stable_sort(ranked.begin(), ranked.end(), by_nll);
-    ranked.resize(std::min(keep, ranked.size()));
-    selected = std::move(ranked);
+    const double t = threshold();
+    size_t n = std::min(keep, ranked.size());
+    while (margin >= 0 && n < ranked.size() && ranked[n].nll <= t) ++n;
+    ranked.resize(n);
+    return ranked;
+  };
+  // Down to the select level, each shift doubled and re-searched +-1 pixel.
+  // Coarse to fine: at each level above the select level the carried PSFs
+  // are ranked again and only those within the carry margin of the best there
+  // go further (s_.staged_carry), at the select level the keep best.
+  std::vector<SupportScore> selected(scored.begin(), scored.begin() + long(carry));
+  if (step > 1)
+    for (SupportScore& c : selected) c.shift = search(c.psf, Ls, c.shift, step - 1);
+  for (int l = Ls - 1; l >= Lf; --l) {
+    for (SupportScore& c : selected) c.shift = search(c.psf, l, c.shift * 2, 1);
+    if (l > Lf && s_.staged_carry) selected = rank_at(l, selected, s_.carry_margin_nll);
   }
+  if (Lf < Ls) selected = rank_at(Lf, selected, -1);
   // The candidates down to the rank level, ranked there by their NLL; the
   // best goes on to the clicks.
   const int Lr = rank_level_of(Lf, s_, m_, level_);
@@ -108,11 +122,20 @@ Vertex EventFit::refine(std::vector<SupportScore> scored, std::vector<Vertex>& r
     const Column& col = column(v.psf, v.shift);
     return fit_one(col.p, col.s, background_click, v.alpha);
   };
+  // With the staged carry, a candidate beyond the carry margin of the best
+  // at the select level is not ranked: it stays a runner-up at its select-
+  // level shift, scaled, after the ranked ones.
   std::vector<std::pair<double, Vertex>> tried;
+  std::vector<Vertex> unranked;
   {
     const auto background = Lr == level_ ? background_click : rates(Lr, vs_, search_floor());
     for (const SupportScore& c : selected) {
       Vertex v{c.psf, c.shift, c.alpha};
+      if (s_.staged_carry && !tried.empty() && !(c.nll <= selected.front().nll + s_.carry_margin_nll)) {
+        v.shift *= 1 << (Lf - level_);
+        unranked.push_back(v);
+        continue;
+      }
       for (int l = Lf - 1; l >= Lr; --l) v.shift = search(c.psf, l, v.shift * 2, 1);
       double f;
       if (Lr == level_) {
@@ -133,6 +156,7 @@ Vertex EventFit::refine(std::vector<SupportScore> scored, std::vector<Vertex>& r
   }
   runners_up.clear();
   for (size_t j = 1; j < tried.size(); ++j) runners_up.push_back(tried[j].second);
+  runners_up.insert(runners_up.end(), unranked.begin(), unranked.end());
   return tried.empty() ? Vertex{} : tried.front().second;
 }
 
