@@ -113,6 +113,7 @@ struct Config {
   ScanLayout layout = ScanLayout::automatic;  // the sparse kernel's layout (engine/support_scan.h)
   ScanLoads loads = ScanLoads::texel;         // how the sparse kernel reads its look-ups (engine/support_scan.h)
   double carry_margin_nll = ReconstructionSettings{}.carry_margin_nll;  // coarse to fine (reconstruct.h)
+  bool staged_carry = true;  // the margin at every level of the descent (reconstruct.h), or at the scan's alone
   bool fit_all_weights = false;  // the scan fits every PSF's weight (the path before the NLL bound)
   int click_level = 0;           // the dictionary level the events' clicks are on
   // Device: events per scan, and the host's work on one chunk of them beside
@@ -134,6 +135,7 @@ Row measure(vk::Context& ctx, const DictionaryReader& reader, const Config& c, c
   s.scan_layout = c.layout;
   s.scan_loads = c.loads;
   s.carry_margin_nll = c.carry_margin_nll;
+  s.staged_carry = c.staged_carry;
   s.fit_all_weights = c.fit_all_weights;
   s.scan_chunk_events = c.scan_chunk_events;
   s.overlap_scans = c.overlap_scans;
@@ -325,6 +327,20 @@ int main(int argc, char** argv) {
     c.carry_margin_nll = 0;
     fixed8[level] = &run(c, single, single_truth);
   }
+  // The carry margin at every level of the descent (the default) against at
+  // the scan alone, every carried PSF taken down to the select level and all
+  // 8 candidates to the clicks (before). With the scans serial, the host's
+  // work after each scan: by default it runs beside the next scan, and
+  // where the scan takes longer, what it saves does not show.
+  std::map<int, std::pair<const Row*, const Row*>> staging;
+  for (int level : {3, 4}) {
+    Config c{"coarse", "level " + std::to_string(level) + " serial, staged", B::vulkan, level, 1, false, 1, 3};
+    c.overlap_scans = false;
+    const Row* staged = &run(c, single, single_truth);
+    c.name = "level " + std::to_string(level) + " serial, carry once";
+    c.staged_carry = false;
+    staging[level] = {staged, &run(c, single, single_truth)};
+  }
   // Weights fitted only where the NLL bound can still win (the tier rows)
   // against every PSF's weight fitted, as before the bound.
   std::map<int, const Row*> every_weight;
@@ -505,6 +521,12 @@ int main(int argc, char** argv) {
                   level, ReconstructionSettings{}.carry_margin_nll, tier[2]->seconds_per_event / tier[level]->seconds_per_event,
                   tier[level]->err_mean_mm, tier[2]->err_mean_mm, tier[level]->err_median_mm, tier[2]->err_median_mm,
                   f->err_mean_mm, f->err_median_mm);
+  for (auto [level, pair] : staging)
+    if (ran(*pair.first) && ran(*pair.second))
+      std::printf("  level %d, the carry margin at every level vs at the scan alone (scans serial): %.2fx faster, same "
+                  "vertices %s\n",
+                  level, pair.second->seconds_per_event / pair.first->seconds_per_event,
+                  same_vertices(*pair.first, *pair.second) ? "yes" : "NO");
   for (auto [level, a] : every_weight)
     if (ran(*a) && ran(*tier[level]))
       std::printf("  level %d, weights fitted where the NLL bound can win vs every weight fitted: %.2fx faster, same "

@@ -68,10 +68,11 @@ struct ReconstructionSettings {
   double carry_margin_nll = 50;  // measured: README "Reconstruction", coarse to fine
   // The carry margin at every level of the descent, not at the scan's alone:
   // between the scan and select_level the carried PSFs are ranked again at
-  // each level and those beyond the margin dropped, and of the
-  // refine_candidates only those within it of the best at select_level go on
-  // to rank_level (the others stay runners-up). false: every carried PSF goes
-  // down to select_level and all refine_candidates to rank_level (before).
+  // each level and those beyond the margin dropped; of the refine_candidates
+  // only those within it of the best at select_level go on towards
+  // rank_level, ranked again the same way at each level between (the
+  // dropped stay runners-up). false: every carried PSF goes down to
+  // select_level and all refine_candidates to rank_level (before).
   bool staged_carry = true;
   int carry_max = 512;
   int newton_iterations = 60;    // cap per weight solve (projected Newton with backtracking)

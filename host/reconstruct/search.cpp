@@ -7,7 +7,9 @@
 // goes on to the click grid the same way (the rank level is the clicks' own
 // unless they are finer than 27.6 um: defaults::rank_pixel_sensor_px).
 // Coarse to fine (a scan coarser than select_level): every PSF within the
-// carry margin goes down to select_level first and is ranked again there.
+// carry margin goes down to select_level first and is ranked again there;
+// with the staged carry (the default) the margin applies again at each level
+// on the way down, to the candidates' way to the rank level as well.
 // The binary model is exact at any level: a block clicks when any of its
 // pixels does, with rate the block's sum. The search's floor is
 // search_floor() throughout; the weights fitted after it (event_fit.cpp) keep dark_rate.
@@ -15,6 +17,7 @@
 #include <cmath>
 #include <limits>
 #include <map>
+#include <span>
 
 #include "engine/ref/likelihood_ref.h"
 #include "engine/ref/support_scan_ref.h"
@@ -55,11 +58,16 @@ Vertex EventFit::refine(std::vector<SupportScore> scored, std::vector<Vertex>& r
   };
   // Ranks candidates by their NLL at `level` (the weight refitted there), in
   // the order of their lower bounds on it (ref::nll_lower_bound): fitted until
-  // the next bound exceeds both the keep-th NLL so far and, with a margin
-  // (>= 0), the best NLL so far plus the margin; the rest cannot be among those
-  // kept, and are dropped unfitted. Keeps the keep best, and with a margin
-  // every one within it of the best. Returned in NLL order.
-  auto rank_at = [&](int level, const std::vector<SupportScore>& cands, double margin) {
+  // the next bound exceeds both the n-th NLL so far and, with a margin (>= 0),
+  // the best NLL so far plus the margin; the rest cannot be among those kept,
+  // and are left unfitted. Returns every candidate, the fitted in NLL order
+  // and then the others in their bounds' order, and how many of them lead
+  // (kept): the n best, and with a margin every one within it of the best.
+  struct Ranked {
+    std::vector<SupportScore> all;
+    size_t kept = 0;
+  };
+  auto rank_at = [&](int level, const std::vector<SupportScore>& cands, size_t n, double margin) {
     const auto background = rates(level, vs_, search_floor());
     struct Carried {
       double bound;
@@ -77,30 +85,32 @@ Vertex EventFit::refine(std::vector<SupportScore> scored, std::vector<Vertex>& r
       carried.push_back(std::move(k));
     }
     std::stable_sort(carried.begin(), carried.end(), [](const Carried& a, const Carried& b) { return a.bound < b.bound; });
-    std::vector<double> best_nlls;  // the keep lowest NLLs fitted so far, ascending
+    std::vector<double> best_nlls;  // the n lowest NLLs fitted so far, ascending
     auto threshold = [&] {
-      double t = best_nlls.size() >= keep ? best_nlls.back() : INFINITY;
+      double t = best_nlls.size() >= n ? best_nlls.back() : INFINITY;
       return margin >= 0 && !best_nlls.empty() ? std::max(t, best_nlls.front() + margin) : t;
     };
-    std::vector<SupportScore> fitted_c = cands;
+    std::vector<SupportScore> refitted = cands;
     std::vector<size_t> fitted;
-    for (Carried& k : carried) {
-      if (best_nlls.size() >= keep && k.bound > threshold()) break;
-      SupportScore& c = fitted_c[k.j];
+    size_t next = 0;
+    for (; next < carried.size(); ++next) {
+      const Carried& k = carried[next];
+      if (best_nlls.size() >= n && k.bound > threshold()) break;
+      SupportScore& c = refitted[k.j];
       c.nll = fit_one(k.p, k.s, background, c.alpha);
       fitted.push_back(k.j);
       best_nlls.insert(std::upper_bound(best_nlls.begin(), best_nlls.end(), c.nll), c.nll);
-      if (best_nlls.size() > keep) best_nlls.pop_back();
+      if (best_nlls.size() > n) best_nlls.pop_back();
     }
     std::sort(fitted.begin(), fitted.end());  // the carry's order, for the same ties as fitting all
-    std::vector<SupportScore> ranked;
-    for (size_t j : fitted) ranked.push_back(fitted_c[j]);
-    std::stable_sort(ranked.begin(), ranked.end(), by_nll);
+    Ranked r;
+    for (size_t j : fitted) r.all.push_back(refitted[j]);
+    std::stable_sort(r.all.begin(), r.all.end(), by_nll);
     const double t = threshold();
-    size_t n = std::min(keep, ranked.size());
-    while (margin >= 0 && n < ranked.size() && ranked[n].nll <= t) ++n;
-    ranked.resize(n);
-    return ranked;
+    r.kept = std::min(n, r.all.size());
+    while (margin >= 0 && r.kept < r.all.size() && r.all[r.kept].nll <= t) ++r.kept;
+    for (; next < carried.size(); ++next) r.all.push_back(refitted[carried[next].j]);
+    return r;
   };
   // Down to the select level, each shift doubled and re-searched +-1 pixel.
   // Coarse to fine: at each level above the select level the carried PSFs
@@ -111,32 +121,49 @@ Vertex EventFit::refine(std::vector<SupportScore> scored, std::vector<Vertex>& r
     for (SupportScore& c : selected) c.shift = search(c.psf, Ls, c.shift, step - 1);
   for (int l = Ls - 1; l >= Lf; --l) {
     for (SupportScore& c : selected) c.shift = search(c.psf, l, c.shift * 2, 1);
-    if (l > Lf && s_.staged_carry) selected = rank_at(l, selected, s_.carry_margin_nll);
+    if (l == Lf || s_.staged_carry) {
+      Ranked r = rank_at(l, selected, keep, l == Lf ? -1 : s_.carry_margin_nll);
+      selected.assign(r.all.begin(), r.all.begin() + long(r.kept));
+    }
   }
-  if (Lf < Ls) selected = rank_at(Lf, selected, -1);
   // The candidates down to the rank level, ranked there by their NLL; the
-  // best goes on to the clicks.
+  // best goes on to the clicks. With the staged carry only those within the
+  // carry margin of the best go down, at the select level and at each level
+  // on the way; the others stay runners-up at the shift they reached, scaled
+  // to the clicks' level, after the ranked ones (the last dropped first).
   const int Lr = rank_level_of(Lf, s_, m_, level_);
   const auto background_click = rates(level_, vs_, search_floor());
   auto click_nll = [&](Vertex& v) {
     const Column& col = column(v.psf, v.shift);
     return fit_one(col.p, col.s, background_click, v.alpha);
   };
-  // With the staged carry, a candidate beyond the carry margin of the best
-  // at the select level is not ranked: it stays a runner-up at its select-
-  // level shift, scaled, after the ranked ones.
   std::vector<std::pair<double, Vertex>> tried;
   std::vector<Vertex> unranked;
+  auto drop = [&](std::span<const SupportScore> cs, int l) {
+    std::vector<Vertex> v;
+    for (const SupportScore& c : cs) v.push_back({c.psf, c.shift * (1 << (l - level_)), c.alpha});
+    unranked.insert(unranked.begin(), v.begin(), v.end());
+  };
   {
-    const auto background = Lr == level_ ? background_click : rates(Lr, vs_, search_floor());
-    for (const SupportScore& c : selected) {
-      Vertex v{c.psf, c.shift, c.alpha};
-      if (s_.staged_carry && !tried.empty() && !(c.nll <= selected.front().nll + s_.carry_margin_nll)) {
-        v.shift *= 1 << (Lf - level_);
-        unranked.push_back(v);
-        continue;
+    std::vector<SupportScore> going;
+    for (size_t j = 0; j < selected.size(); ++j) {
+      if (s_.staged_carry && j > 0 && !(selected[j].nll <= selected.front().nll + s_.carry_margin_nll)) {
+        drop(std::span(selected).subspan(j), Lf);
+        break;
       }
-      for (int l = Lf - 1; l >= Lr; --l) v.shift = search(c.psf, l, v.shift * 2, 1);
+      going.push_back(selected[j]);
+    }
+    for (int l = Lf - 1; l >= Lr; --l) {
+      for (SupportScore& c : going) c.shift = search(c.psf, l, c.shift * 2, 1);
+      if (l > Lr && s_.staged_carry && going.size() > 1) {
+        Ranked r = rank_at(l, going, 1, s_.carry_margin_nll);
+        drop(std::span(r.all).subspan(r.kept), l);
+        going.assign(r.all.begin(), r.all.begin() + long(r.kept));
+      }
+    }
+    const auto background = Lr == level_ ? background_click : rates(Lr, vs_, search_floor());
+    for (const SupportScore& c : going) {
+      Vertex v{c.psf, c.shift, c.alpha};
       double f;
       if (Lr == level_) {
         f = click_nll(v);

@@ -363,9 +363,10 @@ TEST_CASE("reconstruction coarse to fine: a scan on level 4 carried by its NLL m
 TEST_CASE("reconstruction coarse to fine: the carry margin applied again at every level keeps the answer and reads fewer tiles") {
   // staged_carry: between the level-4 scan and the select level (2) the
   // carried PSFs are ranked again on level 3 and those beyond the margin
-  // dropped, and of the 8 candidates only those within it go on to the
-  // clicks. On 1000 + 1000 volume events of the default dictionary the
-  // vertices were those of carrying once, but for one event of 2000
+  // dropped, and of the 8 candidates only those within it go on, ranked
+  // again on level 1 on their way to the clicks. On 1000 + 1000 volume
+  // events of the default dictionary the positions were those of carrying
+  // once, but for two events of 2000, both closer to the truth
   // (README "Reconstruction", "The carry margin at every level").
   const auto events = central_events(12, 5, 19, 36, 83);
   auto staged = settings(1), once = settings(1);
