@@ -227,7 +227,8 @@ void add_reconstruct(CLI::App& app) {
                 "coarser)")
       ->capture_default_str()->check(CLI::Range(-1, 63));
   c->add_option("--carry-margin", a->session.settings.carry_margin_nll,
-                "coarse to fine: NLL margin of the PSFs carried from a coarse scan (0: its 8 best alone)")
+                "coarse to fine: NLL margin of the PSFs carried from a coarse scan, and again at each level on the way "
+                "to the clicks (0: the scan's 8 best alone, and of them the best alone on to the clicks)")
       ->capture_default_str()->check(non_negative_number);
   c->add_flag_callback("--carry-once", [a] { a->session.settings.staged_carry = false; },
                        "coarse to fine: apply --carry-margin to the scan alone, carrying every PSF within it down to "
