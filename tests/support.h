@@ -26,6 +26,11 @@ inline constexpr bool under_sanitizer = true;
 #else
 inline constexpr bool under_sanitizer = false;
 #endif
+// For a case whose size is its point (an acceptance figure at full size,
+// the whole 1210-PSF grid) and whose code other cases of the suite run at
+// smaller sizes: skipped in the sanitizer build, whose suite has to fit in
+// CI's time after the normal one (.ci/run). TEST_CASE("..." * skip_under_sanitizer).
+inline const doctest::skip skip_under_sanitizer{under_sanitizer};
 
 vk::Context& gpu();
 // Fails the current test if the validation layer printed anything.

@@ -84,6 +84,7 @@ TEST_CASE("footprint splat equals the box-pixel oracle for thin lenses at 6.9, 2
   } cases[] = {{16, 4096}, {4, 16384}, {1, 16384}};
   for (const auto& k : cases) {
     CAPTURE(k.binning);
+    if (prism::test::under_sanitizer && k.binning == 1) continue;  // 27.6 um runs the same code
     auto t = footprint(k.rays, k.binning);
     auto oracle = prism::ref::thin_lens_image(sys, t, theta);
     prism::ForwardVulkan fw(gpu(), sys, t);
@@ -139,7 +140,8 @@ TEST_CASE("footprint splat: Vulkan equals the CPU reference on real lenses, cut 
                {"at the sensor's edge (partial last pixels)", plain, {-25.0, 0.0, 5.0}, 16, 0, false}};
   for (const auto& k : cases) {
     CAPTURE(k.name);
-    auto t = footprint(1024, k.binning);
+    // Under the sanitizers 256 cells: the same paths, a quarter of the reference's work.
+    auto t = footprint(prism::test::under_sanitizer ? 256 : 1024, k.binning);
     t.stratification = k.stratification;
     auto ref = prism::ref::psf(k.sys, t, k.theta);
     prism::ForwardVulkan fw(gpu(), k.sys, t);

@@ -336,7 +336,8 @@ TEST_CASE("refinement hazards with several vertices: 0.5 mm apart, a lattice ali
     CHECK(glm::length(pos(v[1]) - b) < 5 * v[1].crlb_3d_mm);
     CHECK((v[0].flags & prism::merged) == 0);
   }
-  SUBCASE("K = 4 jointly") {
+  // Under the sanitizers K = 2 (above, and the joint case before) runs the same code.
+  if (!prism::test::under_sanitizer) SUBCASE("K = 4 jointly") {
     const std::vector<glm::dvec3> at{{-8, 0.5, 12}, {-2, -0.5, 22}, {3, 0.4, 32}, {8, -0.2, 42}};
     std::vector<Source> src;
     std::vector<prism::ReconstructedVertex> start;
