@@ -379,14 +379,59 @@ int64_t exr_fixed_value_bytes(const std::string& type) {
   return it == fixed.end() ? 0 : it->second;
 }
 
+// The file's first bytes, read in blocks as the walk below asks for them:
+// one read for a PSF's header (a few hundred bytes), not one per byte.
+class HeaderBytes {
+ public:
+  explicit HeaderBytes(const std::string& path) : in_(path, std::ios::binary) {
+    in_.seekg(0, std::ios::end);
+    size_ = in_ ? int64_t(in_.tellg()) : 0;
+  }
+  int64_t size() const { return size_; }
+  int64_t tell() const { return pos_; }
+  bool good() const { return pos_ <= size_; }
+  void seek(int64_t pos) { pos_ = pos; }
+  // False past the end (and from then on, good() is false).
+  bool get(char& c) {
+    if (!have(1)) return ++pos_, false;
+    c = char(buf_[size_t(pos_++)]);
+    return true;
+  }
+  int64_t int32() {
+    uint8_t b[4] = {};
+    for (uint8_t& x : b) {
+      char c = 0;
+      get(c);
+      x = uint8_t(c);
+    }
+    return int64_t(int32_t(uint32_t(b[0]) | uint32_t(b[1]) << 8 | uint32_t(b[2]) << 16 | uint32_t(b[3]) << 24));
+  }
+
+ private:
+  // Bytes [pos_, pos_ + n) loaded; false where the file ends first.
+  bool have(int64_t n) {
+    if (pos_ < 0 || pos_ + n > size_) return false;
+    if (pos_ + n <= int64_t(buf_.size())) return true;
+    const int64_t end = std::min(size_, std::max(pos_ + n, int64_t(buf_.size()) + kBlock));
+    const size_t from = buf_.size();
+    buf_.resize(size_t(end));
+    in_.seekg(int64_t(from));
+    in_.read(reinterpret_cast<char*>(buf_.data() + from), std::streamsize(end - int64_t(from)));
+    if (in_.gcount() != std::streamsize(end - int64_t(from))) size_ = int64_t(from) + in_.gcount();
+    return pos_ + n <= size_;
+  }
+  static constexpr int64_t kBlock = 4096;
+  std::ifstream in_;
+  std::vector<uint8_t> buf_;
+  int64_t size_ = 0, pos_ = 0;
+};
+
 const std::string& checked_exr_header(const std::string& path, const DictionaryManifest& m) {
-  std::ifstream in(path, std::ios::binary);
-  in.seekg(0, std::ios::end);
-  const int64_t size = in.tellg();
-  uint8_t v[4] = {};
-  in.seekg(4);
-  in.read(reinterpret_cast<char*>(v), 4);
-  const bool multipart = (v[1] & 0x10) != 0;  // version flag 0x1000: headers follow one another, up to an empty one
+  HeaderBytes in(path);
+  const int64_t size = in.size();
+  in.seek(4);
+  const int64_t version = in.int32();
+  const bool multipart = (version & 0x1000) != 0;  // headers follow one another, up to an empty one
   auto text = [&](const char* what) {
     std::string s;
     for (char c; in.get(c) && c != '\0';)
@@ -394,9 +439,9 @@ const std::string& checked_exr_header(const std::string& path, const DictionaryM
       else throw DictionaryError(path + ": corrupt OpenEXR header (" + what + " longer than 255 bytes)");
     return s;
   };
-  for (int attributes = 0; in;) {
+  for (int attributes = 0; in.good();) {
     const std::string name = text("attribute name");
-    if (!in) break;
+    if (!in.good()) break;
     if (name.empty()) {  // the end of a header
       if (!multipart || attributes == 0) break;
       attributes = 0;
@@ -404,17 +449,12 @@ const std::string& checked_exr_header(const std::string& path, const DictionaryM
     }
     ++attributes;
     const std::string type = text("attribute type");
-    auto int32 = [&] {
-      uint8_t b[4] = {};
-      in.read(reinterpret_cast<char*>(b), 4);
-      return int64_t(int32_t(uint32_t(b[0]) | uint32_t(b[1]) << 8 | uint32_t(b[2]) << 16 | uint32_t(b[3]) << 24));
-    };
     auto corrupt = [&](const std::string& why) {
       return DictionaryError(path + ": corrupt OpenEXR header (attribute '" + name + "' " + why + ")");
     };
-    const int64_t bytes = int32();
-    const int64_t start = in.tellg(), left = size - start;
-    if (!in || bytes < 0 || bytes > left)
+    const int64_t bytes = in.int32();
+    const int64_t start = in.tell(), left = size - start;
+    if (!in.good() || bytes < 0 || bytes > left)
       throw corrupt("declares " + std::to_string(bytes) + " bytes, the file has " +
                     std::to_string(std::max<int64_t>(0, left)) + " left");
     // Values OpenEXR reads by their own structure, not by the size: they must
@@ -423,65 +463,89 @@ const std::string& checked_exr_header(const std::string& path, const DictionaryM
       throw corrupt("of type " + type + " declares " + std::to_string(bytes) + " bytes; its value has " +
                     std::to_string(fixed));
     if (type == "chlist") {
-      while (!text("channel name").empty() && in) in.seekg(16, std::ios::cur);  // type, linear, reserved, sampling
-      if (!in || int64_t(in.tellg()) - start != bytes) throw corrupt("holds channels that do not fill its size");
+      while (!text("channel name").empty() && in.good()) in.seek(in.tell() + 16);  // type, linear, reserved, sampling
+      if (!in.good() || in.tell() - start != bytes) throw corrupt("holds channels that do not fill its size");
     } else if (type == "preview") {
-      const int64_t w = int32(), h = int32();
+      const int64_t w = in.int32(), h = in.int32();
       // w h pixels of 4 bytes after the two sizes; h bounded first, since
       // 4 w h of two damaged sizes overflows (a long fuzz run's finding).
       const bool fits = w >= 0 && h >= 0 && bytes >= 8 && (w == 0 || h <= (bytes - 8) / 4 / w);
-      if (!in || !fits || 8 + 4 * w * h != bytes) throw corrupt("is a preview image of another size");
+      if (!in.good() || !fits || 8 + 4 * w * h != bytes) throw corrupt("is a preview image of another size");
     } else if (type == "tiledesc") {
       // OpenEXR sizes its tile buffers by these before reading a pixel (a
       // 16 x 2.8e8 px tile asked for 1.1 GB): they must be the manifest's.
-      const int64_t tx = uint32_t(int32()), ty = uint32_t(int32());
-      if (!in || tx != m.tile_px || ty != m.tile_px)
+      const int64_t tx = uint32_t(in.int32()), ty = uint32_t(in.int32());
+      if (!in.good() || tx != m.tile_px || ty != m.tile_px)
         throw corrupt("declares tiles of " + std::to_string(tx) + " x " + std::to_string(ty) + " px; the manifest's are " +
                       std::to_string(m.tile_px) + " x " + std::to_string(m.tile_px));
     } else if (type == "box2i" && name == "dataWindow") {
       // Its tile offset tables follow from the data window: it must be the manifest's level 0.
-      const int64_t x0 = int32(), y0 = int32(), x1 = int32(), y1 = int32();
-      if (!in || x0 != 0 || y0 != 0 || x1 != m.width - 1 || y1 != m.height - 1)
+      const int64_t x0 = in.int32(), y0 = in.int32(), x1 = in.int32(), y1 = in.int32();
+      if (!in.good() || x0 != 0 || y0 != 0 || x1 != m.width - 1 || y1 != m.height - 1)
         throw corrupt("is (" + std::to_string(x0) + ", " + std::to_string(y0) + ") - (" + std::to_string(x1) + ", " +
                       std::to_string(y1) + "); the manifest's level 0 is " + std::to_string(m.width) + " x " +
                       std::to_string(m.height) + " px");
     }
-    in.seekg(start + bytes);
+    in.seek(start + bytes);
   }
   return path;
 }
 
-// Opens a PSF file and checks it belongs to this dictionary.
-struct OpenPsf {
-  Imf::TiledInputFile file;
-  float inv_scale;
-  OpenPsf(const std::string& path, const DictionaryManifest& m, size_t index)
-      : file(checked_exr_header(path, m).c_str()) {
-    const Imf::Header& h = file.header();
-    auto dw = h.dataWindow();
-    const auto* version = h.findTypedAttribute<Imf::IntAttribute>("prismFormatVersion");
-    const auto* idx = h.findTypedAttribute<Imf::IntAttribute>("prismIndex");
-    const auto* scale = h.findTypedAttribute<Imf::IntAttribute>("prismScaleLog2");
-    if (!version || !idx || !scale) throw DictionaryError(path + ": not a PRISM dictionary PSF (attributes missing)");
-    if (version->value() != dictionary_format_version)
-      throw DictionaryError(path + ": PSF format version " + std::to_string(version->value()) + ", expected " +
+// Opens a PSF file with OpenEXR's C core and checks it belongs to this
+// dictionary. The core reads the header and, at the first tile, the offset
+// table; nothing else (PsfFile reopens a file for each event's tiles, and
+// OpenEXR's C++ reader took 5x as long to open one).
+struct CorePsf {
+  exr_context_t core = nullptr;
+  float inv_scale = 1;
+  CorePsf(const std::string& path, const DictionaryManifest& m, size_t index) {
+    checked_exr_header(path, m);
+    exr_context_initializer_t init = EXR_DEFAULT_CONTEXT_INITIALIZER;
+    init.error_handler_fn = [](exr_const_context_t, exr_result_t, const char*) {};  // reported by the calls' results
+    if (const exr_result_t r = exr_start_read(&core, path.c_str(), &init); r != EXR_ERR_SUCCESS) {
+      exr_finish(&core);
+      throw std::runtime_error(exr_get_default_error_message(r));  // exr_call names the file and says what to do
+    }
+    try {
+      check(path, m, index);
+    } catch (...) {
+      exr_finish(&core);
+      throw;
+    }
+  }
+  ~CorePsf() { exr_finish(&core); }
+  CorePsf(const CorePsf&) = delete;
+  CorePsf& operator=(const CorePsf&) = delete;
+
+ private:
+  void check(const std::string& path, const DictionaryManifest& m, size_t index) {
+    int32_t version = 0, idx = 0, scale = 0;
+    if (exr_attr_get_int(core, 0, "prismFormatVersion", &version) != EXR_ERR_SUCCESS ||
+        exr_attr_get_int(core, 0, "prismIndex", &idx) != EXR_ERR_SUCCESS ||
+        exr_attr_get_int(core, 0, "prismScaleLog2", &scale) != EXR_ERR_SUCCESS)
+      throw DictionaryError(path + ": not a PRISM dictionary PSF (attributes missing)");
+    if (version != dictionary_format_version)
+      throw DictionaryError(path + ": PSF format version " + std::to_string(version) + ", expected " +
                             std::to_string(dictionary_format_version));
-    if (idx->value() != int(index)) throw DictionaryError(path + ": holds entry " + std::to_string(idx->value()));
+    if (idx != int(index)) throw DictionaryError(path + ": holds entry " + std::to_string(idx));
     // The manifest's grid must still say where the file's source was (an
     // edited grid would put every PSF at a wrong position).
-    if (const auto* at = h.findTypedAttribute<Imf::V3fAttribute>("prismPositionMm")) {
+    if (exr_attr_v3f_t got; exr_attr_get_v3f(core, 0, "prismPositionMm", &got) == EXR_ERR_SUCCESS) {
       const glm::dvec3 want = m.grid.position(index);
-      const Imath::V3f got = at->value();
       if (glm::length(glm::dvec3(got.x, got.y, got.z) - want) > 1e-3 * (1 + glm::length(want)))
         throw DictionaryError(path + ": holds the PSF of a source at (" + format_number(got.x) + ", " +
                               format_number(got.y) + ", " + format_number(got.z) + ") mm, but the manifest's grid " +
                               "puts entry " + std::to_string(index) + " at (" + format_number(want.x) + ", " +
                               format_number(want.y) + ", " + format_number(want.z) + ") mm");
     }
-    if (dw.max.x - dw.min.x + 1 != m.width || dw.max.y - dw.min.y + 1 != m.height)
+    exr_attr_box2i_t dw;
+    if (exr_get_data_window(core, 0, &dw) != EXR_ERR_SUCCESS || dw.max.x - dw.min.x + 1 != m.width ||
+        dw.max.y - dw.min.y + 1 != m.height)
       throw DictionaryError(path + ": level 0 size differs from the manifest's");
-    if (!file.isComplete()) throw DictionaryError(path + ": incomplete file (missing tiles)");
-    inv_scale = std::ldexp(1.0f, -scale->value());
+    // The scale's range: ldexp of any int is defined, but a damaged one would
+    // make every value 0 or inf.
+    if (scale < -126 || scale > 126) throw DictionaryError(path + ": prismScaleLog2 " + std::to_string(scale));
+    inv_scale = std::ldexp(1.0f, -scale);
   }
 };
 
@@ -496,20 +560,23 @@ PsfWindow DictionaryReader::read_window(size_t i, int level, int x0, int y0, int
   return PsfFile(*this, i).read_window(level, x0, y0, width, height);
 }
 
-// The file twice: OpenEXR's reader checks it and serves read_window; its C
-// core hands read_tile a tile's chunk as stored, which exr_zip decodes.
-struct PsfFile::Open : OpenPsf {
-  exr_context_t core = nullptr;
+// The C core serves read_tile a tile's chunk as stored, which exr_zip
+// decodes; OpenEXR's C++ reader, opened at its first use, serves
+// read_window and tiles of another codec.
+struct PsfFile::Open : CorePsf {
+  std::string path;
+  std::unique_ptr<Imf::TiledInputFile> file;
   std::vector<uint8_t> packed, bytes;
-  Open(const std::string& path, const DictionaryManifest& m, size_t index) : OpenPsf(path, m, index) {
-    exr_context_initializer_t init = EXR_DEFAULT_CONTEXT_INITIALIZER;
-    init.error_handler_fn = [](exr_const_context_t, exr_result_t, const char*) {};  // reported by the calls' results
-    if (const exr_result_t r = exr_start_read(&core, path.c_str(), &init); r != EXR_ERR_SUCCESS)
-      throw DictionaryError(path + ": " + exr_get_default_error_message(r));
+  Open(const std::string& p, const DictionaryManifest& m, size_t index) : CorePsf(p, m, index), path(p) {}
+  Imf::TiledInputFile& imf() {
+    if (!file) {
+      // The header was walked when the core opened the file.
+      auto f = std::make_unique<Imf::TiledInputFile>(path.c_str());
+      if (!f->isComplete()) throw DictionaryError(path + ": incomplete file (missing tiles)");
+      file = std::move(f);
+    }
+    return *file;
   }
-  ~Open() { exr_finish(&core); }
-  Open(const Open&) = delete;
-  Open& operator=(const Open&) = delete;
 };
 
 PsfFile::PsfFile(const DictionaryReader& reader, size_t i)
@@ -524,8 +591,9 @@ uint64_t PsfFile::bytes(const DictionaryManifest& m) {
   uint64_t tiles = 0;
   for (int l = 0; l < m.levels; ++l)
     tiles += uint64_t(ceil_div(m.level_width(l), m.tile_px)) * uint64_t(ceil_div(m.level_height(l), m.tile_px));
-  // 8-byte offsets per tile in each of the two readers (OpenEXR's and its
-  // core's); a tile's compressed and decoded buffers (half).
+  // 8-byte offsets per tile in each of the two readers (the core's, and
+  // OpenEXR's C++ reader's once read_window opens it); a tile's compressed
+  // and decoded buffers (half).
   return 2 * 8 * tiles + 3 * uint64_t(m.tile_px) * uint64_t(m.tile_px) * sizeof(half);
 }
 
@@ -533,7 +601,7 @@ PsfWindow PsfFile::read_window(int level, int x0, int y0, int width, int height)
   if (level < 0 || level >= m_->levels)
     throw DictionaryError(path_ + ": level " + std::to_string(level) + " of " + std::to_string(m_->levels));
   return exr_call(path_, [&] {
-    Imf::TiledInputFile& file = f_->file;
+    Imf::TiledInputFile& file = f_->imf();
     int lw = file.levelWidth(level), lh = file.levelHeight(level);
     int x1 = std::min(x0 + width, lw), y1 = std::min(y0 + height, lh);
     x0 = std::max(x0, 0);
@@ -568,8 +636,9 @@ void PsfFile::read_tile(int level, int tx, int ty, std::span<uint16_t> out) {
     throw std::invalid_argument("PsfFile::read_tile: the buffer holds " + std::to_string(out.size()) + " values, not " +
                                 std::to_string(t) + " x " + std::to_string(t));
   exr_call(path_, [&] {
-    Imf::TiledInputFile& file = f_->file;
-    const int lw = file.levelWidth(level), lh = file.levelHeight(level);
+    int32_t lw = 0, lh = 0;
+    if (exr_get_level_sizes(f_->core, 0, level, level, &lw, &lh) != EXR_ERR_SUCCESS)
+      throw DictionaryError(path_ + ": no level " + std::to_string(level));
     if (tx < 0 || ty < 0 || tx * t >= lw || ty * t >= lh)
       throw DictionaryError(path_ + ": no tile (" + std::to_string(tx) + ", " + std::to_string(ty) + ") on level " +
                             std::to_string(level));
@@ -589,6 +658,7 @@ void PsfFile::read_tile(int level, int tx, int ty, std::span<uint16_t> out) {
       Imf::FrameBuffer fb;
       fb.insert("Y", Imf::Slice(Imf::HALF, (char*)(out.data() - bx - size_t(by) * t), sizeof(half),
                                 sizeof(half) * size_t(t)));
+      Imf::TiledInputFile& file = f_->imf();
       file.setFrameBuffer(fb);
       file.readTile(tx, ty, level, level);
       return;
@@ -612,9 +682,9 @@ void PsfFile::read_tile(int level, int tx, int ty, std::span<uint16_t> out) {
 double DictionaryReader::photons_on_sensor(size_t i) const {
   std::string path = path_of(i);
   return exr_call(path, [&] {
-    OpenPsf f(path, m_, i);
-    const auto* a = f.file.header().findTypedAttribute<Imf::FloatAttribute>("prismPhotonsOnSensor");
-    return a ? double(a->value()) : 0.0;
+    CorePsf f(path, m_, i);
+    float photons = 0;
+    return exr_attr_get_float(f.core, 0, "prismPhotonsOnSensor", &photons) == EXR_ERR_SUCCESS ? double(photons) : 0.0;
   });
 }
 

@@ -216,6 +216,18 @@ TEST_CASE("corrupt files, wrong versions and another sensor give errors naming t
   prism::DictionaryReader r(copy);
   fs::resize_file(r.path_of(1), fs::file_size(r.path_of(1)) / 2);
   CHECK_THROWS_WITH_AS(r.read_level(1, 0), doctest::Contains(r.path_of(1).c_str()), prism::DictionaryError);
+  // Tile by tile, as the search reads them (OpenEXR's C core alone): the
+  // same error, at the first tile the cut took.
+  auto every_tile = [&](size_t i) {
+    const auto& m = r.manifest();
+    std::vector<uint16_t> bits(size_t(m.tile_px) * m.tile_px);
+    prism::PsfFile f(r, i);
+    for (int level = 0; level < m.levels; ++level)
+      for (int ty = 0; ty * m.tile_px < m.level_height(level); ++ty)
+        for (int tx = 0; tx * m.tile_px < m.level_width(level); ++tx) f.read_tile(level, tx, ty, bits);
+  };
+  CHECK_NOTHROW(every_tile(2));
+  CHECK_THROWS_WITH_AS(every_tile(1), doctest::Contains(r.path_of(1).c_str()), prism::DictionaryError);
   {
     std::ofstream(r.path_of(0), std::ios::trunc) << "not an exr";
   }
