@@ -105,8 +105,9 @@ vec3 objective_slope_curvature(float alpha) {
     float p = psf_value(p_base, q.x, q.y);
     if (p <= 0.0f) continue;  // a click the PSF does not reach: no term in alpha
     float lambda = rate_weight(first_click + c).x + alpha * p;
-    part += lambda + log_click(lambda);
-    slope_curv += vec2(p * click_weight(lambda), p * p * click_curvature(lambda));
+    vec3 terms = click_terms(lambda);
+    part += lambda + terms.x;
+    slope_curv += vec2(p * terms.y, p * p * terms.z);
   }
   part = lanes_sum(part);
   slope_curv = lanes_sum2(slope_curv);

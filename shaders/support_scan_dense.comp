@@ -42,8 +42,9 @@ vec3 objective_slope_curvature(float alpha) {
     slope_curv.x += p;
     if (clicked(i)) {
       float lambda0 = rate_at(i), lambda = lambda0 + alpha * p;
-      part -= lambda0 + log_click(lambda);
-      slope_curv += vec2(-p * click_weight(lambda), p * p * click_curvature(lambda));
+      vec3 terms = click_terms(lambda);
+      part -= lambda0 + terms.x;
+      slope_curv += vec2(-p * terms.y, p * p * terms.z);
     } else {
       part += alpha * p;
     }

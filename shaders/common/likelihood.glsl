@@ -48,6 +48,21 @@ PRISM_FN float click_curvature(float lambda) {
   return exp(-lambda) / p / p;
 }
 
+// The three terms above at once, exp(-lambda) formed once for all three:
+// (log_click, click_weight, click_curvature), each as its function gives it
+// (log_click's tail takes exp(-lambda)^2 for exp(-2 lambda)). The weight
+// fit's objective takes all three at every click and step.
+PRISM_FN vec3 click_terms(float lambda) {
+  float e = exp(-lambda);
+  float l = lambda;
+  float p = lambda < 0.1f
+                ? l * (1.0f - 0.5f * l * (1.0f - l / 3.0f * (1.0f - 0.25f * l * (1.0f - 0.2f * l * (1.0f - l / 6.0f)))))
+                : 1.0f - e;
+  float log_p = lambda > 8.0f ? -e - 0.5f * (e * e) : log(p);
+  float curvature = lambda > 80.0f ? 0.0f : (p < 1e-19f ? 3.0e38f : e / p / p);
+  return vec3(log_p, 1.0f / p, curvature);
+}
+
 // A lower bound on what one candidate's NLL can reach over its weight,
 //   min over 0 <= alpha <= alpha_max of
 //   f(alpha) = alpha (S - q) - sum_c b_c + sum_c h_c(alpha),

@@ -179,6 +179,25 @@ TEST_CASE("reconstruction NLL pieces: log(1 - exp(-lambda)) and its curvature st
   CHECK(prism::ref::click_curvature(1e-4) == doctest::Approx(1e8).epsilon(1e-6));
 }
 
+TEST_CASE("the weight fit's three click terms at once are the kernels' three functions, lambda 1e-30 to 200") {
+  // click_terms forms exp(-lambda) once; each term must stay what its own
+  // function gives, across the series (< 0.1), the tail (> 8), the capped
+  // curvature (p < 1e-19) and its underflow (> 80).
+  int checked = 0;
+  for (double decade = -30; decade <= std::log10(200.0); decade += 0.01) {
+    const float lambda = float(std::pow(10.0, decade));
+    CAPTURE(lambda);
+    const glm::vec3 t = prism::shared::click_terms(lambda);
+    CHECK(t.y == prism::shared::click_weight(lambda));
+    CHECK(t.z == prism::shared::click_curvature(lambda));
+    // The tail's exp(-lambda)^2 for exp(-2 lambda): the same to float's rounding.
+    const float l = prism::shared::log_click(lambda);
+    CHECK(std::abs(t.x - l) <= 2e-7f * std::abs(l));
+    ++checked;
+  }
+  CHECK(checked > 3000);
+}
+
 TEST_CASE("the NLL bound that lets the scan skip weight fits lies below the fitted NLL, float and double") {
   // Random candidates against random backgrounds, hard ones included: PSF
   // values from 1e-9 to 1 at the clicks, clicks it does not reach,
