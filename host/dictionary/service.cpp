@@ -1,8 +1,12 @@
 #include "host/dictionary/service.h"
 
+#include <sys/mman.h>
+
 #include <algorithm>
 #include <array>
+#include <cstdlib>
 #include <cstring>
+#include <new>
 
 #include <Imath/half.h>
 
@@ -10,7 +14,32 @@ namespace prism {
 
 namespace {
 std::string mib(uint64_t b) { return std::to_string((b + (1 << 20) - 1) >> 20) + " MiB"; }
+constexpr size_t kSlabBytes = size_t(2) << 20;  // a huge page on x86-64 and arm64
 }  // namespace
+
+void DictionaryService::TileSlabs::Free::operator()(uint16_t* p) const { std::free(p); }
+
+uint16_t* DictionaryService::TileSlabs::take() {
+  if (!free_.empty()) {
+    uint16_t* tile = free_.back();
+    free_.pop_back();
+    return tile;
+  }
+  const size_t tile_bytes = values_ * sizeof(uint16_t);
+  if (left_ == 0) {
+    const size_t tiles = std::max<size_t>(1, kSlabBytes / tile_bytes);
+    const size_t bytes = (tiles * tile_bytes + kSlabBytes - 1) / kSlabBytes * kSlabBytes;
+    auto* block = static_cast<uint16_t*>(std::aligned_alloc(kSlabBytes, bytes));
+    if (!block) throw std::bad_alloc();
+#ifdef MADV_HUGEPAGE
+    madvise(block, bytes, MADV_HUGEPAGE);  // a hint: without it, small pages
+#endif
+    blocks_.emplace_back(block);
+    left_ = tiles;
+  }
+  const size_t tiles = std::max<size_t>(1, kSlabBytes / tile_bytes);
+  return blocks_.back().get() + (tiles - left_--) * values_;
+}
 
 namespace {
 // Words of one PSF's coarse level on the device: values (two halves per word,
@@ -28,7 +57,8 @@ uint64_t DictionaryService::device_bytes(const DictionaryManifest& m, int coarse
 DictionaryService::DictionaryService(const DictionaryReader& reader, vk::Context* ctx, int coarse_level,
                                      ServiceBudget budget, bool device_half)
     : reader_(reader), coarse_level_(coarse_level), budget_(budget), device_half_(device_half),
-      tables_(std::make_shared<CoarseTables>()) {
+      tables_(std::make_shared<CoarseTables>()),
+      slabs_(size_t(reader.manifest().tile_px) * size_t(reader.manifest().tile_px)) {
   const DictionaryManifest& m = reader.manifest();
   if (coarse_level < 0 || coarse_level >= m.levels)
     throw DictionaryError(reader.dir() + ": no level " + std::to_string(coarse_level) + " (levels 0.." +
@@ -96,7 +126,8 @@ DictionaryService::DictionaryService(const DictionaryReader& reader, vk::Context
 }
 
 DictionaryService::DictionaryService(const DictionaryService& first, ServiceBudget budget)
-    : reader_(first.reader_), coarse_level_(first.coarse_level_), budget_(budget), tables_(first.tables_) {}
+    : reader_(first.reader_), coarse_level_(first.coarse_level_), budget_(budget), tables_(first.tables_),
+      slabs_(size_t(first.reader_.manifest().tile_px) * size_t(first.reader_.manifest().tile_px)) {}
 
 ScanLevel DictionaryService::scan_level() const {
   if (chunks_.empty())
@@ -147,7 +178,9 @@ const DictionaryService::Tile& DictionaryService::tile(size_t i, int level, int 
   const uint64_t need = bytes + (file_added ? PsfFile::bytes(reader_.manifest()) : 0);
   // Make room first, so the budget holds at every moment.
   while (stats_.host_bytes + need > budget_.host_bytes && !lru_.empty()) {
-    tiles_.erase(lru_.back());
+    auto evicted = tiles_.find(lru_.back());
+    slabs_.give(evicted->second.bits);
+    tiles_.erase(evicted);
     lru_.pop_back();
     account(-int64_t(bytes));
     ++stats_.evictions;
@@ -156,12 +189,17 @@ const DictionaryService::Tile& DictionaryService::tile(size_t i, int level, int 
     throw DictionaryError(reader_.dir() + ": the host budget of " + mib(budget_.host_bytes) +
                           " leaves no room for one tile and its open file; raise it");
   PsfFile& file = open_file(i);
-  std::vector<uint16_t> bits(size_t(t) * t);
-  file.read_tile(level, tx, ty, bits);
+  uint16_t* bits = slabs_.take();
+  try {
+    file.read_tile(level, tx, ty, std::span<uint16_t>(bits, size_t(t) * t));
+  } catch (...) {
+    slabs_.give(bits);
+    throw;
+  }
   stats_.bytes_read += bytes;
   lru_.push_front(key);
   account(int64_t(bytes));
-  return tiles_.emplace(key, Tile{std::move(bits), file.value_scale(), lru_.begin()}).first->second;
+  return tiles_.emplace(key, Tile{bits, file.value_scale(), lru_.begin()}).first->second;
 }
 
 PsfFile& DictionaryService::open_file(size_t i) {
