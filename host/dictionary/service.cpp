@@ -19,26 +19,27 @@ constexpr size_t kSlabBytes = size_t(2) << 20;  // a huge page on x86-64 and arm
 
 void DictionaryService::TileSlabs::Free::operator()(uint16_t* p) const { std::free(p); }
 
+DictionaryService::TileSlabs::TileSlabs(size_t values)
+    : values_(values), per_block_(std::max<size_t>(1, kSlabBytes / (values * sizeof(uint16_t)))) {}
+
 uint16_t* DictionaryService::TileSlabs::take() {
   if (!free_.empty()) {
     uint16_t* tile = free_.back();
     free_.pop_back();
     return tile;
   }
-  const size_t tile_bytes = values_ * sizeof(uint16_t);
   if (left_ == 0) {
-    const size_t tiles = std::max<size_t>(1, kSlabBytes / tile_bytes);
-    const size_t bytes = (tiles * tile_bytes + kSlabBytes - 1) / kSlabBytes * kSlabBytes;
+    const size_t used = per_block_ * values_ * sizeof(uint16_t);
+    const size_t bytes = (used + kSlabBytes - 1) / kSlabBytes * kSlabBytes;  // aligned_alloc: a multiple of the alignment
     auto* block = static_cast<uint16_t*>(std::aligned_alloc(kSlabBytes, bytes));
     if (!block) throw std::bad_alloc();
 #ifdef MADV_HUGEPAGE
     madvise(block, bytes, MADV_HUGEPAGE);  // a hint: without it, small pages
 #endif
     blocks_.emplace_back(block);
-    left_ = tiles;
+    left_ = per_block_;
   }
-  const size_t tiles = std::max<size_t>(1, kSlabBytes / tile_bytes);
-  return blocks_.back().get() + (tiles - left_--) * values_;
+  return blocks_.back().get() + (per_block_ - left_--) * values_;
 }
 
 namespace {

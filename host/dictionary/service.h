@@ -102,7 +102,7 @@ class DictionaryService {
   // room not yet handed out (under 2 MiB per service).
   class TileSlabs {
    public:
-    explicit TileSlabs(size_t values) : values_(values) {}
+    explicit TileSlabs(size_t values);  // values per tile
     uint16_t* take();
     void give(uint16_t* tile) { free_.push_back(tile); }
 
@@ -110,7 +110,8 @@ class DictionaryService {
     struct Free {
       void operator()(uint16_t* p) const;
     };
-    size_t values_, left_ = 0;  // tiles per tile; tiles not yet handed out in the last block
+    size_t values_, per_block_;  // values per tile, tiles per block
+    size_t left_ = 0;            // tiles of the last block not yet handed out
     std::vector<std::unique_ptr<uint16_t, Free>> blocks_;
     std::vector<uint16_t*> free_;
   };
