@@ -15,14 +15,16 @@
 #ifndef PRISM_LIKELIHOOD_GLSL
 #define PRISM_LIKELIHOOD_GLSL
 
+// 1 - exp(-lambda) for lambda < 0.1, by its series
+// lambda (1 - lambda/2 (1 - lambda/3 (1 - lambda/4 (1 - lambda/5 (1 - lambda/6))))):
+// the omitted term is below lambda^7 / 5040 = 2e-11 lambda.
+PRISM_FN float click_probability_series(float l) {
+  return l * (1.0f - 0.5f * l * (1.0f - l / 3.0f * (1.0f - 0.25f * l * (1.0f - 0.2f * l * (1.0f - l / 6.0f)))));
+}
+
 // 1 - exp(-lambda), relative error ~1e-7 for every lambda > 0.
 PRISM_FN float click_probability(float lambda) {
-  if (lambda < 0.1f) {
-    // lambda (1 - lambda/2 (1 - lambda/3 (1 - lambda/4 (1 - lambda/5 (1 - lambda/6))))):
-    // the omitted term is below lambda^7 / 5040 = 2e-11 lambda.
-    float l = lambda;
-    return l * (1.0f - 0.5f * l * (1.0f - l / 3.0f * (1.0f - 0.25f * l * (1.0f - 0.2f * l * (1.0f - l / 6.0f)))));
-  }
+  if (lambda < 0.1f) return click_probability_series(lambda);
   return 1.0f - exp(-lambda);
 }
 
@@ -54,10 +56,7 @@ PRISM_FN float click_curvature(float lambda) {
 // fit's objective takes all three at every click and step.
 PRISM_FN vec3 click_terms(float lambda) {
   float e = exp(-lambda);
-  float l = lambda;
-  float p = lambda < 0.1f
-                ? l * (1.0f - 0.5f * l * (1.0f - l / 3.0f * (1.0f - 0.25f * l * (1.0f - 0.2f * l * (1.0f - l / 6.0f)))))
-                : 1.0f - e;
+  float p = lambda < 0.1f ? click_probability_series(lambda) : 1.0f - e;
   float log_p = lambda > 8.0f ? -e - 0.5f * (e * e) : log(p);
   float curvature = lambda > 80.0f ? 0.0f : (p < 1e-19f ? 3.0e38f : e / p / p);
   return vec3(log_p, 1.0f / p, curvature);
