@@ -494,7 +494,8 @@ const std::string& checked_exr_header(const std::string& path, const DictionaryM
 // Opens a PSF file with OpenEXR's C core and checks it belongs to this
 // dictionary. The core reads the header and, at the first tile, the offset
 // table; nothing else (PsfFile reopens a file for each event's tiles, and
-// OpenEXR's C++ reader took 5x as long to open one).
+// opening it with OpenEXR's C++ reader after a byte-by-byte header walk
+// took 7x as long as the core's own open, by perf).
 struct CorePsf {
   exr_context_t core = nullptr;
   float inv_scale = 1;
