@@ -129,9 +129,9 @@ void locate_pair(uint e, uint m) {
 // The (event, PSF) of this invocation in phases 0 and 1: its workgroup's, or
 // in the serial layout its own (false past the dispatch's PSFs).
 bool locate(bool serial) {
-  uint m = P.psf_first + (serial ? gl_GlobalInvocationID.x : gl_WorkGroupID.x);
+  uint m = P.psf_first + (serial ? gl_WorkGroupID.y * GROUP + gl_LocalInvocationID.x : gl_WorkGroupID.x);
   if (serial && m >= P.psf_first + P.psf_count) return false;
-  locate_pair(P.event_first + gl_WorkGroupID.y, m);
+  locate_pair(P.event_first + (serial ? gl_WorkGroupID.x : gl_WorkGroupID.y), m);
   return true;
 }
 
