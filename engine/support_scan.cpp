@@ -5,6 +5,7 @@
 #include <cstring>
 #include <limits>
 #include <map>
+#include <tuple>
 #include <numeric>
 #include <string>
 
@@ -42,12 +43,14 @@ constexpr uint64_t kSerialShiftsPerPass = 8;
 // The sparse kernel's texel bindings (support_scan.comp): the dictionary's
 // chunk again (8) for the PSF values, as half floats where the chunk holds
 // them, the clicks (9) and their rates and weights (10), the same buffers as
-// bindings 0, 3 and 4.
+// bindings 0, 3 and 4; and the chunk once more (11), four floats a texel, for
+// the row tables (ScanLevel::rows).
 std::vector<VkFormat> sparse_texel_formats(bool half) {
-  std::vector<VkFormat> f(11, VK_FORMAT_UNDEFINED);
+  std::vector<VkFormat> f(12, VK_FORMAT_UNDEFINED);
   f[8] = half ? VK_FORMAT_R16_SFLOAT : VK_FORMAT_R32_SFLOAT;
   f[9] = VK_FORMAT_R32_UINT;
   f[10] = VK_FORMAT_R32G32_SFLOAT;
+  f[11] = VK_FORMAT_R32G32B32A32_SFLOAT;
   return f;
 }
 
@@ -59,11 +62,11 @@ struct SupportScanVulkan::Impl {
   bool half;
   ScanLayout layout;
   ScanLoads loads;
-  std::map<std::pair<bool, bool>, std::unique_ptr<vk::Kernel>> kernels;  // by (serial scan, serial fit)
+  std::map<std::tuple<bool, bool, bool>, std::unique_ptr<vk::Kernel>> kernels;  // by (serial scan, serial fit, rows)
   Impl(vk::Context& c, ScanKernel k, bool h, ScanLayout l, ScanLoads d)
       : ctx(c), which(k), half(h), layout(l), loads(d) {}
-  vk::Kernel& kernel(bool serial_scan, bool serial_fit) {
-    auto& k = kernels[{serial_scan, serial_fit}];
+  vk::Kernel& kernel(bool serial_scan, bool serial_fit, bool rows) {
+    auto& k = kernels[{serial_scan, serial_fit, rows}];
     if (k) return *k;
     if (which == ScanKernel::dense)
       k = std::make_unique<vk::Kernel>(
@@ -72,10 +75,10 @@ struct SupportScanVulkan::Impl {
           sizeof(shared::ScanParams), std::vector<uint32_t>{half ? 1u : 0u});
     else
       k = std::make_unique<vk::Kernel>(
-          ctx, "support_scan", std::span<const uint32_t>(spv_support_scan, std::size(spv_support_scan)), 11,
+          ctx, "support_scan", std::span<const uint32_t>(spv_support_scan, std::size(spv_support_scan)), 12,
           sizeof(shared::ScanParams),
           std::vector<uint32_t>{half ? 1u : 0u, serial_scan ? 1u : 0u, serial_fit ? 1u : 0u, uint32_t(kCpuLoopBudget),
-                                loads == ScanLoads::texel ? 1u : 0u},
+                                loads == ScanLoads::texel ? 1u : 0u, rows ? 1u : 0u},
           sparse_texel_formats(half));
     return *k;
   }
@@ -170,7 +173,9 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
   }
   const uint64_t max_shifts = uint64_t(2 * max_half + 1) * uint64_t(2 * max_half + 1);
   const uint64_t group = 64;  // scan.glsl's GROUP
-  vk::Kernel& kernel = impl_->kernel(serial_scan, serial_fit);
+  // The row tables serve the serial scan's texel loads on a lattice of step 1.
+  const bool rows = level.rows && !dense && serial_scan && impl_->loads == ScanLoads::texel && s.step_px == 1;
+  vk::Kernel& kernel = impl_->kernel(serial_scan, serial_fit, rows);
 
   std::vector<ScanOut> raw(batch * n_psf);
   for (size_t e0 = 0; e0 < n_events; e0 += batch) {
@@ -279,7 +284,7 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
           st.dispatch(k, {chunk, &psfs, b_images.get(), &results, &block_best}, &p, x, uint32_t(ne), z);
         else
           st.dispatch(k, {chunk, &psfs, b_events.get(), b_clicks.get(), b_rates.get(), &results, &block_best,
-                          &no_list, chunk, b_clicks.get(), b_rates.get()},
+                          &no_list, chunk, b_clicks.get(), b_rates.get(), chunk},
                       &p, serial ? uint32_t(ne) : x, serial ? x : uint32_t(ne), z);
       }
       st.barrier();
@@ -298,7 +303,7 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
         last_device_bytes_ = std::max(last_device_bytes_, scan_bytes + b_list.bytes());
         b_list.upload(list.data(), list.size() * sizeof(glm::uvec2));
         vk::Stream st(ctx, uint32_t(ranges.size()) + 1);
-        vk::Kernel& k = impl_->kernel(serial_scan, serial);
+        vk::Kernel& k = impl_->kernel(serial_scan, serial, rows);
         p.phase = 2;
         size_t first = 0;
         for (const Range& r : ranges) {
@@ -313,7 +318,8 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
                                     : std::min(p.list_count, max_x);
           const uint32_t y = serial ? 1u : (p.list_count + x - 1) / x;
           st.dispatch(k, {level.chunks.at(r.chunk), &psfs, b_events.get(), b_clicks.get(), b_rates.get(), &results,
-                          &block_best, &b_list, level.chunks.at(r.chunk), b_clicks.get(), b_rates.get()},
+                          &block_best, &b_list, level.chunks.at(r.chunk), b_clicks.get(), b_rates.get(),
+                          level.chunks.at(r.chunk)},
                       &p, x, y);
           first = end;
         }

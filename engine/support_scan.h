@@ -43,6 +43,10 @@ static_assert(sizeof(ScanPsf) == 16);
 struct ScanLevel {
   int width = 0, height = 0;
   bool half = false;        // values as half floats times half_scale
+  // Float values only: each PSF's summed-area table is followed, from the
+  // next multiple of 4 words, by its row table (support_scan.comp's
+  // psf_row), which the serial scan reads on a CPU device.
+  bool rows = false;
   float half_scale = 1.0f;
   std::vector<const vk::Buffer*> chunks;
   std::vector<ScanPsf> psfs;

@@ -43,21 +43,31 @@ uint16_t* DictionaryService::TileSlabs::take() {
 }
 
 namespace {
+uint64_t next_multiple_of_4(uint64_t words) { return (words + 3) / 4 * 4; }
 // Words of one PSF's coarse level on the device: values (two halves per word,
-// or one float), then its float summed-area table.
-uint64_t device_words(const DictionaryManifest& m, int level, bool device_half) {
+// or one float), then its float summed-area table; with rows, from the next
+// multiple of 4 words, its row table of (w + 3) x h texels of 4 floats
+// (ScanLevel::rows; the next PSF starts at a multiple of 4 words too).
+uint64_t device_words(const DictionaryManifest& m, int level, bool device_half, bool rows) {
   const uint64_t w = uint64_t(m.level_width(level)), h = uint64_t(m.level_height(level));
-  return (device_half ? (w * h + 1) / 2 : w * h) + (w + 1) * (h + 1);
+  const uint64_t head = (device_half ? (w * h + 1) / 2 : w * h) + (w + 1) * (h + 1);
+  return rows ? next_multiple_of_4(head) + (w + 3) * h * 4 : head;
 }
 }  // namespace
 
-uint64_t DictionaryService::device_bytes(const DictionaryManifest& m, int coarse_level, bool device_half) {
-  return device_words(m, coarse_level, device_half) * 4 * m.grid.size();
+uint64_t DictionaryService::device_bytes(const DictionaryManifest& m, int coarse_level, bool device_half, bool rows) {
+  return device_words(m, coarse_level, device_half, rows) * 4 * m.grid.size();
+}
+
+bool DictionaryService::device_rows(const DictionaryManifest& m, int coarse_level, const vk::Context* ctx,
+                                    bool device_half, uint64_t device_budget_bytes) {
+  return ctx && ctx->is_cpu() && !device_half && device_bytes(m, coarse_level, false, true) <= device_budget_bytes;
 }
 
 DictionaryService::DictionaryService(const DictionaryReader& reader, vk::Context* ctx, int coarse_level,
                                      ServiceBudget budget, bool device_half)
     : reader_(reader), coarse_level_(coarse_level), budget_(budget), device_half_(device_half),
+      device_rows_(device_rows(reader.manifest(), coarse_level, ctx, device_half, budget.device_bytes)),
       tables_(std::make_shared<CoarseTables>()),
       slabs_(size_t(reader.manifest().tile_px) * size_t(reader.manifest().tile_px)) {
   const DictionaryManifest& m = reader.manifest();
@@ -66,8 +76,10 @@ DictionaryService::DictionaryService(const DictionaryReader& reader, vk::Context
                           std::to_string(m.levels - 1) + ")");
   const uint64_t w = uint64_t(m.level_width(coarse_level)), h = uint64_t(m.level_height(coarse_level));
   const uint64_t sat_words = (w + 1) * (h + 1);
-  const uint64_t p_words = device_words(m, coarse_level, device_half) - sat_words;
-  const uint64_t psf_bytes = (p_words + sat_words) * 4;  // on the device: values, then the float table
+  const uint64_t p_words = device_words(m, coarse_level, device_half, false) - sat_words;
+  const uint64_t row_word = next_multiple_of_4(p_words + sat_words);  // where the row table starts (device_rows_)
+  // On the device: values, then the float table, then the row table.
+  const uint64_t psf_bytes = device_words(m, coarse_level, device_half, device_rows_) * 4;
   const uint64_t sat_bytes = (w + 1) * (h + 1) * sizeof(double);
   const size_t n = m.grid.size();
   auto finer_hint = [&] {
@@ -91,7 +103,7 @@ DictionaryService::DictionaryService(const DictionaryReader& reader, vk::Context
     chunk_cap = std::min<uint64_t>({ctx->max_storage_buffer_bytes(), 128ull << 20, texel_cap});
   }
   uint64_t per_chunk = ctx ? std::max<uint64_t>(1, chunk_cap / psf_bytes) : 0;
-  std::vector<uint32_t> words(p_words + sat_words);
+  std::vector<uint32_t> words(psf_bytes / 4);
   for (size_t i = 0; i < n; ++i) {
     PsfLevel lv = reader.has(i) ? reader.read_level(i, coarse_level)
                                 : throw DictionaryError(reader.path_of(i) + ": missing; finish `prism dictionary build`");
@@ -120,6 +132,14 @@ DictionaryService::DictionaryService(const DictionaryReader& reader, vk::Context
       float v = float(table[k]);
       std::memcpy(&words[p_words + k], &v, 4);
     }
+    if (device_rows_) {
+      // Texel (x, y) = P(x - k, y), k = 0..3, zero off the sensor.
+      float* rows = reinterpret_cast<float*>(&words[row_word]);
+      for (uint64_t y = 0; y < h; ++y)
+        for (uint64_t x = 0; x < w + 3; ++x)
+          for (uint64_t k = 0; k < 4; ++k)
+            rows[(y * (w + 3) + x) * 4 + k] = x >= k && x - k < w ? lv.p[y * w + x - k] : 0.0f;
+    }
     chunks_[chunk]->upload(words.data(), psf_bytes, in_chunk * psf_bytes);
     const uint64_t first = in_chunk * psf_bytes / 4;
     slots_.push_back({chunk, first, first + p_words});
@@ -140,6 +160,7 @@ ScanLevel DictionaryService::scan_level() const {
   s.height = m.level_height(coarse_level_);
   s.half = device_half_;
   s.half_scale = device_half_ ? device_half_scale : 1.0f;
+  s.rows = device_rows_;
   for (const auto& c : chunks_) s.chunks.push_back(c.get());
   for (const Slot& slot : slots_) {
     if (slot.sat_offset > 0xffffffffull) throw DictionaryError("scan level: a chunk offset exceeds 32 bits");

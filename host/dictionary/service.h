@@ -2,8 +2,9 @@
 // search correlates against stays resident on the device, packed into storage
 // buffers of at most maxStorageBufferRange (128 MiB on lavapipe), each PSF's
 // values (float, or half floats at the store's scale) followed by its
-// summed-area table in float; the tables stay on the host too, in double. Finer levels are read tile by tile, only
-// around the pixels asked for, into an LRU cache that never exceeds the host
+// summed-area table in float (and on a CPU device by the scan's row table);
+// the tables stay on the host too, in double. Finer levels are read tile by
+// tile, only around the pixels asked for, into an LRU cache that never exceeds the host
 // budget. A dictionary far larger than memory is served this way. A pixel
 // under a dark pixel of the coarse level is known to be zero: its tile is not
 // read for it.
@@ -56,8 +57,13 @@ class DictionaryService {
   DictionaryService(const DictionaryService& first, ServiceBudget budget);
 
   // What the coarse level of every PSF takes on the device: values and float
-  // summed-area tables.
-  static uint64_t device_bytes(const DictionaryManifest& m, int coarse_level, bool device_half);
+  // summed-area tables, and the row tables where device_rows() says so.
+  static uint64_t device_bytes(const DictionaryManifest& m, int coarse_level, bool device_half, bool rows);
+  // Whether the service puts the support scan's row tables (ScanLevel::rows)
+  // beside the float values: on a CPU device, where the serial scan reads
+  // them, and only while the level with them fits the device budget.
+  static bool device_rows(const DictionaryManifest& m, int coarse_level, const vk::Context* ctx, bool device_half,
+                          uint64_t device_budget_bytes);
 
   const DictionaryManifest& manifest() const { return reader_.manifest(); }
   int coarse_level() const { return coarse_level_; }
@@ -123,6 +129,7 @@ class DictionaryService {
   int coarse_level_;
   ServiceBudget budget_;
   bool device_half_ = false;
+  bool device_rows_ = false;
   std::vector<std::unique_ptr<vk::Buffer>> chunks_;
   std::vector<Slot> slots_;
   // The coarse level on the host, per PSF: its summed-area table and lit pixels.

@@ -36,8 +36,10 @@ ReconstructionPool::ReconstructionPool(const DictionaryReader& reader, int click
                           std::to_string(m.grid.size()) + " PSFs (" + std::to_string(m.level_width(L)) + " x " +
                           std::to_string(m.level_height(L)) + " px each)");
     memory.add("summed-area tables and tiles (--budget-mib)", double(o.host_budget_bytes));
-    if (on_device && o.ctx)
-      memory.add_device_buffers(double(DictionaryService::device_bytes(m, L, o.device_half)), o.ctx->is_cpu());
+    if (on_device && o.ctx) {
+      const bool rows = DictionaryService::device_rows(m, L, o.ctx, o.device_half, ServiceBudget{}.device_bytes);
+      memory.add_device_buffers(double(DictionaryService::device_bytes(m, L, o.device_half, rows)), o.ctx->is_cpu());
+    }
     memory.require_within_limit("Use a smaller --budget-mib or a coarser --level");
   }
   ServiceBudget budget;

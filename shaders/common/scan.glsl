@@ -15,7 +15,8 @@
 // values, width x height row-major, as float bits or, with HALF, as pairs of
 // half floats times half_scale in one word (low half first); then, from
 // sat_word, its summed-area table, (width + 1) x (height + 1) floats, so the
-// on-sensor mass S of a shifted PSF is four look-ups.
+// on-sensor mass S of a shifted PSF is four look-ups; on a CPU device, float
+// values, then its row table (support_scan.comp's psf_row).
 #ifndef PRISM_SCAN_GLSL
 #define PRISM_SCAN_GLSL
 

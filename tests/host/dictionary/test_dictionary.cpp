@@ -379,6 +379,37 @@ TEST_CASE("streaming serves a dictionary several times larger than its budget") 
     svc.coarse_chunk(slot.chunk).download(got.data(), got.size() * sizeof(float), slot.offset * sizeof(float));
     CHECK(got == want.p);
   }
+  {
+    // On a CPU device, each PSF's row table for the serial scan after its
+    // float summed-area table (ScanLevel::rows): texel (x, y) holds P(x - k,
+    // y), k = 0..3, zero off the sensor; none where it would pass the budget.
+    const int w = m.level_width(3), h = m.level_height(3);
+    const bool rows = prism::test::gpu().is_cpu();
+    CHECK(prism::DictionaryService::device_rows(m, 3, &prism::test::gpu(), false, budget.device_bytes) == rows);
+    CHECK(svc.scan_level().rows == rows);
+    for (size_t i = 0; rows && i < m.grid.size(); ++i) {
+      CAPTURE(i);
+      auto slot = svc.coarse_slot(i);
+      auto want = r.read_level(i, 3);
+      const uint64_t row_word = (slot.sat_offset + uint64_t(w + 1) * uint64_t(h + 1) + 3) / 4 * 4;
+      std::vector<float> got(size_t(w + 3) * size_t(h) * 4);
+      svc.coarse_chunk(slot.chunk).download(got.data(), got.size() * sizeof(float), row_word * sizeof(float));
+      size_t wrong = 0;
+      for (int y = 0; y < h; ++y)
+        for (int x = 0; x < w + 3; ++x)
+          for (int k = 0; k < 4; ++k) {
+            const float p = x - k >= 0 && x - k < w ? want.p[size_t(y) * size_t(w) + size_t(x - k)] : 0.0f;
+            wrong += got[(size_t(y) * size_t(w + 3) + size_t(x)) * 4 + size_t(k)] != p;
+          }
+      CHECK(wrong == 0);
+    }
+    const uint64_t without = prism::DictionaryService::device_bytes(m, 3, false, false);
+    CHECK(prism::DictionaryService::device_bytes(m, 3, false, true) > without);
+    CHECK_FALSE(prism::DictionaryService::device_rows(m, 3, &prism::test::gpu(), false, without));
+    prism::DictionaryService tight(r, &prism::test::gpu(), 3, {budget.host_bytes, without});
+    CHECK_FALSE(tight.scan_level().rows);
+    CHECK_FALSE(prism::DictionaryService::device_rows(m, 3, &prism::test::gpu(), true, budget.device_bytes));
+  }
   // Random pixel requests all over every PSF's level 0.
   std::mt19937 rng(7);
   std::vector<prism::PsfLevel> truth;

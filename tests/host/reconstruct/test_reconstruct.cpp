@@ -958,24 +958,32 @@ TEST_CASE("support scan on the device: sparse, dense and half agree with the CPU
   prism::test::check_validation_clean();
 }
 
-TEST_CASE("support scan on the device: texel-buffer and storage-buffer look-ups give the same scan, bit for bit") {
+TEST_CASE("support scan on the device: texel-buffer, row-table and storage-buffer look-ups give the same scan, bit for bit") {
   // The sparse kernel reads the PSF values, clicks and rates through texel
-  // buffers by default (engine/support_scan.h, ScanLoads): the same words,
-  // so the same sums in the same order as through storage buffers, float and
-  // half values, both layouts, the default bound-limited fits.
+  // buffers by default (engine/support_scan.h, ScanLoads), and on a CPU
+  // device its serial scan reads four shifts' values at once from the row
+  // tables (ScanLevel::rows): the same words, so the same sums in the same
+  // order as through storage buffers, float and half values, both layouts,
+  // the default bound-limited fits. tau 6 mm: lattices of up to 23 x 23
+  // shifts, split into blocks within a row (the loop budget).
   using L = prism::ScanLayout;
   using D = prism::ScanLoads;
   const std::vector<prism::Event> events = scan_events();
+  for (double tau : {2.5, 6.0})
   for (bool half : {false, true})
     for (L layout : {L::serial, L::group}) {
+      CAPTURE(tau);
       CAPTURE(half);
       CAPTURE(layout == L::group);
       std::vector<std::vector<prism::SupportScore>> scans[2];
       for (D loads : {D::texel, D::storage}) {
         auto st = settings(1);
+        st.tau_mm = tau;
         st.scan_layout = layout;
         st.scan_loads = loads;
         DeviceRun d(prism::ReconstructionBackend::vulkan, st, half);
+        // Row tables wherever the device is a CPU and the values are floats.
+        CHECK(d.service.scan_level().rows == (prism::test::gpu().is_cpu() && !half));
         scans[loads == D::storage] = d.reconstructor.first_scan(events);
       }
       REQUIRE(scans[0].size() == scans[1].size());
