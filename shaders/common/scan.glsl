@@ -77,7 +77,13 @@ float psf_value(uint base, int x, int y) {
   return uintBitsToFloat(words[base + i]);
 }
 
-float sat_at(uint base, int x, int y) { return uintBitsToFloat(words[base + uint(y) * (P.width + 1u) + uint(x)]); }
+float sat_at(uint base, int x, int y) {
+  uint i = base + uint(y) * (P.width + 1u) + uint(x);
+#ifdef PSF_TEXELS
+  if (TEXELS == 1u && HALF == 0u) return texelFetch(psf_texels, int(i)).r;  // the float view spans the tables too
+#endif
+  return uintBitsToFloat(words[i]);
+}
 
 // Mass of the PSF still on the sensor after shifting it by (dx, dy) pixels:
 // the table over columns [-dx, width - dx) and rows [-dy, height - dy), clipped.
