@@ -42,15 +42,14 @@ constexpr uint64_t kSerialShiftsPerPass = 8;
 
 // The sparse kernel's texel bindings (support_scan.comp): the dictionary's
 // chunk again (8) for the PSF values, as half floats where the chunk holds
-// them, the clicks (9) and their rates and weights (10), the same buffers as
-// bindings 0, 3 and 4; and the chunk once more (11), four floats a texel, for
-// the row tables (ScanLevel::rows).
+// them; each click with its rate and weight in one texel (9: the words of
+// bindings 3 and 4 side by side); and the chunk once more (10), four floats
+// a texel, for the row tables (ScanLevel::rows).
 std::vector<VkFormat> sparse_texel_formats(bool half) {
-  std::vector<VkFormat> f(12, VK_FORMAT_UNDEFINED);
+  std::vector<VkFormat> f(11, VK_FORMAT_UNDEFINED);
   f[8] = half ? VK_FORMAT_R16_SFLOAT : VK_FORMAT_R32_SFLOAT;
-  f[9] = VK_FORMAT_R32_UINT;
-  f[10] = VK_FORMAT_R32G32_SFLOAT;
-  f[11] = VK_FORMAT_R32G32B32A32_SFLOAT;
+  f[9] = VK_FORMAT_R32G32B32A32_UINT;
+  f[10] = VK_FORMAT_R32G32B32A32_SFLOAT;
   return f;
 }
 
@@ -75,7 +74,7 @@ struct SupportScanVulkan::Impl {
           sizeof(shared::ScanParams), std::vector<uint32_t>{half ? 1u : 0u});
     else
       k = std::make_unique<vk::Kernel>(
-          ctx, "support_scan", std::span<const uint32_t>(spv_support_scan, std::size(spv_support_scan)), 12,
+          ctx, "support_scan", std::span<const uint32_t>(spv_support_scan, std::size(spv_support_scan)), 11,
           sizeof(shared::ScanParams),
           std::vector<uint32_t>{half ? 1u : 0u, serial_scan ? 1u : 0u, serial_fit ? 1u : 0u, uint32_t(kCpuLoopBudget),
                                 loads == ScanLoads::texel ? 1u : 0u, rows ? 1u : 0u},
@@ -180,7 +179,7 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
   std::vector<ScanOut> raw(batch * n_psf);
   for (size_t e0 = 0; e0 < n_events; e0 += batch) {
     const size_t ne = std::min(batch, n_events - e0);
-    std::unique_ptr<vk::Buffer> b_events, b_clicks, b_rates, b_images;
+    std::unique_ptr<vk::Buffer> b_events, b_clicks, b_rates, b_records, b_images;
     uint64_t batch_bytes = run_bytes;
     if (!dense) {
       std::vector<uint32_t> ranges_words, xy;
@@ -203,7 +202,15 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
       b_clicks->upload(std::span<const uint32_t>(xy));
       b_rates = std::make_unique<vk::Buffer>(ctx, rw.size() * 4);
       b_rates->upload(std::span<const float>(rw));
-      batch_bytes += b_events->bytes() + b_clicks->bytes() + b_rates->bytes();
+      // The texel loads' copy: per click its word, then lambda's and the weight's bits, then 0.
+      std::vector<uint32_t> records(4 * xy.size(), 0u);
+      for (size_t c = 0; c < xy.size(); ++c) {
+        records[4 * c] = xy[c];
+        std::memcpy(&records[4 * c + 1], &rw[2 * c], 8);
+      }
+      b_records = std::make_unique<vk::Buffer>(ctx, records.size() * 4);
+      b_records->upload(std::span<const uint32_t>(records));
+      batch_bytes += b_events->bytes() + b_clicks->bytes() + b_rates->bytes() + b_records->bytes();
     } else {
       std::vector<uint32_t> words(ne * dense_words, 0);
       for (size_t e = 0; e < ne; ++e) {
@@ -284,7 +291,7 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
           st.dispatch(k, {chunk, &psfs, b_images.get(), &results, &block_best}, &p, x, uint32_t(ne), z);
         else
           st.dispatch(k, {chunk, &psfs, b_events.get(), b_clicks.get(), b_rates.get(), &results, &block_best,
-                          &no_list, chunk, b_clicks.get(), b_rates.get(), chunk},
+                          &no_list, chunk, b_records.get(), chunk},
                       &p, serial ? uint32_t(ne) : x, serial ? x : uint32_t(ne), z);
       }
       st.barrier();
@@ -318,8 +325,7 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
                                     : std::min(p.list_count, max_x);
           const uint32_t y = serial ? 1u : (p.list_count + x - 1) / x;
           st.dispatch(k, {level.chunks.at(r.chunk), &psfs, b_events.get(), b_clicks.get(), b_rates.get(), &results,
-                          &block_best, &b_list, level.chunks.at(r.chunk), b_clicks.get(), b_rates.get(),
-                          level.chunks.at(r.chunk)},
+                          &block_best, &b_list, level.chunks.at(r.chunk), b_records.get(), level.chunks.at(r.chunk)},
                       &p, x, y);
           first = end;
         }

@@ -39,12 +39,12 @@ layout(std430, binding = 2) readonly buffer Events { uvec2 event_clicks[]; };
 // Per click: x | y << 16 on the scan level, and lambda of the event's
 // current model (dark rate included) with the gradient weight 1 / (1 -
 // exp(-lambda)), formed once on the host in double. Read, where TEXELS is
-// set, through the same buffers as texel buffers (bindings 9, R32_UINT, and
-// 10, R32G32_SFLOAT; scan.glsl's PSF_TEXELS says why).
+// set, as one texel per click of binding 9 (R32G32B32A32_UINT: the word,
+// lambda's and the weight's bits, 0; scan.glsl's PSF_TEXELS says why): one
+// fetch for all three, where the two buffers below take two.
 layout(std430, binding = 3) readonly buffer Clicks { uint click_words[]; };
 layout(std430, binding = 4) readonly buffer Rates { vec2 rate_words[]; };
 layout(binding = 9) uniform usamplerBuffer click_texels;
-layout(binding = 10) uniform samplerBuffer rate_texels;
 // Phase 0's row table where ROWS is set (DictionaryService puts it after each
 // PSF's summed-area table, from the next multiple of 4 words): (width + 3) x
 // height texels of four floats, texel (x, y) = (P(x, y), P(x - 1, y),
@@ -52,14 +52,12 @@ layout(binding = 10) uniform samplerBuffer rate_texels;
 // gives the values of four neighbouring shifts of a lattice row (step 1):
 // on llvmpipe a fetch of four floats costs about what one float's does.
 layout(constant_id = 5) const uint ROWS = 0u;
-layout(binding = 11) uniform samplerBuffer row_texels;  // the dictionary's chunk again, four floats a texel
+layout(binding = 10) uniform samplerBuffer row_texels;  // the dictionary's chunk again, four floats a texel
 uint row_texel_base(uint sat_word) { return (sat_word + (P.width + 1u) * (P.height + 1u) + 3u) >> 2u; }
 vec4 psf_row(uint base, int x, int y) {
   if (x < 0 || y < 0 || x >= int(P.width) + 3 || y >= int(P.height)) return vec4(0.0f);  // no light
   return texelFetch(row_texels, int(base + uint(y) * (P.width + 3u) + uint(x)));
 }
-uint click_word(uint i) { return TEXELS == 1u ? texelFetch(click_texels, int(i)).r : click_words[i]; }
-vec2 rate_weight(uint i) { return TEXELS == 1u ? texelFetch(rate_texels, int(i)).xy : rate_words[i]; }
 layout(std430, binding = 5) buffer Out { ScanOut results[]; };                 // [event][PSF]
 // Phase 2: the candidates whose weights to fit, (event, PSF) pairs; the
 // entries of one dispatch lie in its chunk.
@@ -73,9 +71,23 @@ uint row;     // e * psf_total + m: this (event, PSF)'s results
 ivec2 best_shift;
 float best_mass;
 
-ivec2 click_at(uint c) {
-  uint v = click_word(first_click + c);
-  return ivec2(int(v & 0xffffu), int(v >> 16u));
+// Click c of this invocation's event.
+struct Click {
+  ivec2 at;
+  float lambda;
+  float w;
+};
+Click click_of(uint c) {
+  uint i = first_click + c, v;
+  Click k;
+  if (TEXELS == 1u) {
+    uvec4 r = texelFetch(click_texels, int(i));
+    v = r.x, k.lambda = uintBitsToFloat(r.y), k.w = uintBitsToFloat(r.z);
+  } else {
+    v = click_words[i], k.lambda = rate_words[i].x, k.w = rate_words[i].y;
+  }
+  k.at = ivec2(int(v & 0xffffu), int(v >> 16u));
+  return k;
 }
 
 // The serial layout: one invocation per (event, PSF), no sums across the
@@ -114,10 +126,11 @@ vec3 objective_slope_curvature(float alpha) {
   float part = 0.0f;
   vec2 slope_curv = vec2(0.0f);
   for (uint c = lane(); c < click_count; c += lanes()) {
-    ivec2 q = click_at(c) - best_shift;
+    Click k = click_of(c);
+    ivec2 q = k.at - best_shift;
     float p = psf_value(p_base, q.x, q.y);
     if (p <= 0.0f) continue;  // a click the PSF does not reach: no term in alpha
-    float lambda = rate_weight(first_click + c).x + alpha * p;
+    float lambda = k.lambda + alpha * p;
     vec3 terms = click_terms(lambda);
     part += lambda + terms.x;
     slope_curv += vec2(p * terms.y, p * p * terms.z);
@@ -196,13 +209,12 @@ void score_block() {
         j += len[g];
       }
       for (uint c = 0u; c < click_count; ++c) {
-        ivec2 click = click_at(c);
-        float w = rate_weight(first_click + c).y;
+        Click k = click_of(c);
         [[unroll]] for (uint g = 0u; g < SEGMENTS; ++g) {
           if (len[g] == 0u) continue;
-          ivec2 q = click - sh[g];
+          ivec2 q = k.at - sh[g];
           vec4 v = psf_row(rows, q.x, q.y);  // P at click - (sh + (k, 0)), k = 0..3
-          [[unroll]] for (uint k = 0u; k < 4u; ++k) score[4u * g + k] -= w * v[k];
+          [[unroll]] for (uint s = 0u; s < 4u; ++s) score[4u * g + s] -= k.w * v[s];
         }
       }
       [[unroll]] for (uint g = 0u; g < SEGMENTS; ++g)
@@ -226,11 +238,10 @@ void score_block() {
         score[k] = mass_shifted(psf.sat_word, sh[k].x, sh[k].y);
       }
       for (uint c = 0u; c < click_count; ++c) {
-        ivec2 click = click_at(c);
-        float w = rate_weight(first_click + c).y;
-        [[unroll]] for (uint k = 0u; k < SUB; ++k) {
-          ivec2 q = click - sh[k];
-          score[k] -= w * psf_value(p_base, q.x, q.y);
+        Click k = click_of(c);
+        [[unroll]] for (uint s = 0u; s < SUB; ++s) {
+          ivec2 q = k.at - sh[s];
+          score[s] -= k.w * psf_value(p_base, q.x, q.y);
         }
       }
       [[unroll]] for (uint k = 0u; k < SUB; ++k)
@@ -247,8 +258,9 @@ void score_block() {
       ivec2 sh = lattice_shift(j, n);
       float score = mass_shifted(psf.sat_word, sh.x, sh.y);
       for (uint c = 0u; c < click_count; ++c) {
-        ivec2 q = click_at(c) - sh;
-        score -= rate_weight(first_click + c).y * psf_value(p_base, q.x, q.y);
+        Click k = click_of(c);
+        ivec2 q = k.at - sh;
+        score -= k.w * psf_value(p_base, q.x, q.y);
       }
       if (score < best) {
         best = score;
@@ -274,8 +286,9 @@ void bound_best() {
   float alpha0 = bound_tangent_alpha(float(click_count), best_mass, P.alpha_max);
   BoundSums t = no_bound_sums();
   for (uint c = lane(); c < click_count; c += lanes()) {
-    ivec2 q = click_at(c) - best_shift;
-    t = bound_sums_add(t, psf_value(p_base, q.x, q.y), rate_weight(first_click + c).x, alpha0);
+    Click k = click_of(c);
+    ivec2 q = k.at - best_shift;
+    t = bound_sums_add(t, psf_value(p_base, q.x, q.y), k.lambda, alpha0);
   }
   vec2 v = lanes_sum2(vec2(t.reached, t.q));
   t.reached = v.x, t.q = v.y;
@@ -318,8 +331,9 @@ void fit_listed() {
   // The clicks reached, for Newton's start; the NLL's terms of the others.
   vec2 reached_fixed = vec2(0.0f);
   for (uint c = lane(); c < click_count; c += lanes()) {
-    ivec2 q = click_at(c) - best_shift;
-    float b = rate_weight(first_click + c).x;
+    Click k = click_of(c);
+    ivec2 q = k.at - best_shift;
+    float b = k.lambda;
     reached_fixed += psf_value(p_base, q.x, q.y) > 0.0f ? vec2(1.0f, 0.0f) : vec2(0.0f, b + log_click(b));
   }
   reached_fixed = lanes_sum2(reached_fixed);
