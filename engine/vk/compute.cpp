@@ -88,9 +88,7 @@ const VkBufferUsageFlags kStorage = VK_BUFFER_USAGE_STORAGE_BUFFER_BIT | VK_BUFF
 uint64_t texel_bytes(VkFormat f) {
   switch (f) {
     case VK_FORMAT_R16_SFLOAT: return 2;
-    case VK_FORMAT_R32_SFLOAT:
-    case VK_FORMAT_R32_UINT: return 4;
-    case VK_FORMAT_R32G32_SFLOAT: return 8;
+    case VK_FORMAT_R32_SFLOAT: return 4;
     case VK_FORMAT_R32G32B32A32_SFLOAT:
     case VK_FORMAT_R32G32B32A32_UINT: return 16;
     default: throw Error("Buffer::view: format " + std::to_string(int(f)) + " is not one of the texel formats used here");
