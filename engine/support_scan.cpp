@@ -5,9 +5,9 @@
 #include <cstring>
 #include <limits>
 #include <map>
-#include <tuple>
 #include <numeric>
 #include <string>
+#include <tuple>
 
 #include "engine/vk/error.h"
 #include "spv/support_scan.spv.h"
@@ -277,8 +277,8 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
     // block]), or one invocation each when serial. Serial, the events run
     // along x: llvmpipe runs the workgroups in x's order, so the next ones
     // read the same 64 PSFs (their values stay in the core's cache) rather
-    // than the next 64 of the dictionary (1.08x over the 1000 volume events:
-    // README "The host's work, this round").
+    // than the next 64 of the dictionary (1.09x over the 1000 volume events:
+    // README "The scan's kernels, this round").
     auto record = [&](vk::Stream& st, vk::Kernel& k, uint32_t phase, bool serial) {
       p.phase = phase;
       for (const Range& r : ranges) {

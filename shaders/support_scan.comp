@@ -177,9 +177,9 @@ bool locate(bool serial) {
 //
 // With ROWS (step 1): passes of SEGMENTS runs of up to 4 neighbouring shifts
 // of one lattice row, each run one row-table fetch per click. The lattice of
-// 121 shifts (n = 5) costs 33 fetches per click instead of 121, plus its
-// passes' 9 reads of the click and its weight instead of 16. The scores are
-// the same sums in the same order as without it.
+// 121 shifts (n = 5) costs 33 fetches per click instead of 121, and 11 reads
+// of the click (one per pass) instead of 16. The scores are the same sums in
+// the same order as without it.
 const uint SUB = 8u;
 const uint SEGMENTS = 3u;
 void score_block() {
@@ -213,7 +213,7 @@ void score_block() {
         [[unroll]] for (uint g = 0u; g < SEGMENTS; ++g) {
           if (len[g] == 0u) continue;
           ivec2 q = k.at - sh[g];
-          vec4 v = psf_row(rows, q.x, q.y);  // P at click - (sh + (k, 0)), k = 0..3
+          vec4 v = psf_row(rows, q.x, q.y);  // P at click - (sh + (s, 0)), s = 0..3
           [[unroll]] for (uint s = 0u; s < 4u; ++s) score[4u * g + s] -= k.w * v[s];
         }
       }

@@ -134,11 +134,12 @@ DictionaryService::DictionaryService(const DictionaryReader& reader, vk::Context
     }
     if (device_rows_) {
       // Texel (x, y) = P(x - k, y), k = 0..3, zero off the sensor.
-      float* rows = reinterpret_cast<float*>(&words[row_word]);
       for (uint64_t y = 0; y < h; ++y)
         for (uint64_t x = 0; x < w + 3; ++x)
-          for (uint64_t k = 0; k < 4; ++k)
-            rows[(y * (w + 3) + x) * 4 + k] = x >= k && x - k < w ? lv.p[y * w + x - k] : 0.0f;
+          for (uint64_t k = 0; k < 4; ++k) {
+            const float v = x >= k && x - k < w ? lv.p[y * w + x - k] : 0.0f;
+            std::memcpy(&words[row_word + (y * (w + 3) + x) * 4 + k], &v, 4);
+          }
     }
     chunks_[chunk]->upload(words.data(), psf_bytes, in_chunk * psf_bytes);
     const uint64_t first = in_chunk * psf_bytes / 4;
