@@ -243,7 +243,7 @@ void add_reconstruct(CLI::App& app) {
   c->add_option("--budget-mib", a->session.budget_mib, "host memory for summed-area tables, tiles and open PSF files, all threads together")
       ->capture_default_str()->check(positive_number);
   c->add_option("--threads", a->session.threads, "host threads: the cpu backend's workers; with vulkan or dense, the "
-                 "threads that descend events beside the device's scan (each with its share of --budget-mib). 0: 1 for "
+                 "threads that descend events beside the device's scan (sharing one tile cache within --budget-mib). 0: 1 for "
                  "the cpu backend, this machine's hardware threads (at most 8) for vulkan and dense")->capture_default_str()->check(CLI::Range(0u, 256u));
   c->callback([a] { run(*a); });
 }

@@ -14,33 +14,12 @@ namespace prism {
 
 namespace {
 std::string mib(uint64_t b) { return std::to_string((b + (1 << 20) - 1) >> 20) + " MiB"; }
-constexpr size_t kSlabBytes = size_t(2) << 20;  // a huge page on x86-64 and arm64
+// What a service's budget leaves the tile cache (and the open files, which
+// take their room from it): the rest after its tables.
+uint64_t tile_room(const ServiceBudget& b, uint64_t tables) { return b.host_bytes > tables ? b.host_bytes - tables : 0; }
+// Thrown where the room cannot hold a tile and its file beside the pinned tiles.
+struct NoRoom {};
 }  // namespace
-
-void DictionaryService::TileSlabs::Free::operator()(uint16_t* p) const { std::free(p); }
-
-DictionaryService::TileSlabs::TileSlabs(size_t values)
-    : values_(values), per_block_(std::max<size_t>(1, kSlabBytes / (values * sizeof(uint16_t)))) {}
-
-uint16_t* DictionaryService::TileSlabs::take() {
-  if (!free_.empty()) {
-    uint16_t* tile = free_.back();
-    free_.pop_back();
-    return tile;
-  }
-  if (left_ == 0) {
-    const size_t used = per_block_ * values_ * sizeof(uint16_t);
-    const size_t bytes = (used + kSlabBytes - 1) / kSlabBytes * kSlabBytes;  // aligned_alloc: a multiple of the alignment
-    auto* block = static_cast<uint16_t*>(std::aligned_alloc(kSlabBytes, bytes));
-    if (!block) throw std::bad_alloc();
-#ifdef MADV_HUGEPAGE
-    madvise(block, bytes, MADV_HUGEPAGE);  // a hint: without it, small pages
-#endif
-    blocks_.emplace_back(block);
-    left_ = per_block_;
-  }
-  return blocks_.back().get() + (per_block_ - left_--) * values_;
-}
 
 namespace {
 uint64_t next_multiple_of_4(uint64_t words) { return (words + 3) / 4 * 4; }
@@ -69,7 +48,8 @@ DictionaryService::DictionaryService(const DictionaryReader& reader, vk::Context
     : reader_(reader), coarse_level_(coarse_level), budget_(budget), device_half_(device_half),
       device_rows_(device_rows(reader.manifest(), coarse_level, ctx, device_half, budget.device_bytes)),
       tables_(std::make_shared<CoarseTables>()),
-      slabs_(size_t(reader.manifest().tile_px) * size_t(reader.manifest().tile_px)) {
+      tiles_(std::make_shared<TileCache>(reader.manifest())),
+      owns_tiles_(true) {
   const DictionaryManifest& m = reader.manifest();
   if (coarse_level < 0 || coarse_level >= m.levels)
     throw DictionaryError(reader.dir() + ": no level " + std::to_string(coarse_level) + " (levels 0.." +
@@ -145,11 +125,27 @@ DictionaryService::DictionaryService(const DictionaryReader& reader, vk::Context
     const uint64_t first = in_chunk * psf_bytes / 4;
     slots_.push_back({chunk, first, first + p_words});
   }
+  tiles_->add_room(tile_room(budget, stats_.host_bytes));
 }
 
 DictionaryService::DictionaryService(const DictionaryService& first, ServiceBudget budget)
     : reader_(first.reader_), coarse_level_(first.coarse_level_), budget_(budget), tables_(first.tables_),
-      slabs_(size_t(first.reader_.manifest().tile_px) * size_t(first.reader_.manifest().tile_px)) {}
+      tiles_(first.tiles_), owns_tiles_(false) {
+  tiles_->add_room(tile_room(budget, 0));
+}
+
+ServiceStats DictionaryService::stats() const {
+  ServiceStats s = stats_;
+  s.tile_hits = tile_counts_.hits;
+  s.tile_misses = tile_counts_.misses;
+  s.evictions = tile_counts_.evictions;
+  if (owns_tiles_) {
+    // Own peak and the cache's, each at its own moment: a bound on the sum's.
+    s.host_bytes += tiles_->bytes();
+    s.host_peak_bytes += tiles_->peak_bytes();
+  }
+  return s;
+}
 
 ScanLevel DictionaryService::scan_level() const {
   if (chunks_.empty())
@@ -184,125 +180,143 @@ void DictionaryService::account(int64_t delta) {
   stats_.host_peak_bytes = std::max(stats_.host_peak_bytes, stats_.host_bytes);
 }
 
-const DictionaryService::Tile& DictionaryService::tile(size_t i, int level, int tx, int ty) {
-  const int t = reader_.manifest().tile_px;
-  TileKey key{i, level, tx, ty};
-  auto it = tiles_.find(key);
-  if (it != tiles_.end()) {
-    ++stats_.tile_hits;
-    lru_.splice(lru_.begin(), lru_, it->second.lru);
-    return it->second;
-  }
-  ++stats_.tile_misses;
-  uint64_t bytes = uint64_t(t) * t * sizeof(uint16_t);
-  // A file opened for the tile counts too, unless it takes a closed one's place.
-  const bool file_open = std::any_of(files_.begin(), files_.end(), [&](const PsfFile& f) { return f.index() == i; });
-  const bool file_added = !file_open && int(files_.size()) < std::max(1, budget_.open_files);
-  const uint64_t need = bytes + (file_added ? PsfFile::bytes(reader_.manifest()) : 0);
-  // Make room first, so the budget holds at every moment.
-  while (stats_.host_bytes + need > budget_.host_bytes && !lru_.empty()) {
-    auto evicted = tiles_.find(lru_.back());
-    slabs_.give(evicted->second.bits);
-    tiles_.erase(evicted);
-    lru_.pop_back();
-    account(-int64_t(bytes));
-    ++stats_.evictions;
-  }
-  if (stats_.host_bytes + need > budget_.host_bytes)
-    throw DictionaryError(reader_.dir() + ": the host budget of " + mib(budget_.host_bytes) +
-                          " leaves no room for one tile and its open file; raise it");
-  PsfFile& file = open_file(i);
-  uint16_t* bits = slabs_.take();
-  try {
-    file.read_tile(level, tx, ty, std::span<uint16_t>(bits, size_t(t) * t));
-  } catch (...) {
-    slabs_.give(bits);
-    throw;
-  }
-  stats_.bytes_read += bytes;
-  lru_.push_front(key);
-  account(int64_t(bytes));
-  return tiles_.emplace(key, Tile{bits, file.value_scale(), lru_.begin()}).first->second;
-}
-
-PsfFile& DictionaryService::open_file(size_t i) {
+PsfFile& DictionaryService::open_file(size_t i, bool wait) {
   auto it = std::find_if(files_.begin(), files_.end(), [&](const PsfFile& f) { return f.index() == i; });
   if (it != files_.end()) {
     files_.splice(files_.begin(), files_, it);
     return files_.front();
   }
-  const int64_t bytes = int64_t(PsfFile::bytes(reader_.manifest()));
+  // An open file's room is the tile cache's: unpinned tiles make way for it.
+  const uint64_t bytes = PsfFile::bytes(reader_.manifest());
   if (int(files_.size()) >= std::max(1, budget_.open_files)) {
     files_.pop_back();
-    account(-bytes);
+    tiles_->give_room(bytes);
   }
-  files_.emplace_front(reader_, i);
-  account(bytes);
+  if (!tiles_->take_room(bytes, tile_counts_, wait)) throw NoRoom{};
+  try {
+    files_.emplace_front(reader_, i);
+  } catch (...) {
+    tiles_->give_room(bytes);
+    throw;
+  }
   ++stats_.file_opens;
   return files_.front();
 }
 
+DictionaryService::~DictionaryService() {
+  for (size_t k = 0; k < files_.size(); ++k) tiles_->give_room(PsfFile::bytes(reader_.manifest()));
+}
+
 std::vector<float> DictionaryService::values(size_t i, int level, std::span<const glm::ivec2> pixels) {
   const DictionaryManifest& m = reader_.manifest();
-  int t = m.tile_px, w = m.level_width(level), h = m.level_height(level);
+  const int t = m.tile_px, w = m.level_width(level), h = m.level_height(level);
   std::vector<float> out(pixels.size(), 0.0f);
-  // The tiles this call has touched, direct-mapped by tile coordinates, so
-  // that a pixel in one of them costs no look-up in the cache (an event's
-  // clicks fall in a few tiles). Valid until a fetch evicts: an evicted
-  // tile's values are gone.
+  // Where pixel k's tile is and its place in the tile, or false off the sensor.
+  auto tile_of = [&](size_t k, int& tx, int& ty, uint32_t& in_tile) {
+    const glm::ivec2 px = pixels[k];
+    if (px.x < 0 || px.y < 0 || px.x >= w || px.y >= h) return false;
+    tx = px.x / t, ty = px.y / t;
+    in_tile = uint32_t((px.y - ty * t) * t + (px.x - tx * t));
+    return true;
+  };
+  // Whether pixel k is dark on the coarse level: no light in it, no tile to
+  // read for it. Asked where its tile is not already at hand.
+  auto dark = [&](size_t k) {
+    if (level >= coarse_level_) return false;
+    const int d = coarse_level_ - level, cx = pixels[k].x >> d, cy = pixels[k].y >> d;
+    if (tables_->lit[i].count(cx, cy, cx + 1, cy + 1) > 0) return false;
+    ++stats_.dark_pixels;
+    return true;
+  };
+  auto pin = [&](int tx, int ty, bool wait) {
+    auto read = [&](std::span<uint16_t> bits) {
+      PsfFile& file = open_file(i, wait);
+      file.read_tile(level, tx, ty, bits);
+      stats_.bytes_read += bits.size() * sizeof(uint16_t);
+      return file.value_scale();
+    };
+    return tiles_->pin({i, level, tx, ty}, read, tile_counts_, wait);
+  };
+  auto at = [&](const TileCache::Tile* tile, uint32_t in_tile) {
+    half v;
+    v.setBits(tile->bits[in_tile]);
+    return float(v) * tile->scale;
+  };
+  // The tiles this call holds pinned, unpinned however it ends.
+  struct Pins {
+    TileCache& cache;
+    std::vector<const TileCache::Tile*> held;
+    void release() {
+      if (!held.empty()) cache.unpin(held);
+      held.clear();
+    }
+    ~Pins() { release(); }
+  } pins{*tiles_, {}};
+
+  // The tiles' lines are mostly not in the processor's caches (the search
+  // visits hundreds of PSFs per event): every pixel's tile is found and its
+  // line requested first, and the values read after, so that the misses
+  // overlap. The tiles found are pinned until the end, each once: a table
+  // direct-mapped by tile coordinates spares most look-ups (an event's
+  // clicks fall in a few tiles).
   struct Seen {
     int tx = -1, ty = -1;
-    const Tile* tile = nullptr;
+    const TileCache::Tile* tile = nullptr;
   };
   std::array<Seen, 32> seen{};
-  // Pixel k's half in its tile, or null where no light reaches it.
-  auto locate = [&](size_t k, float& scale) -> const uint16_t* {
-    glm::ivec2 px = pixels[k];
-    if (px.x < 0 || px.y < 0 || px.x >= w || px.y >= h) return nullptr;  // off the sensor: no light
-    const int tx = px.x / t, ty = px.y / t;
+  std::vector<const TileCache::Tile*> found(pixels.size(), nullptr);
+  std::vector<uint32_t> in_tile(pixels.size());
+  const uint64_t dark_before = stats_.dark_pixels;
+  bool all_pinned = true;
+  for (size_t k = 0; k < pixels.size() && all_pinned; ++k) {
+    int tx, ty;
+    if (!tile_of(k, tx, ty, in_tile[k])) continue;
     Seen& slot = seen[size_t(tx * 7 + ty) % seen.size()];
     if (slot.tx != tx || slot.ty != ty) {
-      if (level < coarse_level_) {
-        // Dark on the coarse level: no light in the pixel, no tile to read.
-        const int d = coarse_level_ - level, cx = px.x >> d, cy = px.y >> d;
-        if (tables_->lit[i].count(cx, cy, cx + 1, cy + 1) == 0) {
-          ++stats_.dark_pixels;
-          return nullptr;
-        }
+      if (dark(k)) continue;
+      const TileCache::Tile* tile = nullptr;
+      try {
+        tile = pin(tx, ty, false);  // a tile met again after its slot was taken: pinned twice
+      } catch (const NoRoom&) {
       }
-      const uint64_t evictions = stats_.evictions;
-      const Tile* tile_read = &tile(i, level, tx, ty);
-      if (stats_.evictions != evictions) seen.fill(Seen{});
-      slot = {tx, ty, tile_read};
+      if (!tile) {
+        all_pinned = false;
+        break;
+      }
+      pins.held.push_back(tile);
+      slot = {tx, ty, tile};
     }
-    scale = slot.tile->scale;
-    return &slot.tile->bits[size_t(px.y - ty * t) * t + size_t(px.x - tx * t)];
-  };
-  auto read = [](const uint16_t* at, float scale) {
-    half v;
-    v.setBits(*at);
-    return float(v) * scale;
-  };
-  // The tiles' lines are mostly not in the processor's caches (the search
-  // visits hundreds of PSFs per event): every pixel's line is requested
-  // first and read after, so that the misses overlap. Should a fetch evict
-  // a tile, addresses found before it may be gone: then pixel by pixel.
-  std::vector<const uint16_t*> at(pixels.size());
-  const uint64_t evictions = stats_.evictions, dark = stats_.dark_pixels;
-  for (size_t k = 0; k < pixels.size(); ++k) {
-    at[k] = locate(k, out[k]);
-    if (at[k]) __builtin_prefetch(at[k]);
+    found[k] = slot.tile;
+    __builtin_prefetch(&slot.tile->bits[in_tile[k]]);
   }
-  if (stats_.evictions == evictions) {
-    for (size_t k = 0; k < pixels.size(); ++k) out[k] = at[k] ? read(at[k], out[k]) : 0.0f;
-  } else {
-    seen.fill(Seen{});
-    stats_.dark_pixels = dark;  // counted again below
-    for (size_t k = 0; k < pixels.size(); ++k) {
-      float scale = 0;
-      const uint16_t* a = locate(k, scale);
-      out[k] = a ? read(a, scale) : 0.0f;
+  if (all_pinned) {
+    for (size_t k = 0; k < pixels.size(); ++k) out[k] = found[k] ? at(found[k], in_tile[k]) : 0.0f;
+    return out;
+  }
+  // The room holds fewer tiles than the call needs beside those pinned: one
+  // tile at a time, waiting for other threads' pins where they hold it all.
+  pins.release();
+  stats_.dark_pixels = dark_before;  // counted again below
+  int held_x = -1, held_y = -1;
+  for (size_t k = 0; k < pixels.size(); ++k) {
+    int tx, ty;
+    uint32_t place;
+    if (!tile_of(k, tx, ty, place)) continue;
+    if (tx != held_x || ty != held_y) {
+      if (dark(k)) continue;
+      pins.release();
+      const TileCache::Tile* tile = nullptr;
+      try {
+        tile = pin(tx, ty, true);
+      } catch (const NoRoom&) {
+      }
+      if (!tile)
+        throw DictionaryError(reader_.dir() + ": the host budget of " + mib(budget_.host_bytes) +
+                              " leaves no room for one tile and its open file; raise it");
+      pins.held.push_back(tile);
+      held_x = tx, held_y = ty;
     }
+    out[k] = at(pins.held.back(), place);
   }
   return out;
 }

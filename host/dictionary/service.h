@@ -4,7 +4,8 @@
 // values (float, or half floats at the store's scale) followed by its
 // summed-area table in float (and on a CPU device by the scan's row table);
 // the tables stay on the host too, in double. Finer levels are read tile by
-// tile, only around the pixels asked for, into an LRU cache that never exceeds the host
+// tile, only around the pixels asked for, into a cache (tile_cache.h, shared
+// by the services of a process's host threads) that never exceeds the host
 // budget. A dictionary far larger than memory is served this way. A pixel
 // under a dark pixel of the coarse level is known to be zero: its tile is not
 // read for it.
@@ -22,6 +23,7 @@
 #include "engine/support_scan.h"
 #include "engine/vk/compute.h"
 #include "host/dictionary/store.h"
+#include "host/dictionary/tile_cache.h"
 
 namespace prism {
 
@@ -52,9 +54,13 @@ class DictionaryService {
                     bool device_half = false);
   // A service beside `first` for another host thread: the same dictionary
   // and coarse level, the coarse level's tables shared (read-only; `first`
-  // counts them), tiles and open files of its own within `budget`, nothing
-  // on a device. `first` must outlive it.
+  // counts them) and so is the tile cache (`budget` adds to its room, which
+  // holds the open files too), open files of its own, nothing on a device.
+  // `first` must outlive it.
   DictionaryService(const DictionaryService& first, ServiceBudget budget);
+  ~DictionaryService();
+  DictionaryService(const DictionaryService&) = delete;
+  DictionaryService& operator=(const DictionaryService&) = delete;
 
   // What the coarse level of every PSF takes on the device: values and float
   // summed-area tables, and the row tables where device_rows() says so.
@@ -88,41 +94,14 @@ class DictionaryService {
   // PSF i at `level` for each pixel; tiles are fetched and cached as needed.
   std::vector<float> values(size_t i, int level, std::span<const glm::ivec2> pixels);
 
-  const ServiceStats& stats() const { return stats_; }
+  // This service's counts; host bytes are its tables and open files, and in
+  // the first service the shared tile cache's too.
+  ServiceStats stats() const;
 
  private:
-  using TileKey = std::tuple<size_t, int, int, int>;  // psf, level, tile x, tile y
-  // A tile as stored (half-float bits, half the bytes of floats: twice the
-  // tiles in the same budget); a value is the half times scale, exactly the
-  // float the file reads as.
-  struct Tile {
-    uint16_t* bits;  // tile_px^2 values in slabs_
-    float scale;
-    std::list<TileKey>::iterator lru;
-  };
-  // The tiles' memory: blocks of 2 MiB carved into tiles, an evicted tile's
-  // room reused. A block is one allocation and, where the kernel gives
-  // transparent huge pages, one page fault; a tile each cost both (6% of a
-  // 1000-event search's CPU time went to allocating and first touching
-  // tiles). The budget counts the tiles handed out, not the last block's
-  // room not yet handed out (under 2 MiB per service).
-  class TileSlabs {
-   public:
-    explicit TileSlabs(size_t values);  // values per tile
-    uint16_t* take();
-    void give(uint16_t* tile) { free_.push_back(tile); }
-
-   private:
-    struct Free {
-      void operator()(uint16_t* p) const;
-    };
-    size_t values_, per_block_;  // values per tile, tiles per block
-    size_t left_ = 0;            // tiles of the last block not yet handed out
-    std::vector<std::unique_ptr<uint16_t, Free>> blocks_;
-    std::vector<uint16_t*> free_;
-  };
-  const Tile& tile(size_t i, int level, int tx, int ty);
-  PsfFile& open_file(size_t i);
+  // PSF i's file, opened (its room taken from the tile cache, waiting as
+  // TileCache::pin does with `wait`) if it is not open.
+  PsfFile& open_file(size_t i, bool wait);
   void account(int64_t delta);
 
   const DictionaryReader& reader_;
@@ -138,9 +117,11 @@ class DictionaryService {
     std::vector<LitPixels> lit;
   };
   std::shared_ptr<CoarseTables> tables_;
-  std::map<TileKey, Tile> tiles_;
-  TileSlabs slabs_;
-  std::list<TileKey> lru_;  // front: most recent
+  // The finer levels' tiles, shared with the services made beside this one
+  // (the first service's stats count its bytes).
+  std::shared_ptr<TileCache> tiles_;
+  bool owns_tiles_;
+  TileCache::Counts tile_counts_;
   std::list<PsfFile> files_;  // open PSF files, front: most recently read
   ServiceStats stats_;
 };

@@ -46,8 +46,9 @@ ReconstructionPool::ReconstructionPool(const DictionaryReader& reader, int click
   budget.host_bytes = o.host_budget_bytes / n;
   if (on_device) {
     // One worker: the device scans, n threads descend, each through a
-    // service of its own (the first holds the scan level on the device and
-    // the coarse tables, which the others share).
+    // service of its own (the first holds the scan level on the device, the
+    // coarse tables and the tile cache, which the others share; each
+    // service's share of the budget adds to the cache's room).
     services_.push_back(std::make_unique<DictionaryService>(reader, o.ctx, settings_.search_level, budget, o.device_half));
     for (unsigned t = 1; t < n; ++t) services_.push_back(std::make_unique<DictionaryService>(*services_[0], budget));
     std::vector<DictionaryService*> helpers;

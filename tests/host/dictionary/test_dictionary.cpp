@@ -6,6 +6,7 @@
 #include <filesystem>
 #include <fstream>
 #include <random>
+#include <thread>
 
 #include "engine/forward.h"
 #include "host/dictionary/build.h"
@@ -552,6 +553,72 @@ TEST_CASE("the service keeps a few PSF files open: tiles read through them are t
   CHECK_THROWS_WITH_AS(small_svc.values(0, 0, px), doctest::Contains("leaves no room for one tile and its open file"),
                        prism::DictionaryError);
   CHECK(small_svc.stats().host_peak_bytes <= tight.host_bytes);
+}
+
+TEST_CASE("services beside one another share one tile cache: a tile read once serves every thread, and evictions while other threads read leave every value the file's") {
+  auto& d = small();
+  prism::DictionaryReader r(d.dir);
+  const auto& m = r.manifest();
+  const int coarse = 3;
+  std::vector<std::vector<prism::PsfLevel>> truth(m.grid.size());
+  for (size_t i = 0; i < m.grid.size(); ++i)
+    for (int level : {0, 1}) truth[i].push_back(r.read_level(i, level));
+  const std::vector<glm::ivec2> px = {{10, 10}, {100, 20}, {m.width - 1, m.height - 1}};
+  {
+    // Room for all: what the first read, the second finds.
+    prism::DictionaryService first(r, nullptr, coarse, {});
+    prism::DictionaryService second(first, {});
+    const auto a = first.values(0, 0, px);
+    REQUIRE(first.stats().tile_misses == px.size());
+    CHECK(second.values(0, 0, px) == a);
+    CHECK(second.stats().tile_misses == 0);
+    CHECK(second.stats().tile_hits == px.size());
+    // The first service counts the cache's bytes, once.
+    CHECK(second.stats().host_bytes == 0);
+  }
+  // Three threads, room for 8 tiles each (a call over level 0 touches up to
+  // 35): calls fall back to one tile at a time, and tiles are evicted while
+  // the other threads read theirs.
+  const uint64_t tile_bytes = uint64_t(m.tile_px) * m.tile_px * sizeof(uint16_t);
+  const uint64_t files = uint64_t(prism::ServiceBudget{}.open_files) * prism::PsfFile::bytes(m);
+  const uint64_t tables = prism::DictionaryService(r, nullptr, coarse, {}).stats().host_bytes;
+  prism::ServiceBudget budget;
+  budget.host_bytes = tables + files + 8 * tile_bytes;
+  prism::DictionaryService first(r, nullptr, coarse, budget);
+  budget.host_bytes = files + 8 * tile_bytes;
+  std::vector<std::unique_ptr<prism::DictionaryService>> services;
+  for (int t = 0; t < 2; ++t) services.push_back(std::make_unique<prism::DictionaryService>(first, budget));
+  std::vector<prism::DictionaryService*> all = {&first, services[0].get(), services[1].get()};
+  std::vector<size_t> wrong(all.size(), 0), asked(all.size(), 0);
+  std::vector<std::thread> threads;
+  for (size_t t = 0; t < all.size(); ++t)
+    threads.emplace_back([&, t] {
+      std::mt19937 rng(uint32_t(11 + t));
+      for (int round = 0; round < 150; ++round) {
+        const size_t i = rng() % m.grid.size();
+        const int level = int(rng() % 2);
+        const prism::PsfLevel& want = truth[i][size_t(level)];
+        std::vector<glm::ivec2> q;
+        for (int k = 0; k < 40; ++k) q.push_back({int(rng() % uint32_t(want.width)), int(rng() % uint32_t(want.height))});
+        const auto v = all[t]->values(i, level, q);
+        for (size_t k = 0; k < q.size(); ++k)
+          wrong[t] += v[k] != want.p[size_t(q[k].y) * size_t(want.width) + size_t(q[k].x)];
+        asked[t] += q.size();
+      }
+    });
+  for (auto& th : threads) th.join();
+  uint64_t evictions = 0, misses = 0;
+  for (size_t t = 0; t < all.size(); ++t) {
+    CAPTURE(t);
+    CHECK(wrong[t] == 0);
+    CHECK(asked[t] == 150 * 40);
+    evictions += all[t]->stats().evictions;
+    misses += all[t]->stats().tile_misses;
+  }
+  CHECK(evictions > 0);
+  CHECK(misses > 0);
+  // Tables, tiles and open files within the three budgets throughout.
+  CHECK(first.stats().host_peak_bytes <= tables + 3 * (files + 8 * tile_bytes));
 }
 
 // Under the sanitizers the other cases' small dictionaries run the same code.
