@@ -17,6 +17,11 @@ std::string mib(uint64_t b) { return std::to_string((b + (1 << 20) - 1) >> 20) +
 // What a service's budget leaves the tile cache (and the open files, which
 // take their room from it): the rest after its tables.
 uint64_t tile_room(const ServiceBudget& b, uint64_t tables) { return b.host_bytes > tables ? b.host_bytes - tables : 0; }
+TileCache::Shape tile_shape(const DictionaryManifest& m) {
+  TileCache::Shape s{m.grid.size(), m.tile_px, {}};
+  for (int l = 0; l < m.levels; ++l) s.level_px.push_back({m.level_width(l), m.level_height(l)});
+  return s;
+}
 // Thrown where the room cannot hold a tile and its file beside the pinned tiles.
 struct NoRoom {};
 }  // namespace
@@ -48,7 +53,7 @@ DictionaryService::DictionaryService(const DictionaryReader& reader, vk::Context
     : reader_(reader), coarse_level_(coarse_level), budget_(budget), device_half_(device_half),
       device_rows_(device_rows(reader.manifest(), coarse_level, ctx, device_half, budget.device_bytes)),
       tables_(std::make_shared<CoarseTables>()),
-      tiles_(std::make_shared<TileCache>(reader.manifest())),
+      tiles_(std::make_shared<TileCache>(tile_shape(reader.manifest()))),
       owns_tiles_(true) {
   const DictionaryManifest& m = reader.manifest();
   if (coarse_level < 0 || coarse_level >= m.levels)

@@ -8,8 +8,6 @@
 #include <stdexcept>
 #include <string>
 
-#include "host/dictionary/store.h"
-
 namespace prism {
 
 namespace {
@@ -41,11 +39,11 @@ uint16_t* TileCache::Slabs::take() {
   return blocks_.back().get() + (per_block_ - left_--) * values_;
 }
 
-TileCache::TileCache(const DictionaryManifest& m)
-    : tile_values_(size_t(m.tile_px) * size_t(m.tile_px)), levels_(m.levels), tables_(m.grid.size() * size_t(m.levels)),
-      slabs_(tile_values_) {
-  for (int l = 0; l < m.levels; ++l)
-    tiles_xy_.push_back({(m.level_width(l) + m.tile_px - 1) / m.tile_px, (m.level_height(l) + m.tile_px - 1) / m.tile_px});
+TileCache::TileCache(const Shape& shape)
+    : tile_values_(size_t(shape.tile_px) * size_t(shape.tile_px)), levels_(int(shape.level_px.size())),
+      tables_(shape.psfs * shape.level_px.size()), slabs_(tile_values_) {
+  const int t = shape.tile_px;
+  for (auto [w, h] : shape.level_px) tiles_xy_.push_back({(w + t - 1) / t, (h + t - 1) / t});
 }
 TileCache::~TileCache() = default;
 

@@ -22,18 +22,17 @@
 // and a list the shared cache read 38% fewer tiles and still cost more host
 // time than a cache per thread.
 #pragma once
+#include <condition_variable>
 #include <cstdint>
 #include <functional>
 #include <memory>
-#include <condition_variable>
 #include <mutex>
+#include <utility>
 #include <span>
 #include <tuple>
 #include <vector>
 
 namespace prism {
-
-struct DictionaryManifest;
 
 class TileCache {
  public:
@@ -50,8 +49,13 @@ class TileCache {
   // Reads a tile into the span and returns its scale (PsfFile::read_tile).
   using Reader = std::function<float(std::span<uint16_t>)>;
 
-  // The tiles of the dictionary's PSFs, at every level.
-  explicit TileCache(const DictionaryManifest& m);
+  // What the cache holds tiles of: PSFs, each with levels of these sizes.
+  struct Shape {
+    size_t psfs = 0;
+    int tile_px = 0;
+    std::vector<std::pair<int, int>> level_px;  // width, height per level
+  };
+  explicit TileCache(const Shape& shape);
   ~TileCache();
   TileCache(const TileCache&) = delete;
   TileCache& operator=(const TileCache&) = delete;
