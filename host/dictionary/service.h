@@ -94,8 +94,9 @@ class DictionaryService {
   // PSF i at `level` for each pixel; tiles are fetched and cached as needed.
   std::vector<float> values(size_t i, int level, std::span<const glm::ivec2> pixels);
 
-  // This service's counts; host bytes are its tables and open files, and in
-  // the first service the shared tile cache's too.
+  // This service's counts; host bytes are its tables, and in the first
+  // service the shared tile cache's (the tiles and every service's open
+  // files, whose room the cache holds).
   ServiceStats stats() const;
 
  private:
