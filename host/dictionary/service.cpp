@@ -233,14 +233,19 @@ std::vector<float> DictionaryService::values(size_t i, int level, std::span<cons
     ++stats_.dark_pixels;
     return true;
   };
+  // Tile (tx, ty) pinned; on a miss its file opened first, while this
+  // thread holds no reservation of the cache's (TileCache: a read takes no
+  // room). Throws NoRoom where the file finds none.
   auto pin = [&](int tx, int ty, bool wait) {
+    const TileCache::Key key{i, level, tx, ty};
+    if (const TileCache::Tile* hit = tiles_->pin_cached(key, tile_counts_)) return hit;
+    PsfFile& file = open_file(i, wait);
     auto read = [&](std::span<uint16_t> bits) {
-      PsfFile& file = open_file(i, wait);
       file.read_tile(level, tx, ty, bits);
       stats_.bytes_read += bits.size() * sizeof(uint16_t);
       return file.value_scale();
     };
-    return tiles_->pin({i, level, tx, ty}, read, tile_counts_, wait);
+    return tiles_->pin(key, read, tile_counts_, wait);
   };
   auto at = [&](const TileCache::Tile* tile, uint32_t in_tile) {
     half v;

@@ -111,7 +111,7 @@ bool TileCache::wait_for_room(std::unique_lock<std::mutex>& lock, uint64_t need,
                               const std::function<bool()>& found) {
   for (;;) {
     if ((found && found()) || make_room(need, counts)) return true;
-    if (!wait || pinned_ == 0) return false;
+    if (!wait || (pinned_ == 0 && reading_ == 0)) return false;
     ++waiting_;
     unpinned_.wait(lock);
     --waiting_;
@@ -131,6 +131,16 @@ void TileCache::give_room(uint64_t bytes) {
   if (waiting_ > 0) unpinned_.notify_all();
 }
 
+const TileCache::Tile* TileCache::pin_cached(const Key& key, Counts& counts) {
+  std::lock_guard lock(mutex_);
+  Entry* e = slot(key);
+  if (!e) return nullptr;
+  ++counts.hits;
+  e->used = true;
+  ++e->pins, ++pinned_;
+  return e;
+}
+
 const TileCache::Tile* TileCache::pin(const Key& key, const Reader& read, Counts& counts, bool wait) {
   uint16_t* bits = nullptr;
   {
@@ -145,11 +155,11 @@ const TileCache::Tile* TileCache::pin(const Key& key, const Reader& read, Counts
     }
     bits = slabs_.take();
     account(int64_t(tile_bytes()));  // reserved while it is read
+    ++reading_;
   }
   auto give_back = [&] {
     slabs_.give(bits);
     account(-int64_t(tile_bytes()));
-    if (waiting_ > 0) unpinned_.notify_all();
   };
   float scale = 0;
   try {
@@ -157,9 +167,13 @@ const TileCache::Tile* TileCache::pin(const Key& key, const Reader& read, Counts
   } catch (...) {
     std::lock_guard lock(mutex_);
     give_back();
+    --reading_;
+    if (waiting_ > 0) unpinned_.notify_all();
     throw;
   }
   std::lock_guard lock(mutex_);
+  --reading_;
+  if (waiting_ > 0) unpinned_.notify_all();
   ++counts.misses;
   Entry*& s = slot(key);
   if (s) {

@@ -11,9 +11,11 @@
 // is reading; a pinned tile is never evicted. A pin that would need a pinned
 // tile's room fails instead (pin() returns null): the caller unpins what it
 // holds and reads one tile at a time, pinning each with `wait`, which waits
-// for other callers' pins to be released rather than fail while any are
-// held. A caller that waits holds no pins, and one that holds pins never
-// waits, so the callers cannot wait for one another in a circle.
+// for other callers' pins and reads to end rather than fail while any are
+// under way. Only a caller that holds nothing waits: one holding pins never
+// waits, and a tile's read must not take room (a service opens the tile's
+// file before it pins), so the callers cannot wait for one another in a
+// circle.
 //
 // Both threads look tiles up all the time (1.8 million look-ups for 1000
 // events), so a look-up writes nothing it need not: tiles are found through
@@ -64,17 +66,19 @@ class TileCache {
   void add_room(uint64_t bytes);
   // Other memory held within the same room (a service's open PSF files):
   // unpinned tiles are evicted to make room for it. False where the room
-  // cannot hold it; `wait` as pin's.
+  // cannot hold it; `wait` as pin's (the caller holding nothing).
   bool take_room(uint64_t bytes, Counts& counts, bool wait);
   void give_room(uint64_t bytes);
   uint64_t tile_bytes() const { return tile_values_ * sizeof(uint16_t); }
 
-  // The tile at key, pinned until unpin(), read with `read` on a miss. Null
-  // when the room is too small for one more tile without evicting a pinned
-  // one; with `wait` (the caller holding no pins) only when no tile at all
-  // is pinned. If `read` throws, nothing is cached and the exception
-  // propagates.
+  // The tile at key, pinned until unpin(), read with `read` on a miss (which
+  // must not take room from this cache). Null when the room is too small for
+  // one more tile without evicting a pinned one; with `wait` (the caller
+  // holding nothing) only when no tile at all is pinned or being read. If
+  // `read` throws, nothing is cached and the exception propagates.
   const Tile* pin(const Key& key, const Reader& read, Counts& counts, bool wait = false);
+  // The tile at key pinned if it is cached, else null (nothing counted).
+  const Tile* pin_cached(const Key& key, Counts& counts);
   void unpin(std::span<const Tile* const> tiles);
   // Pinned tiles of all callers (zero when none is reading).
   size_t pinned() const;
@@ -115,8 +119,8 @@ class TileCache {
   // more bytes fit; false if they cannot.
   bool make_room(uint64_t need, Counts& counts);
   // Under the lock: waits until make_room(need) succeeds (false where it
-  // cannot: without `wait`, or with no tile pinned); `found` ends the wait
-  // early (another caller cached the tile meanwhile).
+  // cannot: without `wait`, or with no tile pinned or being read); `found`
+  // ends the wait early (another caller cached the tile meanwhile).
   bool wait_for_room(std::unique_lock<std::mutex>& lock, uint64_t need, Counts& counts, bool wait,
                      const std::function<bool()>& found);
   void account(int64_t delta);
@@ -127,7 +131,7 @@ class TileCache {
   mutable std::mutex mutex_;
   std::condition_variable unpinned_;  // signalled when pins are released while a caller waits
   uint64_t room_ = 0, bytes_ = 0, peak_ = 0;
-  size_t pinned_ = 0, waiting_ = 0;
+  size_t pinned_ = 0, waiting_ = 0, reading_ = 0;  // tiles pinned, callers waiting, reads under way
   std::vector<std::unique_ptr<Entry*[]>> tables_;  // per (PSF, level): its tiles' entries, null where not cached
   std::vector<std::unique_ptr<Entry>> resident_;   // the cached tiles, in the clock's circle
   size_t hand_ = 0;                                // the clock's hand: the next to look at in resident_

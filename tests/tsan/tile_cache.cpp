@@ -2,8 +2,8 @@
 // four threads pin up to five tiles at a time of a small dictionary's shape,
 // each read by a filler that writes the tile's own tag, in room for 12 tiles
 // (so batches are at times refused and fall back, as
-// DictionaryService::values does, to one tile at a time with `wait`), while
-// taking and giving back other room (open files). Every tile read must hold
+// DictionaryService::values does, to one tile at a time with `wait`), some
+// found by pin_cached, while taking and giving back other room (open files). Every tile read must hold
 // its tag while pinned; at the end nothing stays pinned and the cache is
 // within its room. A data race is TSan's report (halt_on_error: the run
 // fails). tests/sanitize.sh builds and runs it; it needs no Vulkan, no files.
@@ -40,9 +40,13 @@ int main() {
             for (uint16_t& b : bits) b = tag;
             return float(tag);
           };
-          // One tile at a time once a batch is refused, as the service does.
+          // One tile at a time once a batch is refused, as the service does,
+          // holding nothing: then also room for a file, waited for.
           const bool alone = held.empty() && k == n - 1;
-          const TileCache::Tile* tile = cache.pin({psf, level, tx, ty}, fill, counts, alone);
+          const bool file = alone && rng() % 3 == 0 && cache.take_room(100, counts, true);
+          const TileCache::Tile* tile = rng() % 2 ? cache.pin_cached({psf, level, tx, ty}, counts) : nullptr;
+          if (!tile) tile = cache.pin({psf, level, tx, ty}, fill, counts, alone);
+          if (file) cache.give_room(100);
           if (!tile) {
             ++refused;
             continue;
@@ -50,7 +54,7 @@ int main() {
           ++pins;
           held.push_back(tile);
           tags.push_back(tag);
-          if (rng() % 3 == 0 && cache.take_room(100, counts, false)) cache.give_room(100);
+          if (rng() % 3 == 0 && cache.take_room(100, counts, false)) cache.give_room(100);  // holding pins: no wait
         }
         for (size_t j = 0; j < held.size(); ++j)
           wrong += held[j]->bits[0] != tags[j] || held[j]->bits[cache.tile_bytes() / 2 - 1] != tags[j] ||
