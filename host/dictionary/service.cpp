@@ -22,8 +22,6 @@ TileCache::Shape tile_shape(const DictionaryManifest& m) {
   for (int l = 0; l < m.levels; ++l) s.level_px.push_back({m.level_width(l), m.level_height(l)});
   return s;
 }
-// Thrown where the room cannot hold a tile and its file beside the pinned tiles.
-struct NoRoom {};
 }  // namespace
 
 namespace {
@@ -185,11 +183,11 @@ void DictionaryService::account(int64_t delta) {
   stats_.host_peak_bytes = std::max(stats_.host_peak_bytes, stats_.host_bytes);
 }
 
-PsfFile& DictionaryService::open_file(size_t i, bool wait) {
+PsfFile* DictionaryService::open_file(size_t i, bool wait) {
   auto it = std::find_if(files_.begin(), files_.end(), [&](const PsfFile& f) { return f.index() == i; });
   if (it != files_.end()) {
     files_.splice(files_.begin(), files_, it);
-    return files_.front();
+    return &files_.front();
   }
   // An open file's room is the tile cache's: unpinned tiles make way for it.
   const uint64_t bytes = PsfFile::bytes(reader_.manifest());
@@ -197,7 +195,7 @@ PsfFile& DictionaryService::open_file(size_t i, bool wait) {
     files_.pop_back();
     tiles_->give_room(bytes);
   }
-  if (!tiles_->take_room(bytes, tile_counts_, wait)) throw NoRoom{};
+  if (!tiles_->take_room(bytes, tile_counts_, wait)) return nullptr;
   try {
     files_.emplace_front(reader_, i);
   } catch (...) {
@@ -205,11 +203,11 @@ PsfFile& DictionaryService::open_file(size_t i, bool wait) {
     throw;
   }
   ++stats_.file_opens;
-  return files_.front();
+  return &files_.front();
 }
 
 DictionaryService::~DictionaryService() {
-  for (size_t k = 0; k < files_.size(); ++k) tiles_->give_room(PsfFile::bytes(reader_.manifest()));
+  tiles_->give_room(files_.size() * PsfFile::bytes(reader_.manifest()));  // the open files' room
 }
 
 std::vector<float> DictionaryService::values(size_t i, int level, std::span<const glm::ivec2> pixels) {
@@ -235,15 +233,16 @@ std::vector<float> DictionaryService::values(size_t i, int level, std::span<cons
   };
   // Tile (tx, ty) pinned; on a miss its file opened first, while this
   // thread holds no reservation of the cache's (TileCache: a read takes no
-  // room). Throws NoRoom where the file finds none.
-  auto pin = [&](int tx, int ty, bool wait) {
+  // room). Null where the room holds neither.
+  auto pin = [&](int tx, int ty, bool wait) -> const TileCache::Tile* {
     const TileCache::Key key{i, level, tx, ty};
     if (const TileCache::Tile* hit = tiles_->pin_cached(key, tile_counts_)) return hit;
-    PsfFile& file = open_file(i, wait);
+    PsfFile* file = open_file(i, wait);
+    if (!file) return nullptr;
     auto read = [&](std::span<uint16_t> bits) {
-      file.read_tile(level, tx, ty, bits);
+      file->read_tile(level, tx, ty, bits);
       stats_.bytes_read += bits.size() * sizeof(uint16_t);
-      return file.value_scale();
+      return file->value_scale();
     };
     return tiles_->pin(key, read, tile_counts_, wait);
   };
@@ -284,11 +283,7 @@ std::vector<float> DictionaryService::values(size_t i, int level, std::span<cons
     Seen& slot = seen[size_t(tx * 7 + ty) % seen.size()];
     if (slot.tx != tx || slot.ty != ty) {
       if (dark(k)) continue;
-      const TileCache::Tile* tile = nullptr;
-      try {
-        tile = pin(tx, ty, false);  // a tile met again after its slot was taken: pinned twice
-      } catch (const NoRoom&) {
-      }
+      const TileCache::Tile* tile = pin(tx, ty, false);  // a tile met again after its slot was taken: pinned twice
       if (!tile) {
         all_pinned = false;
         break;
@@ -315,11 +310,7 @@ std::vector<float> DictionaryService::values(size_t i, int level, std::span<cons
     if (tx != held_x || ty != held_y) {
       if (dark(k)) continue;
       pins.release();
-      const TileCache::Tile* tile = nullptr;
-      try {
-        tile = pin(tx, ty, true);
-      } catch (const NoRoom&) {
-      }
+      const TileCache::Tile* tile = pin(tx, ty, true);
       if (!tile)
         throw DictionaryError(reader_.dir() + ": the host budget of " + mib(budget_.host_bytes) +
                               " leaves no room for one tile and its open file; raise it");

@@ -101,8 +101,9 @@ class DictionaryService {
 
  private:
   // PSF i's file, opened (its room taken from the tile cache, waiting as
-  // TileCache::pin does with `wait`) if it is not open.
-  PsfFile& open_file(size_t i, bool wait);
+  // TileCache::pin does with `wait`) if it is not open; null where the room
+  // cannot hold it.
+  PsfFile* open_file(size_t i, bool wait);
   void account(int64_t delta);
 
   const DictionaryReader& reader_;

@@ -131,14 +131,17 @@ void TileCache::give_room(uint64_t bytes) {
   if (waiting_ > 0) unpinned_.notify_all();
 }
 
-const TileCache::Tile* TileCache::pin_cached(const Key& key, Counts& counts) {
-  std::lock_guard lock(mutex_);
-  Entry* e = slot(key);
-  if (!e) return nullptr;
+const TileCache::Tile* TileCache::hit(Entry* e, Counts& counts) {
   ++counts.hits;
   e->used = true;
   ++e->pins, ++pinned_;
   return e;
+}
+
+const TileCache::Tile* TileCache::pin_cached(const Key& key, Counts& counts) {
+  std::lock_guard lock(mutex_);
+  Entry* e = slot(key);
+  return e ? hit(e, counts) : nullptr;
 }
 
 const TileCache::Tile* TileCache::pin(const Key& key, const Reader& read, Counts& counts, bool wait) {
@@ -147,12 +150,7 @@ const TileCache::Tile* TileCache::pin(const Key& key, const Reader& read, Counts
     std::unique_lock lock(mutex_);
     Entry* e = nullptr;
     if (!wait_for_room(lock, tile_bytes(), counts, wait, [&] { return (e = slot(key)) != nullptr; })) return nullptr;
-    if (e) {
-      ++counts.hits;
-      e->used = true;
-      ++e->pins, ++pinned_;
-      return e;
-    }
+    if (e) return hit(e, counts);
     bits = slabs_.take();
     account(int64_t(tile_bytes()));  // reserved while it is read
     ++reading_;

@@ -115,6 +115,8 @@ class TileCache {
   };
   // Under the lock: the table slot of key (the table made at its first use).
   Entry*& slot(const Key& key);
+  // Under the lock: a cached tile found, marked used and pinned.
+  const Tile* hit(Entry* e, Counts& counts);
   // Under the lock: evicts unpinned tiles, the clock's way, until `need`
   // more bytes fit; false if they cannot.
   bool make_room(uint64_t need, Counts& counts);
