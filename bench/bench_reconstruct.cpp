@@ -457,7 +457,7 @@ int main(int argc, char** argv) {
     }
     std::printf("# native: %zu positions x %d events%s\n", inner.size(), per_position,
                 native_positions > 0 ? ", uniform over the dictionary's grid" : "");
-    const int bin = 16, binned_level = 4;  // 110 um: level 4 of a full-resolution dictionary
+    const int binned_level = 4;  // 110 um (16 x 16 sensor pixels): level 4 of a full-resolution dictionary
     const uint32_t w0 = uint32_t(nm.width), wb = uint32_t(nm.level_width(binned_level));
     std::vector<Event> fine, binned;
     std::vector<Truth> native_truths;
@@ -467,10 +467,7 @@ int main(int argc, char** argv) {
         Event e = one_source_event(id++, psf.get());
         // The same photons on 16 x 16 blocks: a block clicks when any of its pixels does.
         Event b = e;
-        b.clicks.clear();
-        for (uint32_t c : e.clicks) b.clicks.push_back((c / w0 / bin) * wb + (c % w0) / bin);
-        std::sort(b.clicks.begin(), b.clicks.end());
-        b.clicks.erase(std::unique(b.clicks.begin(), b.clicks.end()), b.clicks.end());
+        b.clicks = binned_clicks(e.clicks, w0, binned_level, wb);
         fine.push_back(std::move(e));
         binned.push_back(std::move(b));
         native_truths.push_back({{p}});

@@ -3,6 +3,7 @@
 #include <cassert>
 #include <unistd.h>
 
+#include <algorithm>
 #include <array>
 #include <bit>
 #include <cmath>
@@ -90,6 +91,15 @@ EventWriter::~EventWriter() {
     std::fclose(f_);
     remove_temporary(temp_);
   }
+}
+
+std::vector<uint32_t> binned_clicks(std::span<const uint32_t> clicks, uint32_t width, int shift, uint32_t binned_width) {
+  std::vector<uint32_t> out;
+  out.reserve(clicks.size());
+  for (uint32_t c : clicks) out.push_back(((c / width) >> shift) * binned_width + ((c % width) >> shift));
+  std::sort(out.begin(), out.end());
+  out.erase(std::unique(out.begin(), out.end()), out.end());
+  return out;
 }
 
 size_t first_bad_click(std::span<const uint32_t> clicks, uint64_t grid_pixels) {

@@ -64,6 +64,12 @@ struct Event {
 // module's events in memory check with it.
 size_t first_bad_click(std::span<const uint32_t> clicks, uint64_t grid_pixels);
 
+// `clicks` on a grid `width` pixels wide, binned 2^shift x 2^shift onto a
+// grid `binned_width` pixels wide (ceil(width / 2^shift)): a binned pixel
+// clicks when any of its pixels does, which is the binary sensor's own
+// likelihood for the summed rate. Strictly increasing, as clicks are.
+std::vector<uint32_t> binned_clicks(std::span<const uint32_t> clicks, uint32_t width, int shift, uint32_t binned_width);
+
 // Appends the record of event `e` (EVENTS.md) to `out`, its clicks checked
 // against a grid of `grid_pixels`; `file` names the file in the error. The
 // writer writes these; an MPI rank sends them to the rank that writes.

@@ -296,6 +296,20 @@ TEST_CASE("dictionary events: nearest node, shifted by -d * 18.5 / (z + 5) in th
   prism::test::check_validation_clean();
 }
 
+TEST_CASE("binned clicks: a block clicks when any of its pixels does, on the coarser grid, strictly increasing") {
+  // A 10 x 5 grid binned 4 x 4 (shift 2) onto ceil(10 / 4) = 3 columns; the
+  // last column and row are partial blocks.
+  const uint32_t w = 10, wb = 3;
+  auto at = [&](uint32_t row, uint32_t col) { return row * w + col; };
+  const std::vector<uint32_t> clicks{at(0, 0), at(0, 3), at(0, 4), at(1, 2), at(3, 9), at(4, 0), at(4, 9)};
+  const auto b = prism::binned_clicks(clicks, w, 2, wb);
+  // (0,0) (0,3) (1,2) -> block (0,0); (0,4) -> (0,1); (3,9) -> (0,2); (4,0) -> (1,0); (4,9) -> (1,2).
+  CHECK(b == std::vector<uint32_t>{0, 1, 2, 3, 5});
+  CHECK(prism::first_bad_click(b, uint64_t(wb) * 2) == b.size());
+  CHECK(prism::binned_clicks(clicks, w, 0, w) == clicks);  // shift 0: the clicks themselves
+  CHECK(prism::binned_clicks({}, w, 2, wb).empty());
+}
+
 TEST_CASE("event file round trip: header and every field of every event") {
   std::string path = temp_path("round.events");
   auto h = test_header();
