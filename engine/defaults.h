@@ -139,6 +139,19 @@ inline constexpr double search_dark_rate_per_sensor_pixel = 1e-4 / 256;
 // the scene's forward model, footprint splat, at this many cells per lenslet
 // (1% L1 from 16384 cells on the prototype at 110 um; README "Reconstruction").
 inline constexpr unsigned refine_rays_per_lenslet = 1024;
+// The refinement renders on pixels of at least this many sensor pixels per
+// axis (110.4 um on the prototype's 6.9 um sensor); finer clicks are binned
+// to them for it, and its answer is then fitted locally on the clicks' own
+// pixels (host/reconstruct/refine.h, Refinement; README "Refinement at the
+// sensor's own pixels": a render at 6.9 um costs 50-100 times one at 110 um).
+inline constexpr int refine_pixel_sensor_px = 16;
+// The polish on the clicks' own pixels (Refinement) starts where the
+// refinement on coarser pixels ended, a fraction of such a pixel from the
+// clicks' optimum, across the sharp images' cliffs; it also fits through the
+// images blurred by these Gaussian sigmas, in pixels of the coarser level,
+// then sharp, and keeps the lower NLL (on the thin-lens row of the tests, one
+// event in four stopped 4 CRLB off without it).
+inline constexpr double refine_polish_blur_refine_px[] = {0.5, 0.125};
 inline constexpr int refine_iterations = 20;       // Levenberg-Marquardt steps per start, at most
 inline constexpr int refine_search_starts = 3;     // the search's runners-up probed per vertex
 inline constexpr int refine_alias_starts = 2;      // lattice aliases probed per vertex

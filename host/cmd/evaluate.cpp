@@ -118,6 +118,11 @@ void run(EvaluateArgs a) {
       std::printf("# events, CRLB%s from the truth scene %s (the refinement's model: scene %s)\n",
                   o.volume_ambiguity ? " and ambiguity" : "", o.truth_scene->name.c_str(), scene.name.c_str());
     std::printf("# refinement: %s\n", describe(o.model, scene).c_str());
+    if (const int rl = o.refine_level >= 0 ? o.refine_level : default_refine_level(m, o.level);
+        o.model != RefineModel::none && rl > o.level)
+      std::printf("# refinement on level %d (%u x %u binned pixels; --refine-level), then fitted again on the clicks' "
+                  "pixels from its answer\n",
+                  rl, m.base_binning << rl, m.base_binning << rl);
     std::printf("# best and worst trial (3D error) dropped; alpha error = |alpha - true photons|; CRLB: Poisson, "
                 "Fisher information scaled to the point's detected photons; catastrophic: 3D error > %g mm, left "
                 "out of RMSE and efficiency\n",
@@ -239,6 +244,7 @@ void add_evaluate(CLI::App& app) {
                 "the default for calibrated ones) or none (the search alone)")
       ->check(CLI::IsMember({"scene", "dictionary", "none"}));
   add_always_scan_options(c, a->options.refine.always_scan_below_mm, a->options.refine.always_scan_below_clicks);
+  add_refine_level_option(c, a->options.refine_level);
   c->add_option("--volume-events", a->options.volume_events, "volume: events, each at its own position")
       ->capture_default_str()->check(CLI::Range(1, 10000000));
   c->add_option("--volume-photons", a->options.volume_photons,

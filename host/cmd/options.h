@@ -94,6 +94,8 @@ extern const CLI::Validator non_negative_number;
 // --always-scan-below-mm and --always-scan-below-clicks (RefineSettings'),
 // for the commands that refine.
 void add_always_scan_options(CLI::App* c, double& below_mm, int& below_clicks);
+// --refine-level (Refinement's refine_level; -1 leaves the default).
+void add_refine_level_option(CLI::App* c, int& refine_level);
 // A number no larger than `limit` ("'1e300' is more than 1e+12 photons").
 CLI::Validator at_most(double limit, const std::string& unit);
 

@@ -41,7 +41,7 @@ void run(const ReconstructArgs& a) {
   const ReconstructionPool& pool = session.pool();
   const ReconstructionSettings& s = session.settings();
   const bool on_device = session.on_device();
-  const Refiner* refiner = session.refiner();
+  const Refinement* refinement = session.refinement();
 
   // Under mpirun each rank takes its share of the events (host/cmd/ranks.h);
   // rank 0 writes the CSV, its own rows first, then the others' in rank order.
@@ -119,14 +119,14 @@ void run(const ReconstructArgs& a) {
   auto t = pool.timings();
   for (double* x : {&t.scan_s, &t.scan_kernel_ms, &t.host_s, &t.scan_wait_s}) *x = ranks::sum(*x);
   for (uint64_t* x : {&t.scan_fits, &t.scan_candidates}) *x = ranks::sum(*x);
-  RefineStats r = refiner ? refiner->stats() : RefineStats{};
+  RefineStats r = refinement ? refinement->stats() : RefineStats{};
   r.seconds = ranks::sum(r.seconds);
   for (uint64_t* x : {&r.starts, &r.iterations, &r.rescues, &r.lattice_scans, &r.lattice_depths, &r.reseeds,
                       &r.continuations_kept, &r.continuations})
     *x = ranks::sum(*x);
   ServiceStats d = pool.dictionary_stats();
   for (uint64_t* x : {&d.tile_misses, &d.bytes_read, &d.file_opens, &d.tile_hits, &d.dark_pixels}) *x = ranks::sum(*x);
-  const uint64_t renders = ranks::sum(uint64_t(refiner ? session.source_model()->renders() : 0));
+  const uint64_t renders = ranks::sum(uint64_t(refinement ? refinement->renders() : 0));
   if (!ranks::root()) return;
   const unsigned threads = pool.workers();
   if (ranks::size() > 1)
@@ -162,7 +162,11 @@ void run(const ReconstructArgs& a) {
     std::printf("weights fitted in the scans: %llu of %llu (event, PSF) candidates (%.1f%%; the rest bounded out)\n",
                 (unsigned long long)t.scan_fits, (unsigned long long)t.scan_candidates,
                 100.0 * double(t.scan_fits) / double(t.scan_candidates));
-  if (refiner)
+  if (refinement && refinement->staged())
+    std::printf("refinement on level %d (the clicks binned; --refine-level), then fitted again on the clicks' level "
+                "from its answer\n",
+                refinement->refine_level());
+  if (refinement)
     std::printf("refinement (%s): %.2f s, %.1f starts and %.1f LM steps per event, %llu renders; %llu poor fits "
                 "sent to the far aliases, %llu poor, marginal or shallow ones had the clicks' votes counted (%llu voted depths scanned); "
                 "%llu events of K > 1 re-seeded from their unclaimed clicks; %llu of %llu blurred refits lowered the NLL\n",
@@ -195,6 +199,7 @@ void add_reconstruct(CLI::App& app) {
                  "calibrated ones) or none (the search's grid positions alone)")
       ->check(CLI::IsMember({"scene", "dictionary", "none"}));
   add_always_scan_options(c, a->session.always_scan_below_mm, a->session.always_scan_below_clicks);
+  add_refine_level_option(c, a->session.refine_level);
   c->add_option("--scene", a->session.scene, "scene for --model scene (default: the one the dictionary was built from)");
   c->add_option("--backend", a->session.backend,
                  "vulkan: sparse scan on the device; dense: the paper's dense correlation on the device (baseline); "

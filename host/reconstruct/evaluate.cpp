@@ -476,18 +476,17 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
                                                   ServiceBudget{}, o.device_half);
   }
   std::map<int, std::unique_ptr<Reconstructor>> reconstructors;  // per K
-  std::unique_ptr<SourceModel> source_model;
-  std::unique_ptr<Refiner> refiner;
+  std::unique_ptr<Refinement> refiner;
   // Its own model (not the refinement's), so that the refinement's renders
   // per event stay its own.
   std::unique_ptr<SourceModel> ambiguity_model;
   if (o.volume_ambiguity && !o.journal_only) ambiguity_model = make_scene_model(physical, model_settings, &ctx);
+  const int refine_level = o.refine_level >= 0 ? o.refine_level : default_refine_level(m, o.level);
   if (refining && !o.journal_only) {
-    source_model = make_refine_model(o.model, scene, dictionary, o.level, &ctx);
     RefineSettings rs = o.refine;
     rs.dark_rate = s.dark_rate;
     rs.alpha_max = s.alpha_max;
-    refiner = std::make_unique<Refiner>(*source_model, scene, m.level_grid(o.level), rs);
+    refiner = std::make_unique<Refinement>(o.model, scene, dictionary, o.level, refine_level, &ctx, rs);
   }
 
   Evaluation result;
@@ -522,6 +521,9 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   // its pixels (a journal of 110 um clicks keeps its header).
   const int ranked_on = detail::rank_level_of(detail::select_level_of(s.search_level, s, m, o.level), s, m, o.level);
   if (ranked_on > o.level) run["search"]["rank_level"] = ranked_on;
+  // The refinement staged only where the clicks are finer than its level (a
+  // journal of 110 um clicks keeps its header).
+  if (refining && refine_level > o.level) run["refine"]["level"] = refine_level;
   const std::string on_mismatch = "rerun with the same options, or without --resume to start over";
   const WorkShare& share = o.share;
   // The protocol's trials done: point -> trial -> estimate. A record of a
@@ -632,12 +634,12 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
     double each_s = 0;  // what the callbacks take is not the reconstruction's
     for (size_t i = 0; i < events.size(); ++i) {
       const auto refine_start = std::chrono::steady_clock::now();
-      const uint64_t renders_before = source_model ? source_model->renders() : 0;
+      const uint64_t renders_before = refiner ? refiner->renders() : 0;
       if (refiner) estimates[i] = refiner->refine(events[i], std::move(estimates[i]));
       const double seconds =
           search_share + std::chrono::duration<double>(std::chrono::steady_clock::now() - refine_start).count();
       const auto each_start = std::chrono::steady_clock::now();
-      each(i, estimates[i], seconds, source_model ? source_model->renders() - renders_before : 0);
+      each(i, estimates[i], seconds, refiner ? refiner->renders() - renders_before : 0);
       each_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - each_start).count();
       if (progress) progress(++done, total);
     }
@@ -645,7 +647,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
     spent.reconstruct_s += std::chrono::duration<double>(end - start).count() - each_s;
     spent.refine_s += std::chrono::duration<double>(end - searched).count() - each_s;
     spent.events += events.size();
-    if (source_model) spent.renders = source_model->renders() - truth_fit_renders;
+    if (refiner) spent.renders = refiner->renders() - truth_fit_renders;
   };
   // What this process did, for the leader when there are others.
   json my_trial_records = json::array(), my_volume_records = json::array();
@@ -713,11 +715,11 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
         spent.ambiguity_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - ambiguity_start).count();
         spent.ambiguity_renders = ambiguity_model->renders();
         if (refiner) {
-          const uint64_t before = source_model->renders();
+          const uint64_t before = refiner->renders();
           const Refiner::LocalFit fit = refiner->local_fit(events[i], v.truth_mm, o.volume_photons);
           v.truth_fit_mm = fit.position_mm;
           v.truth_fit_nll = fit.nll;
-          truth_fit_renders += source_model->renders() - before;
+          truth_fit_renders += refiner->renders() - before;
         }
       }
       const json record = to_json(v);

@@ -25,45 +25,69 @@ const ModelPixel* SourceImage::find(uint32_t index) const {
 
 SourceImage blurred(const SourceImage& image, double sigma_px, const AnalysisGrid& grid) {
   if (!(sigma_px > 0) || image.pixels.empty()) return image;
-  // The Gaussian is separable: along rows, then along columns, on a dense
-  // window around the image's pixels (light that leaves the grid is lost).
+  // The Gaussian is separable: along rows, then along columns (light that
+  // leaves the grid is lost). Both passes keep only the rows the light
+  // reaches, each as its lit columns: at the sensor's own 6.9 um pixels an
+  // image's 42 lenslet discs span the whole 32 M pixel sensor, whose dense
+  // window (as this was first written) took 2 GB and half the polish's time.
   const int radius = int(std::ceil(defaults::refine_blur_radius_sigmas * sigma_px));
   std::vector<double> taps;  // 2 radius + 1, normalised
   double total = 0;
   for (int d = -radius; d <= radius; ++d) total += taps.emplace_back(std::exp(-double(d * d) / (2 * sigma_px * sigma_px)));
   for (double& t : taps) t /= total;
-  const int W = grid.width;
-  int c0 = W, c1 = -1, r0 = grid.height, r1 = -1;
-  for (const ModelPixel& m : image.pixels) {
-    const int col = int(m.index % uint32_t(W)), row = int(m.index / uint32_t(W));
-    c0 = std::min(c0, col), c1 = std::max(c1, col), r0 = std::min(r0, row), r1 = std::max(r1, row);
-  }
-  const int x0 = std::max(0, c0 - radius), x1 = std::min(W - 1, c1 + radius);
-  const int y0 = std::max(0, r0 - radius), y1 = std::min(grid.height - 1, r1 + radius);
-  const size_t w = size_t(x1 - x0 + 1), h = size_t(y1 - y0 + 1);
-  // (p, dp/dx, dp/dy, dp/ddepth) per window pixel.
-  std::vector<glm::dvec4> rows_done(w * h, glm::dvec4(0.0)), out_px(w * h, glm::dvec4(0.0));
-  for (const ModelPixel& m : image.pixels) {
-    const int col = int(m.index % uint32_t(W)), row = int(m.index / uint32_t(W));
-    const glm::dvec4 v(m.p, m.g);
-    for (int d = -radius; d <= radius; ++d)
-      if (const int c = col + d; c >= x0 && c <= x1)
-        rows_done[size_t(row - y0) * w + size_t(c - x0)] += taps[size_t(d + radius)] * v;
-  }
-  for (size_t y = 0; y < h; ++y)
-    for (size_t x = 0; x < w; ++x) {
-      const glm::dvec4 v = rows_done[y * w + x];
-      if (v == glm::dvec4(0.0)) continue;
+  const int W = grid.width, H = grid.height;
+  // (p, dp/dx, dp/dy, dp/ddepth) of one row, dense; lit columns [lo, hi].
+  std::vector<glm::dvec4> line(size_t(W), glm::dvec4(0.0));
+  struct Lit {
+    int col;
+    glm::dvec4 v;
+  };
+  // Row pass: the image's pixels are sorted by index, so row by row.
+  std::vector<int> rows;            // rows with light, ascending
+  std::vector<size_t> row_begin;    // their runs in `lit` (one more at the end)
+  std::vector<Lit> lit;
+  for (size_t i = 0; i < image.pixels.size();) {
+    const int row = int(image.pixels[i].index / uint32_t(W));
+    int lo = W, hi = -1;
+    for (; i < image.pixels.size() && int(image.pixels[i].index / uint32_t(W)) == row; ++i) {
+      const ModelPixel& m = image.pixels[i];
+      const int col = int(m.index % uint32_t(W));
+      const glm::dvec4 v(m.p, m.g);
       for (int d = -radius; d <= radius; ++d)
-        if (const long r = long(y) + d; r >= 0 && r < long(h)) out_px[size_t(r) * w + x] += taps[size_t(d + radius)] * v;
+        if (const int c = col + d; c >= 0 && c < W) line[size_t(c)] += taps[size_t(d + radius)] * v;
+      lo = std::min(lo, std::max(0, col - radius)), hi = std::max(hi, std::min(W - 1, col + radius));
     }
+    rows.push_back(row);
+    row_begin.push_back(lit.size());
+    for (int c = lo; c <= hi; ++c)
+      if (line[size_t(c)] != glm::dvec4(0.0)) lit.push_back({c, line[size_t(c)]}), line[size_t(c)] = glm::dvec4(0.0);
+  }
+  row_begin.push_back(lit.size());
+  // Column pass, an output row at a time from the lit rows within the radius.
   SourceImage out;
   out.photons = image.photons;
-  for (size_t y = 0; y < h; ++y)  // row-major: sorted by index
-    for (size_t x = 0; x < w; ++x)
-      if (const glm::dvec4 v = out_px[y * w + x]; v != glm::dvec4(0.0))
-        out.pixels.push_back({uint32_t(size_t(y0) + y) * uint32_t(W) + uint32_t(size_t(x0) + x), v.x,
-                              glm::dvec3(v.y, v.z, v.w)});
+  size_t first = 0, end = 0;  // lit rows within the radius of y: [first, end)
+  for (int y = std::max(0, rows.front() - radius); y < H && first < rows.size();) {
+    while (first < rows.size() && rows[first] < y - radius) ++first;
+    while (end < rows.size() && rows[end] <= y + radius) ++end;
+    if (first == end) {  // no light within reach: on to the next lit row's reach
+      if (first < rows.size()) y = std::max(y + 1, rows[first] - radius);
+      continue;
+    }
+    int lo = W, hi = -1;
+    for (size_t j = first; j < end; ++j) {
+      if (row_begin[j] == row_begin[j + 1]) continue;
+      const double t = taps[size_t(y - rows[j] + radius)];
+      for (size_t e = row_begin[j]; e < row_begin[j + 1]; ++e) line[size_t(lit[e].col)] += t * lit[e].v;
+      lo = std::min(lo, lit[row_begin[j]].col), hi = std::max(hi, lit[row_begin[j + 1] - 1].col);
+    }
+    for (int c = lo; c <= hi; ++c)  // row-major: sorted by index
+      if (const glm::dvec4 v = line[size_t(c)]; v != glm::dvec4(0.0)) {
+        out.pixels.push_back({uint32_t(y) * uint32_t(W) + uint32_t(c), v.x, glm::dvec3(v.y, v.z, v.w)});
+        line[size_t(c)] = glm::dvec4(0.0);
+      }
+    ++y;
+  }
   return out;
 }
 
@@ -457,22 +481,9 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
   constexpr int kLatticeReachPx = 6;
   const auto start_time = std::chrono::steady_clock::now();
   ++stats_.events;
-  // Vertices worth refining: those the search gave light to.
-  std::vector<size_t> live;
-  for (size_t k = 0; k < rows.size(); ++k)
-    if (!(rows[k].flags & (no_clicks | alpha_zero)) && rows[k].alpha > 0) live.push_back(k);
+  const std::vector<size_t> live = live_rows(rows);
   if (live.empty() || event.clicks.empty()) return rows;
-
-  Fit f{this, event.clicks, live.size(), {}, {}, {}, 0};
-  for (size_t k : live) {
-    const auto& v = rows[k];
-    glm::dvec3 th(v.x_mm, v.y_mm, v.depth_mm);
-    f.theta.push_back(glm::clamp(th, bounds_.lo, bounds_.hi));
-    f.alpha.push_back(std::min(v.alpha, s_.alpha_max));
-  }
-  f.render();
-  ++stats_.starts;
-  stats_.iterations += uint64_t(levenberg_marquardt(f, s_.iterations));
+  Fit f = first_fit(event, rows, live);
 
   // Further starts per vertex, the others held where they are: the search's
   // runners-up (other planes and nodes), the lattice aliases of the current
@@ -742,24 +753,59 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
   // staircase of such cliffs, which a local step cannot see across. Fitted again with
   // the images blurred (the cliffs become slopes), then less, then not, from
   // the estimate; kept if the unblurred NLL is lower.
-  if (s_.continuation && scan_always()) {
-    Fit g = f;
-    for (double sigma : defaults::refine_continuation_blur_px) {
-      g.blur_px = sigma;
-      g.render();
-      stats_.iterations += uint64_t(levenberg_marquardt(g, s_.iterations));
-    }
-    g.blur_px = 0;
+  if (s_.continuation && scan_always() && continuation(f, f, defaults::refine_continuation_blur_px))
+    pvalue = fit_pvalue(f, event.id);
+
+  finish(f, live, rows, pvalue);
+  stats_.seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - start_time).count();
+  return rows;
+}
+
+bool Refiner::continuation(Fit& f, Fit g, std::span<const double> blur_px) {
+  for (double sigma : blur_px) {
+    g.blur_px = sigma;
     g.render();
     stats_.iterations += uint64_t(levenberg_marquardt(g, s_.iterations));
-    ++stats_.continuations;
-    if (g.nll < f.nll) {
-      ++stats_.continuations_kept;
-      f = std::move(g);
-      pvalue = fit_pvalue(f, event.id);
-    }
   }
+  g.blur_px = 0;
+  g.render();
+  stats_.iterations += uint64_t(levenberg_marquardt(g, s_.iterations));
+  ++stats_.continuations;
+  if (!(g.nll < f.nll)) return false;
+  ++stats_.continuations_kept;
+  f = std::move(g);
+  return true;
+}
 
+std::vector<size_t> Refiner::live_rows(const std::vector<ReconstructedVertex>& rows) {
+  std::vector<size_t> live;  // the vertices the search gave light to
+  for (size_t k = 0; k < rows.size(); ++k)
+    if (!(rows[k].flags & (no_clicks | alpha_zero)) && rows[k].alpha > 0) live.push_back(k);
+  return live;
+}
+
+Refiner::Fit Refiner::start_fit(const Event& event, const std::vector<ReconstructedVertex>& rows,
+                                const std::vector<size_t>& live) const {
+  Fit f{this, event.clicks, live.size(), {}, {}, {}, std::numeric_limits<double>::infinity(), 0};
+  for (size_t k : live) {
+    const auto& v = rows[k];
+    f.theta.push_back(glm::clamp(glm::dvec3(v.x_mm, v.y_mm, v.depth_mm), bounds_.lo, bounds_.hi));
+    f.alpha.push_back(std::min(v.alpha, s_.alpha_max));
+  }
+  return f;
+}
+
+Refiner::Fit Refiner::first_fit(const Event& event, const std::vector<ReconstructedVertex>& rows,
+                                const std::vector<size_t>& live) {
+  Fit f = start_fit(event, rows, live);
+  f.render();
+  ++stats_.starts;
+  stats_.iterations += uint64_t(levenberg_marquardt(f, s_.iterations));
+  return f;
+}
+
+void Refiner::finish(const Fit& f, const std::vector<size_t>& live, std::vector<ReconstructedVertex>& rows,
+                     double pvalue) const {
   // CRLB at the estimate: the inverse of the full Fisher information (all
   // vertices' positions and weights), diagonal.
   std::vector<double> grad, fisher;
@@ -801,8 +847,69 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
       if (i != j && glm::length(f.theta[i] - f.theta[j]) < std::sqrt(std::max(variance_3d(i), variance_3d(j))))
         o.flags |= merged;
   }
+}
+
+std::vector<ReconstructedVertex> Refiner::polish(const Event& event, std::vector<ReconstructedVertex> rows,
+                                                 std::span<const double> blur_px) {
+  const auto start_time = std::chrono::steady_clock::now();
+  ++stats_.events;
+  const std::vector<size_t> live = live_rows(rows);
+  if (live.empty() || event.clicks.empty()) return rows;
+  // Straight from the start, and through the blurred images (the
+  // continuation of refine()), the lower NLL kept.
+  Fit f = first_fit(event, rows, live);
+  if (!blur_px.empty()) continuation(f, start_fit(event, rows, live), blur_px);
+  finish(f, live, rows, fit_pvalue(f, event.id));
   stats_.seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - start_time).count();
   return rows;
+}
+
+int default_refine_level(const DictionaryManifest& m, int click_level) {
+  int level = click_level;
+  while (level + 1 < m.levels && (m.base_binning << level) < unsigned(defaults::refine_pixel_sensor_px)) ++level;
+  return level;
+}
+
+Refinement::Refinement(RefineModel choice, const Scene& scene, const DictionaryReader& dictionary, int click_level,
+                       int refine_level, vk::Context* ctx, const RefineSettings& settings)
+    : click_level_(click_level),
+      refine_level_(refine_level),
+      click_width_(uint32_t(dictionary.manifest().level_width(click_level))),
+      refine_width_(uint32_t(dictionary.manifest().level_width(refine_level))) {
+  const auto& m = dictionary.manifest();
+  if (refine_level < click_level || refine_level >= m.levels)
+    throw std::invalid_argument("--refine-level " + std::to_string(refine_level) + ": choose " +
+                                std::to_string(click_level) + " (the clicks' own) to " + std::to_string(m.levels - 1));
+  coarse_model_ = make_refine_model(choice, scene, dictionary, refine_level, ctx);
+  if (!coarse_model_) throw std::logic_error("Refinement: no model to refine with (--model none)");
+  coarse_ = std::make_unique<Refiner>(*coarse_model_, scene, m.level_grid(refine_level), settings);
+  if (refine_level == click_level) return;
+  fine_model_ = make_refine_model(choice, scene, dictionary, click_level, ctx);
+  polish_ = std::make_unique<Refiner>(*fine_model_, scene, m.level_grid(click_level), settings);
+  for (double sigma : defaults::refine_polish_blur_refine_px) polish_blur_px_.push_back(sigma * (1 << (refine_level - click_level)));
+}
+
+Refinement::~Refinement() = default;
+
+std::vector<ReconstructedVertex> Refinement::refine(const Event& event, std::vector<ReconstructedVertex> rows) {
+  if (!polish_) return coarse_->refine(event, std::move(rows));
+  Event binned = event;
+  binned.clicks = binned_clicks(event.clicks, click_width_, refine_level_ - click_level_, refine_width_);
+  return polish_->polish(event, coarse_->refine(binned, std::move(rows)), polish_blur_px_);
+}
+
+Refiner::LocalFit Refinement::local_fit(const Event& event, const glm::dvec3& at, double alpha) {
+  return (polish_ ? polish_ : coarse_)->local_fit(event, at, alpha);
+}
+
+RefineStats Refinement::stats() const {
+  RefineStats r = coarse_->stats();
+  if (polish_) r.seconds += polish_->stats().seconds;
+  return r;
+}
+
+uint64_t Refinement::renders() const {
+  return coarse_model_->renders() + (fine_model_ ? fine_model_->renders() : 0);
 }
 
 }  // namespace prism

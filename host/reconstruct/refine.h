@@ -174,9 +174,26 @@ class Refiner {
     double alpha = NAN, nll = NAN;
   };
   LocalFit local_fit(const Event& event, const glm::dvec3& at, double alpha);
+  // The vertices of `rows` (another refinement's answer, on coarser pixels)
+  // followed to convergence on these clicks, no other start tried: straight
+  // from there and, with `blur_px`, also through the images blurred by each
+  // of these sigmas (click-grid pixels) in turn, then sharp, the lower NLL
+  // kept. Rows as refine() gives them, with this grid's CRLB and p-value.
+  std::vector<ReconstructedVertex> polish(const Event& event, std::vector<ReconstructedVertex> rows,
+                                          std::span<const double> blur_px);
 
  private:
   struct Fit;
+  static std::vector<size_t> live_rows(const std::vector<ReconstructedVertex>& rows);
+  // Vertices `live` of `rows` as a fit, not rendered; first_fit: rendered and
+  // followed by Levenberg-Marquardt steps.
+  Fit start_fit(const Event& event, const std::vector<ReconstructedVertex>& rows, const std::vector<size_t>& live) const;
+  Fit first_fit(const Event& event, const std::vector<ReconstructedVertex>& rows, const std::vector<size_t>& live);
+  // The continuation: `g` fitted with its images blurred by each of `blur_px`
+  // in turn, then sharp; it replaces `f` where its NLL is lower (true then).
+  bool continuation(Fit& f, Fit g, std::span<const double> blur_px);
+  // Rows `live` of `rows` from fit `f`: positions, weights, CRLB, p-value, flags.
+  void finish(const Fit& f, const std::vector<size_t>& live, std::vector<ReconstructedVertex>& rows, double pvalue) const;
   double fit_pvalue(const Fit& f, uint64_t event_id) const;
   SourceModel& model_;
   RefineSettings s_;
@@ -187,6 +204,47 @@ class Refiner {
   std::vector<glm::dvec2> rescue_lattice_mm_;  // those up to 2 pitches, for the rescue of a poor fit
   RefineStats stats_;
 };
+
+// The refinement as the commands run it, on the clicks' own level or, where
+// rendering there costs too much, staged: every start, alias, lattice scan
+// and continuation of Refiner::refine on the clicks binned to a coarser
+// level (`refine_level`), then its answer fitted again on the clicks' own
+// pixels from there (Refiner::polish: straight, and through images blurred
+// by defaults::refine_polish_blur_refine_px of the coarser level's pixels,
+// the better kept; from a coarser answer the clicks' own likelihood has
+// cliffs a local step cannot see across). At the sensor's own
+// 6.9 um pixels a render of the prototype takes 7-18 s on lavapipe and a
+// refinement about 100 of them; the polish takes a few, and the native
+// pixels carry 5-6 times the position information of 110 um ones (README
+// "Refinement at the sensor's own pixels").
+class Refinement {
+ public:
+  // `click_level`: the events' clicks' level of `dictionary`; `refine_level`
+  // (>= click_level): where the refinement renders. `choice` is not none.
+  Refinement(RefineModel choice, const Scene& scene, const DictionaryReader& dictionary, int click_level,
+             int refine_level, vk::Context* ctx, const RefineSettings& settings);
+  ~Refinement();
+  std::vector<ReconstructedVertex> refine(const Event& event, std::vector<ReconstructedVertex> rows);
+  // Refiner::local_fit on the clicks' own level.
+  Refiner::LocalFit local_fit(const Event& event, const glm::dvec3& at, double alpha);
+  uint64_t renders() const;  // sources rendered so far, both levels
+  // The refinement's counts; its seconds include the polish's.
+  RefineStats stats() const;
+  int refine_level() const { return refine_level_; }
+  bool staged() const { return polish_ != nullptr; }
+
+ private:
+  const int click_level_, refine_level_;
+  const uint32_t click_width_, refine_width_;
+  std::unique_ptr<SourceModel> coarse_model_, fine_model_;
+  std::unique_ptr<Refiner> coarse_, polish_;
+  std::vector<double> polish_blur_px_;  // the polish's continuation, click-grid pixels
+};
+
+// The default refine_level for clicks on `click_level`: the finest level
+// whose pixels span at least defaults::refine_pixel_sensor_px sensor pixels
+// per axis, or the clicks' own where coarser.
+int default_refine_level(const DictionaryManifest& m, int click_level);
 
 // The goodness of fit of an event on the binary sensor: T = the NLL over
 // every pixel, observed (the clicks) against `draws` events drawn from the

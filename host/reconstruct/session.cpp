@@ -47,14 +47,14 @@ ReconstructionSession::ReconstructionSession(const std::string& dictionary, cons
   // dictionary interpolated (the default for measured dictionaries).
   model_ = choose_refine_model(o.model, m, given_.has_value(), dictionary);
   scene_ = given_ ? *given_ : m.scene;
-  source_model_ = make_refine_model(model_, scene_, *reader_, click_level_, ctx);
-  if (source_model_) {
+  if (model_ != RefineModel::none) {
     RefineSettings rs;
     rs.dark_rate = s.dark_rate;
     rs.alpha_max = s.alpha_max;
     rs.always_scan_below_mm = o.always_scan_below_mm;
     rs.always_scan_below_clicks = o.always_scan_below_clicks;
-    refiner_ = std::make_unique<Refiner>(*source_model_, scene_, m.level_grid(click_level_), rs);
+    const int refine_level = o.refine_level >= 0 ? o.refine_level : default_refine_level(m, click_level_);
+    refinement_ = std::make_unique<Refinement>(model_, scene_, *reader_, click_level_, refine_level, ctx, rs);
   }
 }
 
@@ -65,9 +65,9 @@ size_t ReconstructionSession::batch_events() const { return batch_; }
 std::vector<std::vector<ReconstructedVertex>> ReconstructionSession::run(std::span<const Event> events,
                                                                          const std::function<void(size_t)>& refined) {
   auto out = pool_->run(events);
-  if (refiner_)
+  if (refinement_)
     for (size_t i = 0; i < events.size(); ++i) {
-      out[i] = refiner_->refine(events[i], std::move(out[i]));
+      out[i] = refinement_->refine(events[i], std::move(out[i]));
       if (refined) refined(i);
     }
   return out;

@@ -30,6 +30,7 @@ struct SessionOptions {
   bool serial_scans = false;        // scan, then the host's work, instead of side by side
   double always_scan_below_mm = defaults::refine_always_scan_below_mm;  // RefineSettings'
   int always_scan_below_clicks = defaults::refine_always_scan_below_clicks;
+  int refine_level = -1;            // the level the refinement renders on (Refinement); -1: default_refine_level
   ReconstructionSettings settings;  // vertices (K) and the search's settings
 };
 
@@ -64,8 +65,7 @@ class ReconstructionSession {
   int click_level() const { return click_level_; }
   RefineModel model() const { return model_; }
   const Scene& scene() const { return scene_; }
-  const Refiner* refiner() const { return refiner_.get(); }
-  const SourceModel* source_model() const { return source_model_.get(); }
+  const Refinement* refinement() const { return refinement_.get(); }  // nullptr: the search alone
 
  private:
   std::optional<Scene> given_;
@@ -76,8 +76,7 @@ class ReconstructionSession {
   std::unique_ptr<ReconstructionPool> pool_;
   RefineModel model_ = RefineModel::none;
   Scene scene_;
-  std::unique_ptr<SourceModel> source_model_;
-  std::unique_ptr<Refiner> refiner_;
+  std::unique_ptr<Refinement> refinement_;
 };
 
 }  // namespace prism

@@ -81,6 +81,21 @@ struct ThinRow {
   }
 };
 
+// The thin row's volume experiment: 4 events over its middle, with the
+// ambiguity, which with a refinement also fits the truth on each event's
+// clicks (VolumeEvent::truth_fit_*).
+prism::EvaluationOptions thin_row_volume() {
+  prism::EvaluationOptions o;
+  o.experiments = {"volume"};
+  o.volume_events = 4;
+  o.volume_x_mm = {-1.5, 1.5};
+  o.volume_y_mm = {-0.5, 0.5};
+  o.volume_depth_mm = {12, 28};
+  o.seed = 2;
+  o.volume_ambiguity = true;
+  return o;
+}
+
 // The depth CRLB at 100 detected photons that search_volume()'s events get
 // at `at_mm`: crlb_study with the truth's settings.
 double volume_depth_bound(const prism::Scene& scene, const prism::EvaluationOptions& o, const glm::dvec3& at_mm) {
@@ -506,14 +521,7 @@ TEST_CASE("evaluation volume with the refinement: thin-lens row, truth at 4x the
   const auto& scene = row.scene;
   auto& reader = *row.reader;
 
-  prism::EvaluationOptions o;
-  o.experiments = {"volume"};
-  o.volume_events = 4;
-  o.volume_x_mm = {-1.5, 1.5};
-  o.volume_y_mm = {-0.5, 0.5};
-  o.volume_depth_mm = {12, 28};
-  o.seed = 2;
-  o.volume_ambiguity = true;  // with a refinement it also fits the truth on each event's clicks
+  prism::EvaluationOptions o = thin_row_volume();
   auto result = prism::evaluate(prism::test::gpu(), scene, reader, o);
   REQUIRE(result.volume.size() == 4);
   CHECK(result.cost.refine_s > 0);
@@ -554,6 +562,42 @@ TEST_CASE("evaluation volume with the refinement: thin-lens row, truth at 4x the
   wrong.truth_fit_mm = wrong.truth_mm;
   wrong.estimate.nll = wrong.truth_fit_nll - 1;
   CHECK_FALSE(wrong.search_failure());
+  prism::test::check_validation_clean();
+}
+
+TEST_CASE("evaluation volume with the refinement staged: rendered on 4 x 4 blocks of the clicks, then on the clicks") {
+  // Refinement with refine_level 2 (441.6 um blocks) above 110 um clicks: the
+  // starts, aliases and scans on the clicks binned, then the answer fitted
+  // again on the clicks themselves. The polish must land on the clicks' own
+  // optimum: the local fit from the truth (on the clicks, Refinement::local_fit)
+  // and the estimate are one point of one likelihood, a fraction of a CRLB
+  // apart, and the estimate's NLL is on the clicks (not the blocks').
+  ThinRow row("eval-thin-staged");
+  prism::EvaluationOptions o = thin_row_volume();
+  o.refine_level = 2;
+  o.journal_dir = (prism::test::scratch_dir() / "eval-thin-staged" / "run").string();
+  auto result = prism::evaluate(prism::test::gpu(), row.scene, *row.reader, o);
+  REQUIRE(result.volume.size() == 4);
+  for (const auto& v : result.volume) {
+    const glm::dvec3 estimate(v.estimate.x_mm, v.estimate.y_mm, v.estimate.depth_mm);
+    INFO("event ", v.index, ": truth depth ", v.truth_mm.z, ", estimate depth ", estimate.z, ", CRLB ",
+         v.estimate.crlb_3d_mm, ", NLL ", v.estimate.nll, " against the truth's fit ", v.truth_fit_nll);
+    CHECK(v.estimate.refined);
+    CHECK(std::isfinite(v.estimate.crlb_3d_mm));
+    const glm::dvec3 z = (estimate - v.truth_mm) / v.crlb_mm;
+    CHECK(std::max({std::abs(z.x), std::abs(z.y), std::abs(z.z)}) < 4.0);
+    CHECK(glm::length(estimate - v.truth_fit_mm) < 0.25 * v.estimate.crlb_3d_mm);
+    CHECK(v.estimate.nll == doctest::Approx(v.truth_fit_nll).epsilon(1e-4));
+  }
+  // The journal records the staging (a run resumed without it is refused).
+  const auto header = nlohmann::json::parse(lines_of(o.journal_dir + "/volume-journal.jsonl").at(0));
+  CHECK(header.at("refine").at("level") == 2);
+  // A level finer than the clicks' is refused, naming the option.
+  o.refine_level = 0;
+  o.level = 1;
+  o.journal_dir.clear();
+  CHECK_THROWS_WITH_AS(prism::evaluate(prism::test::gpu(), row.scene, *row.reader, o),
+                       doctest::Contains("--refine-level 0"), std::invalid_argument);
   prism::test::check_validation_clean();
 }
 

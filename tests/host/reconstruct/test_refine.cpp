@@ -8,6 +8,7 @@
 // vertices (one of them left far off by the search), and the goodness of
 // fit on events the model does and does not explain.
 #include <cmath>
+#include <map>
 
 #include "host/events/simulate.h"
 #include "host/reconstruct/click_geometry.h"
@@ -549,6 +550,45 @@ TEST_CASE("refinement: blurred images keep their light and their gradients' sums
   };
   const auto corner = prism::blurred(image_at(0, 0), 1.0, g);
   CHECK(sums(corner).first == doctest::Approx(0.25 * kept(0) * kept(0) + 0.75 * kept(1) * kept(0)).epsilon(1e-12));
+}
+
+TEST_CASE("refinement: blurred images equal the naive 2-D convolution, for light far apart and at the grid's edges") {
+  // Pixels in rows further apart than the kernel (the sparse passes skip the
+  // rows between), two in one row, and at the last column and row; the naive
+  // double loop over each pixel's square of taps is the reference.
+  const auto& g = grid();
+  const double sigma = 1.7;
+  const int radius = int(std::ceil(prism::defaults::refine_blur_radius_sigmas * sigma));
+  prism::SourceImage s;
+  s.photons = 10;
+  auto put = [&](int row, int col, double p, glm::dvec3 grad) {
+    s.pixels.push_back({uint32_t(row * g.width + col), p, grad});
+  };
+  put(2, 5, 0.1, {1, 0, 0});
+  put(2, 9, 0.2, {0, 1, 0});
+  put(40, 100, 0.3, {0, 0, 1});
+  put(40 + radius + 1, 102, 0.15, {-1, 2, 0.5});
+  put(g.height - 1, g.width - 1, 0.25, {0.5, 0.5, -2});
+  std::vector<double> taps;
+  double total = 0;
+  for (int d = -radius; d <= radius; ++d) total += taps.emplace_back(std::exp(-0.5 * d * d / (sigma * sigma)));
+  std::map<uint32_t, glm::dvec4> naive;
+  for (const auto& m : s.pixels) {
+    const int row = int(m.index) / g.width, col = int(m.index) % g.width;
+    for (int dy = -radius; dy <= radius; ++dy)
+      for (int dx = -radius; dx <= radius; ++dx)
+        if (row + dy >= 0 && row + dy < g.height && col + dx >= 0 && col + dx < g.width)
+          naive[uint32_t((row + dy) * g.width + col + dx)] +=
+              taps[size_t(dy + radius)] * taps[size_t(dx + radius)] / (total * total) * glm::dvec4(m.p, m.g);
+  }
+  const auto b = prism::blurred(s, sigma, g);
+  REQUIRE(b.pixels.size() == naive.size());
+  size_t i = 0;
+  for (const auto& [index, v] : naive) {
+    const auto& m = b.pixels[i++];
+    REQUIRE(m.index == index);
+    CHECK(glm::length(glm::dvec4(m.p, m.g) - v) < 1e-14);
+  }
 }
 
 TEST_CASE("goodness of fit: the Monte Carlo p-value equals the exact one of a small sensor, dark pixels included") {
