@@ -76,6 +76,7 @@ void run(EvaluateArgs a) {
     throw std::runtime_error("--level " + std::to_string(o.settings.search_level) + ": choose a level from " +
                              std::to_string(o.level) + " (the clicks' own) to " + std::to_string(m.levels - 1) +
                              " (the coarsest in " + a.dictionary + ")");
+  if (o.refine_level >= 0) check_refine_level(m, o.level, o.refine_level);
   o.volume_x_mm = range_of(a.volume_x, "--volume-x-mm");
   o.volume_y_mm = range_of(a.volume_y, "--volume-y-mm");
   o.volume_depth_mm = range_of(a.volume_depth, "--volume-depth-mm");

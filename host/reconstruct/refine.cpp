@@ -870,6 +870,12 @@ int default_refine_level(const DictionaryManifest& m, int click_level) {
   return level;
 }
 
+void check_refine_level(const DictionaryManifest& m, int click_level, int refine_level) {
+  if (refine_level < click_level || refine_level >= m.levels)
+    throw std::invalid_argument("--refine-level " + std::to_string(refine_level) + ": choose " +
+                                std::to_string(click_level) + " (the clicks' own) to " + std::to_string(m.levels - 1));
+}
+
 Refinement::Refinement(RefineModel choice, const Scene& scene, const DictionaryReader& dictionary, int click_level,
                        int refine_level, vk::Context* ctx, const RefineSettings& settings)
     : click_level_(click_level),
@@ -877,9 +883,7 @@ Refinement::Refinement(RefineModel choice, const Scene& scene, const DictionaryR
       click_width_(uint32_t(dictionary.manifest().level_width(click_level))),
       refine_width_(uint32_t(dictionary.manifest().level_width(refine_level))) {
   const auto& m = dictionary.manifest();
-  if (refine_level < click_level || refine_level >= m.levels)
-    throw std::invalid_argument("--refine-level " + std::to_string(refine_level) + ": choose " +
-                                std::to_string(click_level) + " (the clicks' own) to " + std::to_string(m.levels - 1));
+  check_refine_level(m, click_level, refine_level);
   coarse_model_ = make_refine_model(choice, scene, dictionary, refine_level, ctx);
   if (!coarse_model_) throw std::logic_error("Refinement: no model to refine with (--model none)");
   coarse_ = std::make_unique<Refiner>(*coarse_model_, scene, m.level_grid(refine_level), settings);

@@ -245,6 +245,9 @@ class Refinement {
 // whose pixels span at least defaults::refine_pixel_sensor_px sensor pixels
 // per axis, or the clicks' own where coarser.
 int default_refine_level(const DictionaryManifest& m, int click_level);
+// Throws, naming --refine-level and the levels to choose from, unless
+// click_level <= refine_level < the dictionary's levels.
+void check_refine_level(const DictionaryManifest& m, int click_level, int refine_level);
 
 // The goodness of fit of an event on the binary sensor: T = the NLL over
 // every pixel, observed (the clicks) against `draws` events drawn from the
