@@ -119,7 +119,7 @@ void run(EvaluateArgs a) {
       std::printf("# events, CRLB%s from the truth scene %s (the refinement's model: scene %s)\n",
                   o.volume_ambiguity ? " and ambiguity" : "", o.truth_scene->name.c_str(), scene.name.c_str());
     std::printf("# refinement: %s\n", describe(o.model, scene).c_str());
-    if (const int rl = o.refine_level >= 0 ? o.refine_level : default_refine_level(m, o.level);
+    if (const int rl = refine_level(m, o.level, o.refine_level);
         o.model != RefineModel::none && rl > o.level)
       std::printf("# refinement on level %d (%u x %u binned pixels; --refine-level), then fitted again on the clicks' "
                   "pixels from its answer\n",

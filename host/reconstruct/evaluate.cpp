@@ -481,7 +481,7 @@ Evaluation evaluate(vk::Context& ctx, const Scene& scene, const DictionaryReader
   // per event stay its own.
   std::unique_ptr<SourceModel> ambiguity_model;
   if (o.volume_ambiguity && !o.journal_only) ambiguity_model = make_scene_model(physical, model_settings, &ctx);
-  const int refine_level = o.refine_level >= 0 ? o.refine_level : default_refine_level(m, o.level);
+  const int refine_level = prism::refine_level(m, o.level, o.refine_level);
   if (refining && !o.journal_only) {
     RefineSettings rs = o.refine;
     rs.dark_rate = s.dark_rate;

@@ -111,7 +111,7 @@ struct EvaluationOptions {
   glm::dvec2 volume_x_mm{NAN, NAN}, volume_y_mm{NAN, NAN}, volume_depth_mm{NAN, NAN};
   double band_mm = volume_protocol::band_mm;
   int level = 0;               // click level: binning = base_binning * 2^level
-  int refine_level = -1;       // the level the refinement renders on (Refinement); -1: default_refine_level
+  int refine_level = -1;       // the level the refinement renders on (Refinement); -1: refine_level()'s default
   // Forward truth and CRLB; 0: the dictionary's own (or the default), and at
   // least 4x the refinement model's.
   unsigned rays = 0;

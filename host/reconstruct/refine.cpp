@@ -864,7 +864,8 @@ std::vector<ReconstructedVertex> Refiner::polish(const Event& event, std::vector
   return rows;
 }
 
-int default_refine_level(const DictionaryManifest& m, int click_level) {
+int refine_level(const DictionaryManifest& m, int click_level, int requested) {
+  if (requested >= 0) return requested;
   int level = click_level;
   while (level + 1 < m.levels && (m.base_binning << level) < unsigned(defaults::refine_pixel_sensor_px)) ++level;
   return level;
@@ -878,12 +879,11 @@ void check_refine_level(const DictionaryManifest& m, int click_level, int refine
 
 Refinement::Refinement(RefineModel choice, const Scene& scene, const DictionaryReader& dictionary, int click_level,
                        int refine_level, vk::Context* ctx, const RefineSettings& settings)
-    : click_level_(click_level),
-      refine_level_(refine_level),
-      click_width_(uint32_t(dictionary.manifest().level_width(click_level))),
-      refine_width_(uint32_t(dictionary.manifest().level_width(refine_level))) {
+    : click_level_(click_level), refine_level_(refine_level) {
   const auto& m = dictionary.manifest();
   check_refine_level(m, click_level, refine_level);
+  click_width_ = uint32_t(m.level_width(click_level));
+  refine_width_ = uint32_t(m.level_width(refine_level));
   coarse_model_ = make_refine_model(choice, scene, dictionary, refine_level, ctx);
   if (!coarse_model_) throw std::logic_error("Refinement: no model to refine with (--model none)");
   coarse_ = std::make_unique<Refiner>(*coarse_model_, scene, m.level_grid(refine_level), settings);

@@ -235,16 +235,17 @@ class Refinement {
 
  private:
   const int click_level_, refine_level_;
-  const uint32_t click_width_, refine_width_;
+  uint32_t click_width_ = 0, refine_width_ = 0;
   std::unique_ptr<SourceModel> coarse_model_, fine_model_;
   std::unique_ptr<Refiner> coarse_, polish_;
   std::vector<double> polish_blur_px_;  // the polish's continuation, click-grid pixels
 };
 
-// The default refine_level for clicks on `click_level`: the finest level
-// whose pixels span at least defaults::refine_pixel_sensor_px sensor pixels
-// per axis, or the clicks' own where coarser.
-int default_refine_level(const DictionaryManifest& m, int click_level);
+// The refine_level for clicks on `click_level`: `requested` where >= 0, else
+// the finest level whose pixels span at least
+// defaults::refine_pixel_sensor_px sensor pixels per axis, or the clicks'
+// own where coarser.
+int refine_level(const DictionaryManifest& m, int click_level, int requested = -1);
 // Throws, naming --refine-level and the levels to choose from, unless
 // click_level <= refine_level < the dictionary's levels.
 void check_refine_level(const DictionaryManifest& m, int click_level, int refine_level);

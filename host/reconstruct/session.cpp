@@ -53,8 +53,8 @@ ReconstructionSession::ReconstructionSession(const std::string& dictionary, cons
     rs.alpha_max = s.alpha_max;
     rs.always_scan_below_mm = o.always_scan_below_mm;
     rs.always_scan_below_clicks = o.always_scan_below_clicks;
-    const int refine_level = o.refine_level >= 0 ? o.refine_level : default_refine_level(m, click_level_);
-    refinement_ = std::make_unique<Refinement>(model_, scene_, *reader_, click_level_, refine_level, ctx, rs);
+    refinement_ = std::make_unique<Refinement>(model_, scene_, *reader_, click_level_,
+                                               refine_level(m, click_level_, o.refine_level), ctx, rs);
   }
 }
 

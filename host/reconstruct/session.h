@@ -30,7 +30,7 @@ struct SessionOptions {
   bool serial_scans = false;        // scan, then the host's work, instead of side by side
   double always_scan_below_mm = defaults::refine_always_scan_below_mm;  // RefineSettings'
   int always_scan_below_clicks = defaults::refine_always_scan_below_clicks;
-  int refine_level = -1;            // the level the refinement renders on (Refinement); -1: default_refine_level
+  int refine_level = -1;            // the level the refinement renders on (Refinement); -1: refine_level()'s default
   ReconstructionSettings settings;  // vertices (K) and the search's settings
 };
 

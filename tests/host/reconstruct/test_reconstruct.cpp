@@ -506,15 +506,15 @@ TEST_CASE("reconstruction's default scan and select levels: the scan within the 
   CHECK(prism::rank_level(by_default, m, 3) == 3);
   // The refinement renders 110 um pixels (16 x 16 sensor pixels) and polishes
   // on the clicks; clicks as coarse or coarser are refined on their own.
-  CHECK(prism::default_refine_level(m, 0) == 4);
+  CHECK(prism::refine_level(m, 0) == 4);
   CHECK(m.pixel_mm(4) == doctest::Approx(0.1104));
-  CHECK(prism::default_refine_level(m, 4) == 4);
-  CHECK(prism::default_refine_level(m, 6) == 6);
+  CHECK(prism::refine_level(m, 4) == 4);
+  CHECK(prism::refine_level(m, 6) == 6);
   // The paper's 1210-PSF grid has fewer near-face planes, so fewer shifts: level 3.
   m.base_binning = 16;
   m.width = 419, m.height = 298;
   m.levels = 10;
-  CHECK(prism::default_refine_level(m, 0) == 0);
+  CHECK(prism::refine_level(m, 0) == 0);
   m.grid = prism::DictionaryGrid::paper();
   CHECK(prism::default_search_level(m, 0, tau) == 3);
   // An absurd tau: the radius stops at the image's size (beyond it every
