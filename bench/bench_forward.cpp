@@ -14,9 +14,11 @@
 // Prints tables; every figure names the machine and the device. Times are
 // medians over repeats (these machines are noisy).
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <cstring>
+#include <random>
 #include <span>
 #include <string>
 #include <vector>
@@ -48,9 +50,10 @@ struct Options {
   unsigned max_rays_native = defaults::rays_per_lenslet;
   int repeats = 3;
   bool skip_convergence = false;
-  std::vector<std::string> sections{"throughput", "effects", "convergence", "passes"};
+  std::vector<std::string> sections{"throughput", "effects", "convergence", "passes", "masked"};
   std::vector<unsigned> binnings{16, 4, 1};
-  std::vector<unsigned> passes_binnings{16};  // the passes table's pixels (1: the sensor's own, 3-4x longer per render)
+  std::vector<unsigned> passes_binnings{16};
+  std::vector<unsigned> masked_binnings{4};  // the masked section's pixels (1: a whole render there takes a minute)  // the passes table's pixels (1: the sensor's own, 3-4x longer per render)
   std::vector<Variant> variants{Variant::thin, Variant::real, Variant::real_diffraction};
 };
 
@@ -288,6 +291,64 @@ void passes(vk::Context& ctx, const Options& o) {
   for (unsigned binning : o.passes_binnings) passes_at(ctx, o, binning);
 }
 
+// Section 5: a render restricted to the tiles around an event's clicks
+// (TileMask) against the whole image, as a refinement at the sensor's own
+// pixels would render: the prototype with the Airy square, the
+// refinement's cells, 100 clicks drawn from the 110 um image's light and
+// placed at random within their 110 um pixel, every tile within 32 pixels
+// of one marked. Wall time of psf() (kernels, the image's fill, read-back
+// and conversion) and the kernels' share.
+void masked(vk::Context& ctx, const Options& o) {
+  Scene scene = builtin_scene("prototype");
+  scene.optics.effects.diffraction = true;
+  scene.optics.effects.wavelength_nm = defaults::wavelength_nm;
+  TraceSettings coarse_t = TraceSettings::defaults_for(Splat::footprint);
+  coarse_t.rays_per_lenslet = defaults::refine_rays_per_lenslet;
+  coarse_t.binning = 16;
+  ForwardVulkan coarse(ctx, scene.optics, coarse_t);
+  for (unsigned binning : o.masked_binnings) {
+    TraceSettings t = coarse_t;
+    t.binning = binning;
+    ForwardVulkan fw(ctx, scene.optics, t);
+    std::printf("\n## 5. A render masked to the tiles around 100 clicks against the whole image: prototype with "
+                "diffraction, %u cells/lenslet, %.1f um, with derivatives (median of %d)\n",
+                t.rays(), 1e3 * fw.grid().pixel_mm, o.repeats);
+    std::printf("| source (mm) | tiles marked | whole: wall, kernels (s) | masked: wall, kernels (s) | whole / masked (wall) |\n"
+                "|---|---|---|---|---|\n");
+    for (glm::dvec3 theta : {glm::dvec3(-4.0, 2.0, 5.0), glm::dvec3(1.0, -2.0, 10.0), glm::dvec3(3.0, 4.0, 20.0)}) {
+      const PixelImage c = coarse.psf(theta);
+      std::vector<double> cdf;
+      double sum = 0;
+      for (size_t i = 0; i < c.data.size() / 4; ++i) cdf.push_back(sum += c.data[4 * i]);
+      std::mt19937_64 rng(7);
+      const int per = int(16 / binning);
+      TileMask mask = TileMask::of(fw.grid());
+      for (int k = 0; k < 100; ++k) {
+        const size_t i = size_t(std::lower_bound(cdf.begin(), cdf.end(), std::uniform_real_distribution<double>(0, sum)(rng)) -
+                                cdf.begin());
+        mask.mark_around(int(i % size_t(c.width)) * per + int(rng() % unsigned(per)),
+                         int(i / size_t(c.width)) * per + int(rng() % unsigned(per)), 32);
+      }
+      auto time = [&](auto&& render) {
+        render();  // warm up: compilation, the lists grown to fit
+        std::vector<double> wall, kernels;
+        for (int r = 0; r < o.repeats; ++r) {
+          const auto start = std::chrono::steady_clock::now();
+          render();
+          wall.push_back(std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count());
+          kernels.push_back(fw.last_kernel_ms() / 1e3);
+        }
+        return std::make_pair(bench::median(wall), bench::median(kernels));
+      };
+      const auto whole = time([&] { fw.psf(theta); });
+      const auto part = time([&] { fw.psf(theta, mask); });
+      std::printf("| (%.0f, %.0f, %.0f) | %zu of %d | %.2f, %.2f | %.2f, %.2f | %.1fx |\n", theta.x, theta.y, theta.z,
+                  mask.count(), mask.tiles_w * mask.tiles_h, whole.first, whole.second, part.first, part.second,
+                  whole.first / part.first);
+    }
+  }
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -309,6 +370,10 @@ int main(int argc, char** argv) {
       o.passes_binnings.clear();
       for (const std::string& v : comma_list(next())) o.passes_binnings.push_back(unsigned(std::stoul(v)));
     }
+    else if (a == "--masked-binnings") {
+      o.masked_binnings.clear();
+      for (const std::string& v : comma_list(next())) o.masked_binnings.push_back(unsigned(std::stoul(v)));
+    }
     else if (a == "--variants") {
       o.variants.clear();
       for (const std::string& v : comma_list(next())) {
@@ -323,15 +388,15 @@ int main(int argc, char** argv) {
     else if (a == "--sections") {
       o.sections.clear();
       for (const std::string& v : comma_list(next())) {
-        if (v != "throughput" && v != "effects" && v != "convergence" && v != "passes")
-          throw std::runtime_error("--sections: unknown '" + v + "' (throughput, effects, convergence, passes)");
+        if (v != "throughput" && v != "effects" && v != "convergence" && v != "passes" && v != "masked")
+          throw std::runtime_error("--sections: unknown '" + v + "' (throughput, effects, convergence, passes, masked)");
         o.sections.push_back(v);
       }
     }
     else {
       std::printf("usage: bench_forward [--device D] [--max-rays N] [--max-rays-native N] [--binnings 16,4,1] "
-                  "[--passes-binnings 16] [--variants thin,real,real+diffraction] [--repeats R] [--skip-convergence] "
-                  "[--sections throughput,effects,convergence,passes]\n");
+                  "[--passes-binnings 16] [--masked-binnings 4] [--variants thin,real,real+diffraction] [--repeats R] "
+                  "[--skip-convergence] [--sections throughput,effects,convergence,passes,masked]\n");
       return a == "--help" ? 0 : 2;
     }
   }
@@ -343,5 +408,6 @@ int main(int argc, char** argv) {
   if (wanted("effects")) effects(ctx, o);
   if (wanted("convergence") && !o.skip_convergence) convergence(ctx, o);
   if (wanted("passes")) passes(ctx, o);
+  if (wanted("masked")) masked(ctx, o);
   return 0;
 }

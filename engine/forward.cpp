@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <array>
+#include <bit>
 #include <cmath>
 #include <memory>
 
@@ -105,7 +106,7 @@ std::span<const uint32_t> splat_spirv(const TraceSettings& t, Variant v, const O
   static const KernelBuilds footprint = PRISM_KERNEL_BUILDS(psf_footprint), point = PRISM_KERNEL_BUILDS(psf_splat);
   return pick_build(t.splat == Splat::footprint ? footprint : point, v, sys);
 }
-uint32_t splat_buffers(const TraceSettings& t) { return t.splat == Splat::footprint ? 7 : 5; }
+uint32_t splat_buffers(const TraceSettings& t) { return t.splat == Splat::footprint ? 8 : 5; }
 std::string kernel_name(const TraceSettings& t, bool values_only) {
   return std::string(t.splat == Splat::footprint ? "psf_footprint" : "psf_splat") + (values_only ? " (values)" : "");
 }
@@ -191,6 +192,12 @@ struct ForwardVulkan::Impl {
   vk::Buffer lenses;
   vk::Buffer designs;
   vk::Buffer design_zero;  // source_design for single-source renders: design 0
+  // The footprint kernels' tile mask (binding 7): `no_mask` (never read,
+  // params.mask_tiles_w 0) but while psf renders a TileMask, whose tiles'
+  // slots `mask` holds.
+  vk::Buffer no_mask;
+  std::unique_ptr<vk::Buffer> mask;
+  const vk::Buffer* tile_mask = &no_mask;
   vk::Kernel splat;
   vk::Kernel splat_values;  // b only
   vk::Kernel reduce;
@@ -234,15 +241,15 @@ struct ForwardVulkan::Impl {
       return pick_build(builds, v, sys);
     }
     Footprint(vk::Context& c, const OpticalSystem& sys, Variant v, uint32_t first_capacity)
-        : split(c, "psf_footprint_split", split_spirv(v, sys), 7, sizeof(shared::TraceParams),
+        : split(c, "psf_footprint_split", split_spirv(v, sys), 8, sizeof(shared::TraceParams),
                 specialisation(sys, true)),
-          split_values(c, "psf_footprint_split (values)", split_spirv(v, sys), 7, sizeof(shared::TraceParams),
+          split_values(c, "psf_footprint_split (values)", split_spirv(v, sys), 8, sizeof(shared::TraceParams),
                        specialisation(sys, false)),
-          cut(c, "psf_footprint_cut", cut_spirv(v, sys), 7, sizeof(shared::TraceParams), specialisation(sys, true)),
-          cut_values(c, "psf_footprint_cut (values)", cut_spirv(v, sys), 7, sizeof(shared::TraceParams),
+          cut(c, "psf_footprint_cut", cut_spirv(v, sys), 8, sizeof(shared::TraceParams), specialisation(sys, true)),
+          cut_values(c, "psf_footprint_cut (values)", cut_spirv(v, sys), 8, sizeof(shared::TraceParams),
                      specialisation(sys, false)),
-          large(c, "psf_footprint_large", large_spirv(v, sys), 7, sizeof(shared::TraceParams), specialisation(sys, true)),
-          large_values(c, "psf_footprint_large (values)", large_spirv(v, sys), 7, sizeof(shared::TraceParams),
+          large(c, "psf_footprint_large", large_spirv(v, sys), 8, sizeof(shared::TraceParams), specialisation(sys, true)),
+          large_values(c, "psf_footprint_large (values)", large_spirv(v, sys), 8, sizeof(shared::TraceParams),
                        specialisation(sys, false)) {
       splits.grow(c, first_capacity);
       cuts.grow(c, first_capacity);
@@ -260,6 +267,7 @@ struct ForwardVulkan::Impl {
     std::vector<float> pixels;
   };
   Scratch scratch[2];
+  Scratch masked;  // a masked render's (psf with a TileMask): its image holds the marked tiles
 
   Impl(vk::Context& c, const std::vector<OpticalSystem>& all, const TraceSettings& t, const AnalysisGrid& grid,
        uint64_t budget, Variant v)
@@ -275,6 +283,7 @@ struct ForwardVulkan::Impl {
         lenses(c, layout.lenses.size() * sizeof(shared::Lenslet)),
         designs(c, layout.ranges.size() * sizeof(shared::DesignRange)),
         design_zero(c, sizeof(uint32_t)),
+        no_mask(c, sizeof(uint32_t)),
         splat(c, kernel_name(t, false), splat_spirv(t, variant, sys), splat_buffers(t), sizeof(shared::TraceParams),
               specialisation(sys, true)),
         splat_values(c, kernel_name(t, true), splat_spirv(t, variant, sys), splat_buffers(t),
@@ -286,6 +295,7 @@ struct ForwardVulkan::Impl {
     designs.upload(std::span<const shared::DesignRange>(layout.ranges));
     uint32_t zero = 0;
     design_zero.upload(&zero, sizeof(zero));
+    no_mask.upload(&zero, sizeof(zero));
     params.total_rays = layout.max_rays;
     params.cell_first = 0;
     params.cell_count = layout.max_rays;
@@ -333,9 +343,11 @@ struct ForwardVulkan::Impl {
     }
     Footprint& f = *footprint;
     auto groups = [](uint32_t entries) { return std::min<uint32_t>((entries + kSplatGroup - 1) / kSplatGroup, 65535u); };
-    // Every footprint kernel takes the same seven buffers.
+    // Every footprint kernel takes the same eight buffers.
     auto dispatch = [&](vk::Kernel& k, const shared::TraceParams& q, uint32_t groups_x, uint32_t groups_y) {
-      stream.dispatch(k, {&lenses, &sources, &images, &source_designs, &designs, f.splits.buffer.get(), f.cuts.buffer.get()},
+      stream.dispatch(k,
+                      {&lenses, &sources, &images, &source_designs, &designs, f.splits.buffer.get(), f.cuts.buffer.get(),
+                       tile_mask},
                       &q, groups_x, groups_y);
     };
     // The lists of a dispatch can outgrow a storage buffer (many sources, a
@@ -604,11 +616,113 @@ double render_bands(ForwardVulkan::Impl& m, const AnalysisGrid& grid, bool deriv
   return ms;
 }
 
+TileMask TileMask::of(const AnalysisGrid& grid) {
+  TileMask m;
+  m.tiles_w = (grid.width + shared::LARGE_TILE_PX - 1) / shared::LARGE_TILE_PX;
+  m.tiles_h = (grid.height + shared::LARGE_TILE_PX - 1) / shared::LARGE_TILE_PX;
+  m.bits.assign((size_t(m.tiles_w) * size_t(m.tiles_h) + 31) / 32, 0u);
+  return m;
+}
+
+void TileMask::mark_around(int col, int row, int reach_px) {
+  const int t0 = std::max(col - reach_px, 0) / shared::LARGE_TILE_PX;
+  const int t1 = std::min(col + reach_px, tiles_w * shared::LARGE_TILE_PX - 1) / shared::LARGE_TILE_PX;
+  const int r0 = std::max(row - reach_px, 0) / shared::LARGE_TILE_PX;
+  const int r1 = std::min(row + reach_px, tiles_h * shared::LARGE_TILE_PX - 1) / shared::LARGE_TILE_PX;
+  for (int r = r0; r <= r1; ++r)
+    for (int c = t0; c <= t1; ++c) {
+      const size_t t = size_t(r) * size_t(tiles_w) + size_t(c);
+      bits[t / 32] |= 1u << (t % 32);
+    }
+}
+
+bool TileMask::marked(int tile_col, int tile_row) const {
+  const size_t t = size_t(tile_row) * size_t(tiles_w) + size_t(tile_col);
+  return (bits[t / 32] >> (t % 32)) & 1u;
+}
+
+size_t TileMask::count() const {
+  size_t n = 0;
+  for (uint32_t w : bits) n += size_t(std::popcount(w));
+  return n;
+}
+
 PixelImage ForwardVulkan::psf(const glm::dvec3& theta) { return psf(theta, source_tangents, -1); }
+
+std::vector<LitPixel> ForwardVulkan::psf(const glm::dvec3& theta, const TileMask& mask) {
+  Impl& m = *impl_;
+  if (!m.footprint) throw std::invalid_argument("ForwardVulkan::psf: a tile mask needs the footprint splat");
+  const TileMask blank = TileMask::of(grid_);
+  if (mask.tiles_w != blank.tiles_w || mask.tiles_h != blank.tiles_h || mask.bits.size() != blank.bits.size())
+    throw std::invalid_argument("ForwardVulkan::psf: the tile mask is for another grid");
+  // Each marked tile's slot in the image (1 + its rank; 0: unmarked).
+  std::vector<uint32_t> slot(size_t(mask.tiles_w) * size_t(mask.tiles_h), 0u), tiles;
+  for (size_t t = 0; t < slot.size(); ++t)
+    if ((mask.bits[t / 32] >> (t % 32)) & 1u) tiles.push_back(uint32_t(t)), slot[t] = uint32_t(tiles.size());
+  if (tiles.empty()) return {};
+  constexpr uint64_t tile_px = uint64_t(shared::LARGE_TILE_PX) * shared::LARGE_TILE_PX;
+  constexpr uint32_t pixel_floats = 8;  // b, then the gradient from each half of the cells (render_bands)
+  const uint64_t image_bytes = tiles.size() * tile_px * pixel_floats * sizeof(float);
+  if (image_bytes > m.list_limit_bytes)
+    throw std::invalid_argument("ForwardVulkan::psf: the tile mask marks " + std::to_string(tiles.size()) +
+                                " tiles, more than one image buffer holds (" +
+                                std::to_string(m.list_limit_bytes / (tile_px * pixel_floats * sizeof(float))) +
+                                "); render the whole image instead");
+  if (!m.mask || m.mask->bytes() < slot.size() * sizeof(uint32_t))
+    m.mask = std::make_unique<vk::Buffer>(m.ctx, slot.size() * sizeof(uint32_t));
+  m.mask->upload(slot.data(), slot.size() * sizeof(uint32_t));
+  Impl::Scratch& s = m.masked;
+  if (!s.source) s.source = std::make_unique<vk::Buffer>(m.ctx, sizeof(glm::vec4));
+  if (!s.stream) s.stream = std::make_unique<vk::Stream>(m.ctx);
+  if (!s.images || s.images->bytes() < image_bytes) s.images = std::make_unique<vk::Buffer>(m.ctx, image_bytes);
+  s.pixels.resize(image_bytes / sizeof(float));
+  const glm::vec4 src(glm::vec3(theta), 0.0f);
+  s.source->upload(&src, sizeof(src));
+  // The whole grid in one band: the image holds the marked tiles alone.
+  shared::TraceParams p = m.params;
+  p.mask_tiles_w = uint32_t(mask.tiles_w);
+  p.band_row0 = 0;
+  p.band_rows = grid_.height;
+  p.source_offset = 0;
+  p.source_count = 1;
+  m.times.clear();
+  m.tile_mask = m.mask.get();
+  struct Unmask {  // back to no mask however the render ends
+    Impl& m;
+    ~Unmask() { m.tile_mask = &m.no_mask; }
+  } unmask{m};
+  s.stream->fill_zero(*s.images, 0, image_bytes);
+  s.stream->barrier();
+  last_kernel_ms_ = m.record_splat(*s.stream, true, *s.source, m.design_zero, *s.images, p);
+  last_kernel_ms_ += m.submit(*s.stream);
+  s.images->download(s.pixels.data(), image_bytes);
+  // Row by row of the grid, each row's marked tiles left to right: by index.
+  std::vector<LitPixel> out;
+  const int tile = shared::LARGE_TILE_PX;
+  for (size_t first = 0; first < tiles.size();) {
+    const uint32_t tile_row = tiles[first] / uint32_t(mask.tiles_w);
+    size_t end = first;
+    while (end < tiles.size() && tiles[end] / uint32_t(mask.tiles_w) == tile_row) ++end;
+    for (int y = 0; y < tile && int(tile_row) * tile + y < grid_.height; ++y) {
+      const uint32_t row = tile_row * uint32_t(tile) + uint32_t(y);
+      for (size_t k = first; k < end; ++k) {
+        const int col0 = int(tiles[k] % uint32_t(mask.tiles_w)) * tile;
+        const float* q = &s.pixels[(k * tile_px + size_t(y) * size_t(tile)) * pixel_floats];
+        for (int x = 0; x < tile && col0 + x < grid_.width; ++x, q += pixel_floats)
+          if (q[0] != 0 || q[1] != 0 || q[2] != 0 || q[3] != 0 || q[4] != 0 || q[5] != 0 || q[6] != 0)
+            out.push_back({row * uint32_t(grid_.width) + uint32_t(col0 + x), q[0],
+                           0.5f * (glm::vec3(q[1], q[2], q[3]) + glm::vec3(q[4], q[5], q[6]))});
+      }
+    }
+    first = end;
+  }
+  return out;
+}
 
 PixelImage ForwardVulkan::psf(const glm::dvec3& theta, const Tangents& tangents, int only_lens) {
   Impl& m = *impl_;
   shared::TraceParams base = m.params;
+
   if (tangents != source_tangents || only_lens >= 0) {
     if (m.variant != Variant::calibrate)
       throw std::logic_error("ForwardVulkan::psf: derivatives by scene parameters need Derivatives::scene");

@@ -28,6 +28,30 @@ struct PixelImage {
   double photons() const;
 };
 
+// The tiles of shared::LARGE_TILE_PX x LARGE_TILE_PX grid pixels (from
+// pixel (0, 0)) a masked render gives light to: the rest of its image is
+// zero, and the kernels skip the pieces whose light reaches none of them, so
+// a render around a few clicks at the sensor's own pixels costs their
+// neighbourhoods, not the whole sensor. Footprint splat only.
+struct TileMask {
+  int tiles_w = 0, tiles_h = 0;
+  std::vector<uint32_t> bits;  // row-major, tile t in bit t % 32 of word t / 32
+  static TileMask of(const AnalysisGrid& grid);  // no tile marked
+  // Every tile within reach_px pixels (per axis) of pixel (col, row).
+  void mark_around(int col, int row, int reach_px);
+  bool marked(int tile_col, int tile_row) const;
+  bool covers(int col, int row) const { return marked(col / shared::LARGE_TILE_PX, row / shared::LARGE_TILE_PX); }
+  size_t count() const;  // tiles marked
+};
+
+// A pixel of a masked render: its grid index (row-major), b and d b/d(x, y,
+// depth) (the mean of the two halves' estimates, as PixelImage).
+struct LitPixel {
+  uint32_t index;
+  float b;
+  glm::vec3 db;
+};
+
 class ForwardVulkan {
  public:
   static constexpr uint64_t default_image_budget_bytes = 256ull << 20;
@@ -58,6 +82,10 @@ class ForwardVulkan {
   // lenslet `only_lens` alone (its very rays; -1: every lenslet). Other than
   // the source's tangents of every lenslet, it needs Derivatives::scene.
   PixelImage psf(const glm::dvec3& theta, const Tangents& tangents, int only_lens = -1);
+  // psf(theta) on the tiles `mask` marks (of this grid) alone: their pixels
+  // that hold light, the same light as the whole image's there; the rest is
+  // not computed. Throws where the marked tiles outgrow one image buffer.
+  std::vector<LitPixel> psf(const glm::dvec3& theta, const TileMask& mask);
   // Trace another scene with the same kernels: the same lenslets (count,
   // diameters), lens model, effects and sensor, with other positions, focal
   // lengths, tilts, distances and sensor pose (calibration's steps; a tilted

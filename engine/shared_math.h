@@ -21,7 +21,7 @@ using uint = unsigned int;
 
 static_assert(sizeof(Lenslet) == 56, "Lenslet must match its std430 layout");
 static_assert(sizeof(DesignRange) == 16, "DesignRange must match its std430 layout");
-static_assert(sizeof(TraceParams) == 120, "TraceParams must match its std430 push-constant layout");
+static_assert(sizeof(TraceParams) == 124, "TraceParams must match its std430 push-constant layout");
 static_assert(sizeof(TraceParams) <= 128, "push constants beyond 128 bytes are not on every Vulkan device");
 static_assert(PARAM_SOURCE_X == uint(SceneParam::source_x) && PARAM_LENS_X == uint(SceneParam::lens_x) &&
                   PARAM_LENS_TILT_Y == uint(SceneParam::lens_tilt_y) &&

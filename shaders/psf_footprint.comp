@@ -68,6 +68,9 @@ void main() {
                   ((u_hi > u_max && u_max < float(P.grid_w)) || (v_hi > v_max && v_max < float(P.grid_h)));
       bool large = max(u_hi - u_lo, v_hi - v_lo) > LARGE_TRIANGLE_PX;
       if (!(a.ok || b.ok || c.ok) || off) continue;
+      // (A masked render skips what reaches none of its tiles: tested here
+      // where the piece is whole, before the split or the raster.)
+      if (!cut && !triangle_reaches_mask(a, b, c, blur_half_px, large)) continue;
       if (large || edge) {
         uint at = atomicAdd(split_count, 1u);
         if (at < split_capacity) splits[at] = uvec4(s, lens_index, cell, piece_code(t, 0u, 0u));

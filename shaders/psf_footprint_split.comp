@@ -55,6 +55,8 @@ void main() {
       Piece child = whole ? t : child_piece(t, ab, bc, ca, k);
       uvec4 child_entry = whole ? entry : uvec4(entry.xyz, piece_code(tri, path | (k << (2u * depth)), depth + 1u));
       if (!whole && is_split(child, int(depth) + 1)) {
+        if (child.a.ok && child.b.ok && child.c.ok && !triangle_reaches_mask(child.a, child.b, child.c, blur_half_px, true))
+          continue;  // a masked render's other tiles
         uint at = atomicAdd(split_count, 1u);
         if (at < split_capacity) splits[at] = child_entry;
       } else {

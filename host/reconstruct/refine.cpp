@@ -93,12 +93,15 @@ SourceImage blurred(const SourceImage& image, double sigma_px, const AnalysisGri
 
 namespace {
 
-// b and db at sorted pixels -> P = b / B and dP = (db - P dB) / B.
-SourceImage normalise(std::vector<ModelPixel> raw) {
+// b and db at sorted pixels -> P = b / B and dP = (db - P dB) / B, with B
+// and dB the sum of the pixels' or, where given, the sensor's.
+SourceImage normalise(std::vector<ModelPixel> raw, const double* sensor_b = nullptr,
+                      const glm::dvec3* sensor_db = nullptr) {
   SourceImage out;
   double total = 0;
   glm::dvec3 dtotal(0);
   for (const auto& m : raw) total += m.p, dtotal += m.g;
+  if (sensor_b) total = *sensor_b, dtotal = *sensor_db;
   if (!(total > 0)) return out;
   out.photons = total;
   for (auto& m : raw) {
@@ -130,6 +133,36 @@ class SceneModelVulkan : public SourceModel {
   ForwardVulkan fw_;
 };
 
+class SceneModelMasked : public SourceModel {
+ public:
+  SceneModelMasked(vk::Context& ctx, const Scene& scene, const TraceSettings& t, const TraceSettings& photons)
+      : fw_(ctx, scene.optics, t), photons_(ctx, scene.optics, photons), mask_(TileMask::of(fw_.grid())) {}
+  void focus(std::span<const uint32_t> clicks, int reach_px) override {
+    mask_ = TileMask::of(fw_.grid());
+    const uint32_t W = uint32_t(fw_.grid().width);
+    for (uint32_t c : clicks) mask_.mark_around(int(c % W), int(c / W), reach_px);
+  }
+
+ protected:
+  std::vector<ModelPixel> render_raw(const glm::dvec3& theta) override {
+    if (mask_.count() == 0) throw std::logic_error("SceneModelMasked: focus on an event's clicks before rendering");
+    std::vector<ModelPixel> raw;
+    for (const LitPixel& q : fw_.psf(theta, mask_)) raw.push_back({q.index, double(q.b), glm::dvec3(q.db)});
+    return raw;
+  }
+  bool sensor_photons(const glm::dvec3& theta, double& b, glm::dvec3& db) override {
+    const PixelImage im = photons_.psf(theta);
+    b = 0, db = glm::dvec3(0);
+    for (size_t i = 0; i < im.data.size(); i += 4)
+      b += im.data[i], db += glm::dvec3(im.data[i + 1], im.data[i + 2], im.data[i + 3]);
+    return true;
+  }
+
+ private:
+  ForwardVulkan fw_, photons_;
+  TileMask mask_;
+};
+
 class SceneModelCpu : public SourceModel {
  public:
   SceneModelCpu(const Scene& scene, const TraceSettings& t) : sys_(scene.optics), t_(t) {}
@@ -157,10 +190,21 @@ class SceneModelCpu : public SourceModel {
 std::vector<SourceImage> SourceModel::render(std::span<const glm::dvec3> theta) {
   std::vector<SourceImage> out;
   for (const auto& th : theta) {
-    out.push_back(normalise(render_raw(th)));
+    double b;
+    glm::dvec3 db;
+    const bool sensor = sensor_photons(th, b, db);
+    out.push_back(sensor ? normalise(render_raw(th), &b, &db) : normalise(render_raw(th)));
     ++renders_;
   }
   return out;
+}
+
+std::unique_ptr<SourceModel> make_masked_scene_model(const Scene& scene, const TraceSettings& settings,
+                                                     const TraceSettings& photons_settings, vk::Context& ctx) {
+  if (photons_settings.rays_per_lenslet != settings.rays_per_lenslet ||
+      photons_settings.stratification != settings.stratification || photons_settings.splat != settings.splat)
+    throw std::invalid_argument("make_masked_scene_model: the sensor's photons need the render's own cells");
+  return std::make_unique<SceneModelMasked>(ctx, scene, settings, photons_settings);
 }
 
 std::unique_ptr<SourceModel> make_scene_model(const Scene& scene, const TraceSettings& settings, vk::Context* ctx) {
@@ -867,7 +911,7 @@ std::vector<ReconstructedVertex> Refiner::polish(const Event& event, std::vector
 int refine_level(const DictionaryManifest& m, int click_level, int requested) {
   if (requested >= 0) return requested;
   int level = click_level;
-  while (level + 1 < m.levels && (m.base_binning << level) < unsigned(defaults::refine_pixel_sensor_px)) ++level;
+  while (level + 1 < m.levels && (m.base_binning << level) < defaults::refine_pixel_sensor_px) ++level;
   return level;
 }
 
@@ -888,9 +932,19 @@ Refinement::Refinement(RefineModel choice, const Scene& scene, const DictionaryR
   if (!coarse_model_) throw std::logic_error("Refinement: no model to refine with (--model none)");
   coarse_ = std::make_unique<Refiner>(*coarse_model_, scene, m.level_grid(refine_level), settings);
   if (refine_level == click_level) return;
-  fine_model_ = make_refine_model(choice, scene, dictionary, click_level, ctx);
+  // On the device the scene's model renders only around each event's
+  // clicks (focus, in refine and local_fit), with the sensor's light from
+  // the refine level's whole render.
+  if (choice == RefineModel::scene && ctx)
+    fine_model_ = make_masked_scene_model(scene, refine_trace_settings(m.base_binning << click_level),
+                                          refine_trace_settings(m.base_binning << refine_level), *ctx);
+  else
+    fine_model_ = make_refine_model(choice, scene, dictionary, click_level, ctx);
   polish_ = std::make_unique<Refiner>(*fine_model_, scene, m.level_grid(click_level), settings);
   for (double sigma : defaults::refine_polish_blur_refine_px) polish_blur_px_.push_back(sigma * (1 << (refine_level - click_level)));
+  // Every pixel a blurred image's value at a click sums (blurred's radius).
+  focus_reach_px_ = int(std::ceil(defaults::refine_blur_radius_sigmas *
+                                  *std::max_element(polish_blur_px_.begin(), polish_blur_px_.end()))) + 1;
 }
 
 Refinement::~Refinement() = default;
@@ -899,11 +953,15 @@ std::vector<ReconstructedVertex> Refinement::refine(const Event& event, std::vec
   if (!polish_) return coarse_->refine(event, std::move(rows));
   Event binned = event;
   binned.clicks = binned_clicks(event.clicks, click_width_, refine_level_ - click_level_, refine_width_);
-  return polish_->polish(event, coarse_->refine(binned, std::move(rows)), polish_blur_px_);
+  rows = coarse_->refine(binned, std::move(rows));
+  fine_model_->focus(event.clicks, focus_reach_px_);
+  return polish_->polish(event, std::move(rows), polish_blur_px_);
 }
 
 Refiner::LocalFit Refinement::local_fit(const Event& event, const glm::dvec3& at, double alpha) {
-  return (polish_ ? polish_ : coarse_)->local_fit(event, at, alpha);
+  if (!polish_) return coarse_->local_fit(event, at, alpha);
+  fine_model_->focus(event.clicks, focus_reach_px_);
+  return polish_->local_fit(event, at, alpha);
 }
 
 RefineStats Refinement::stats() const {

@@ -76,10 +76,17 @@ class SourceModel {
   virtual ~SourceModel() = default;
   std::vector<SourceImage> render(std::span<const glm::dvec3> theta);
   uint64_t renders() const { return renders_; }  // sources rendered so far
+  // From here on render only the pixels within reach_px of these clicks (and
+  // what the model's tiles round that to), where the model can (a masked
+  // render, make_masked_scene_model); a model that cannot renders every pixel.
+  virtual void focus(std::span<const uint32_t> /*clicks*/, int /*reach_px*/) {}
 
  protected:
   // b and db/d(x, y, depth) of one source at the pixels where any is nonzero, sorted.
   virtual std::vector<ModelPixel> render_raw(const glm::dvec3& theta) = 0;
+  // The whole sensor's b and its gradient where render_raw's pixels are not
+  // all of them (a focused render); false: their sum is.
+  virtual bool sensor_photons(const glm::dvec3& /*theta*/, double& /*b*/, glm::dvec3& /*db*/) { return false; }
 
  private:
   uint64_t renders_ = 0;
@@ -89,6 +96,16 @@ class SourceModel {
 // at `settings` (binning: the clicks'; footprint splat by default).
 std::unique_ptr<SourceModel> make_scene_model(const Scene& scene, const TraceSettings& settings,
                                               vk::Context* ctx /* nullptr: CPU reference */);
+// The device's forward model at `settings`, focused (SourceModel::focus):
+// each render covers the tiles (TileMask) around the clicks alone, and P is
+// b over the whole sensor's light from a render of every pixel at
+// `photons_settings` (coarser pixels, the same cells: the same light). The
+// refinement's polish at the sensor's own pixels, where a render of every
+// pixel costs a minute on lavapipe. Its images hold those tiles' pixels
+// alone, so a refinement's Fisher information (its steps' metric, and the
+// CRLB and p-value it reports) counts only them.
+std::unique_ptr<SourceModel> make_masked_scene_model(const Scene& scene, const TraceSettings& settings,
+                                                     const TraceSettings& photons_settings, vk::Context& ctx);
 
 // The model from a dictionary alone, at click level `level`: the 8 PSFs
 // around a position, moved by the magnification and blended (bilinear
@@ -213,8 +230,10 @@ class Refiner {
 // by defaults::refine_polish_blur_refine_px of the coarser level's pixels,
 // the better kept; from a coarser answer the clicks' own likelihood has
 // cliffs a local step cannot see across). At the sensor's own
-// 6.9 um pixels a render of the prototype takes 7-18 s on lavapipe and a
-// refinement about 100 of them; the polish takes a few, and the native
+// 6.9 um pixels a render of every pixel of the prototype takes 7-18 s on
+// lavapipe (50-110 s with the Airy square) and a refinement about 100 of
+// them; on the device the polish's scene model renders only the tiles
+// around the event's clicks (make_masked_scene_model), and the native
 // pixels carry 5-6 times the position information of 110 um ones (README
 // "Refinement at the sensor's own pixels").
 class Refinement {
@@ -239,6 +258,7 @@ class Refinement {
   std::unique_ptr<SourceModel> coarse_model_, fine_model_;
   std::unique_ptr<Refiner> coarse_, polish_;
   std::vector<double> polish_blur_px_;  // the polish's continuation, click-grid pixels
+  int focus_reach_px_ = 0;  // the fine model renders the pixels this near the clicks (focus)
 };
 
 // The refine_level for clicks on `click_level`: `requested` where >= 0, else

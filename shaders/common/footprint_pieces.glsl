@@ -35,10 +35,20 @@ void list_tiles(uvec4 entry, uint part, Corner a, Corner b, Corner c, float blur
   ivec2 first = ivec2(first_px) / LARGE_TILE_PX;
   ivec2 last = ivec2(last_px) / LARGE_TILE_PX;
   uint tiles = uint((last.x - first.x + 1) * (last.y - first.y + 1));
-  uint at = atomicAdd(split_count, tiles);
   uint columns = uint(last.x - first.x + 1);
-  for (uint k = 0u; k < tiles && at + k < split_capacity; ++k)
-    splits[at + k] = with_tile(entry, part, uvec2(first) + uvec2(k % columns, k / columns));
+  if (P.mask_tiles_w == 0u) {
+    uint at = atomicAdd(split_count, tiles);
+    for (uint k = 0u; k < tiles && at + k < split_capacity; ++k)
+      splits[at + k] = with_tile(entry, part, uvec2(first) + uvec2(k % columns, k / columns));
+    return;
+  }
+  // A masked render lists only the tiles its mask marks.
+  for (uint k = 0u; k < tiles; ++k) {
+    uvec2 tile = uvec2(first) + uvec2(k % columns, k / columns);
+    if (!tile_marked(int(tile.x), int(tile.y))) continue;
+    uint at = atomicAdd(split_count, 1u);
+    if (at < split_capacity) splits[at] = with_tile(entry, part, tile);
+  }
 }
 
 // `weight` spread over triangle (a, b, c), clipped to u <= u_max, v <= v_max
@@ -52,6 +62,7 @@ void rasterise_clipped(uint image_base, Corner a, Corner b, Corner c, Dual weigh
     list_tiles(entry, part, a, b, c, blur_half_px);
     return;
   }
+  if (!is_tile(entry) && !triangle_reaches_mask(a, b, c, blur_half_px, false)) return;
   if (is_tile(entry)) {
     ivec2 first = ivec2(entry_tile(entry)) * LARGE_TILE_PX;
     raster_window = ivec4(first, first + (LARGE_TILE_PX - 1));

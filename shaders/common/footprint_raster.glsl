@@ -21,6 +21,7 @@
 #ifndef PRISM_FOOTPRINT_RASTER_GLSL
 #define PRISM_FOOTPRINT_RASTER_GLSL
 
+#define PRISM_TILE_MASK 1  // the footprint kernels take the tile mask (splat_image.glsl)
 #include "footprint.glsl"
 #include "splat_image.glsl"
 
@@ -64,10 +65,7 @@ uint piece_depth(uint code) { return (code >> (1u + 2u * uint(SPLIT_DEPTH))) & 7
 // from pixel (0, 0); a column of 0: the piece's own entry, not a tile) and
 // which part of the piece it is: the whole (0) or part 1 or 2 of what an
 // aperture cut passes (rasterise_cut).
-// 64: a tile loops over at most 64 x 64 pixels times (1 + 5 edges), about
-// 25,000 iterations, under llvmpipe's 65,535; 1.2-1.6x faster than 32 at
-// 6.9 um, where each tile's retrace of its piece counts (README "Performance").
-const int LARGE_TILE_PX = 64;
+// (LARGE_TILE_PX: footprint.glsl.)
 uint entry_source(uvec4 entry) { return entry.x & 0xffffu; }  // sources per dispatch < 65536 (forward.cpp)
 uvec4 with_tile(uvec4 entry, uint part, uvec2 tile) {
   return uvec4(entry_source(entry) | ((tile.x + 1u) << 16u), entry.y, entry.z,
@@ -76,6 +74,26 @@ uvec4 with_tile(uvec4 entry, uint part, uvec2 tile) {
 bool is_tile(uvec4 entry) { return (entry.x >> 16u) != 0u; }
 uvec2 entry_tile(uvec4 entry) { return uvec2((entry.x >> 16u) - 1u, entry.w >> 16u); }
 uint entry_part(uvec4 entry) { return (entry.w >> 12u) & 3u; }
+
+// Whether light spread over grid pixels [lo, hi] (a piece's image and its
+// blur's reach) may fall on a tile the mask marks: always without a mask,
+// and when the box spans more than MASK_TEST_TILES tiles (not worth the
+// loop; deposit drops its light off the mask).
+const int MASK_TEST_TILES = 16;
+bool reaches_mask(vec2 lo, vec2 hi) {
+  if (P.mask_tiles_w == 0u) return true;
+  // Clamped in float: a near-grazing corner can land further off than an int holds.
+  vec2 first_px = max(floor(lo), vec2(0.0f));
+  vec2 last_px = min(floor(hi), vec2(float(P.grid_w - 1), float(P.grid_h - 1)));
+  if (!all(lessThanEqual(first_px, last_px))) return false;
+  ivec2 first = ivec2(first_px) / LARGE_TILE_PX;
+  ivec2 last = ivec2(last_px) / LARGE_TILE_PX;
+  if ((last.x - first.x + 1) * (last.y - first.y + 1) > MASK_TEST_TILES) return true;
+  for (int r = first.y; r <= last.y; ++r)
+    for (int c = first.x; c <= last.x; ++c)
+      if (tile_marked(c, r)) return true;
+  return false;
+}
 
 // The pixels the footprint kernels may give light to, absolute grid columns
 // and rows, first and last (c0, r0, c1, r1): all of them, or in the large
@@ -95,6 +113,21 @@ struct Corner {
   Dual w;
   bool ok;
 };
+
+// Whether triangle (a, b, c), blurred by half side blur_half_px, may give
+// light to a tile the mask marks (reaches_mask). Exact for a piece given to
+// the pixels as it is: its light stays within its corners' box and the
+// blur. A piece to be split (`splits`) is tested with its box grown by half
+// its size on every side: its children's corners are traced anew at its
+// aperture edges' midpoints, whose images lie off its image edges by as far
+// as the map bends over one piece (the test's near-face rim: within this).
+bool triangle_reaches_mask(Corner a, Corner b, Corner c, float blur_half_px, bool splits) {
+  float reach = (DIFFRACTION ? blur_half_px : 0.0f) + 1.0f;
+  vec2 lo = min(min(vec2(a.u.v, a.v.v), vec2(b.u.v, b.v.v)), vec2(c.u.v, c.v.v));
+  vec2 hi = max(max(vec2(a.u.v, a.v.v), vec2(b.u.v, b.v.v)), vec2(c.u.v, c.v.v));
+  if (splits) reach += 0.5f * max(hi.x - lo.x, hi.y - lo.y);
+  return reaches_mask(lo - reach, hi + reach);
+}
 
 // Where a cell's rays leave from: the source theta and, with source_extent,
 // the cell's own offset per unit sigma (source_point, optics.glsl).

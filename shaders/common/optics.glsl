@@ -93,6 +93,7 @@ struct TraceParams {
   uint tangent0;              // calibrate variants: what each dual slot differentiates by,
   uint tangent1;              //   PARAM_* | (lenslet index + 1) << 8, lenslet 0 for every
   uint tangent2;              //   lenslet's own (tangent_code, engine/shared_math.h)
+  uint mask_tiles_w;          // footprint: tiles per row of the tile mask (TileMask), 0: every pixel
 };
 
 // What a dual slot can differentiate by: engine/optical_system.h's

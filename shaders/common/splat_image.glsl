@@ -33,6 +33,19 @@ layout(std430, binding = 2) buffer Images { float images[]; };  // [source][band
 layout(std430, binding = 3) readonly buffer SourceDesigns { uint source_design[]; };  // design of each source
 layout(std430, binding = 4) readonly buffer Designs { DesignRange designs[]; };
 
+#ifdef PRISM_TILE_MASK
+// A masked render (P.mask_tiles_w > 0; the footprint kernels only): light
+// only for the pixels of the tiles of LARGE_TILE_PX pixels (footprint.glsl)
+// the mask marks, each tile's pixels a block of the image of their own (in
+// the order of the tiles' slots, row-major within), so the image holds the
+// marked tiles alone. The kernels also skip the pieces that reach none of
+// them (reaches_mask, footprint_raster.glsl): a refinement at the sensor's
+// own pixels costs its clicks' neighbourhoods instead of the whole sensor.
+layout(std430, binding = 7) readonly buffer TileMask { uint tile_slot[]; };  // per tile, row-major: 0 unmarked, else 1 + its slot
+uint tile_slot_of(int tile_col, int tile_row) { return tile_slot[uint(tile_row) * P.mask_tiles_w + uint(tile_col)]; }
+bool tile_marked(int tile_col, int tile_row) { return tile_slot_of(tile_col, tile_row) != 0u; }
+#endif
+
 // The physical sensor's far edges in grid pixels: the last column and row may
 // hang over it (binning that does not divide the sensor), and light beyond is lost.
 float sensor_u_max() { return 2.0f * P.sensor_half_w_mm / P.pixel_mm; }
@@ -55,6 +68,14 @@ uint lens_of(DesignRange d, uint r) {
 void deposit(uint image_base, int col, int row, Dual value, uint half_offset) {
   if (col < 0 || col >= P.grid_w || row < P.band_row0 || row >= P.band_row0 + P.band_rows || row >= P.grid_h) return;
   uint i = image_base + PIXEL_FLOATS * (uint(row - P.band_row0) * uint(P.grid_w) + uint(col));
+#ifdef PRISM_TILE_MASK
+  if (P.mask_tiles_w != 0u) {
+    uint slot = tile_slot_of(col / LARGE_TILE_PX, row / LARGE_TILE_PX);
+    if (slot == 0u) return;
+    i = image_base + PIXEL_FLOATS * ((slot - 1u) * uint(LARGE_TILE_PX * LARGE_TILE_PX) +
+                                     uint(row % LARGE_TILE_PX) * uint(LARGE_TILE_PX) + uint(col % LARGE_TILE_PX));
+  }
+#endif
   atomicAdd(images[i], value.v);
   if (!DERIVATIVES) return;
   // Each half of the rays (cells; checkerboard) estimates the whole gradient.

@@ -310,3 +310,74 @@ TEST_CASE("footprint splat: Fisher sums do not depend on bands and batches, and 
   }
   prism::test::check_validation_clean();
 }
+
+TEST_CASE("footprint splat: a masked render gives its tiles the whole render's light and nothing elsewhere") {
+  // The prototype (real lenses) near the face, where the rim cells split and
+  // their large pieces go to the large pass in tiles, with and without the
+  // Airy square (the blur's reach); the mask: the brightest pixel's tile,
+  // tiles in the faint annulus (1e-4..1e-3 of the peak), and a dark one.
+  // The kernels skip pieces that reach no marked tile; what they keep must
+  // be the whole render's light to float atomics' order.
+  auto plain = prism::builtin_scene("prototype").optics;
+  auto airy = plain;
+  airy.effects.diffraction = true;
+  airy.effects.wavelength_nm = 20000.0;  // a core of ~1.3 px at 27.6 um: the blur crosses tiles
+  struct Case {
+    std::string name;
+    prism::OpticalSystem sys;
+    glm::dvec3 theta;
+  } cases[] = {{"real lenses, 3 mm deep", plain, {-9.0, 5.0, 3.0}}, {"with the Airy square", airy, {-9.0, 5.0, 3.0}}};
+  for (const auto& k : cases) {
+    CAPTURE(k.name);
+    const auto t = footprint(prism::test::under_sanitizer ? 256 : 1024, 4);
+    prism::ForwardVulkan fw(gpu(), k.sys, t);
+    const auto whole = fw.psf(k.theta);
+    const auto b = channel(whole, 0);
+    const double peak = prism::test::peak_abs(b);
+    prism::TileMask mask = prism::TileMask::of(fw.grid());
+    const size_t brightest = size_t(std::max_element(b.begin(), b.end()) - b.begin());
+    mask.mark_around(int(brightest % size_t(whole.width)), int(brightest / size_t(whole.width)), 0);
+    size_t faint = 0, dark = 0;
+    for (size_t i = 0; i < b.size(); i += 997)
+      if (b[i] > 1e-4 * peak && b[i] < 1e-3 * peak && faint < 3)
+        mask.mark_around(int(i % size_t(whole.width)), int(i / size_t(whole.width)), 0), ++faint;
+      else if (b[i] == 0 && dark < 1)
+        mask.mark_around(int(i % size_t(whole.width)), int(i / size_t(whole.width)), 0), ++dark;
+    REQUIRE(faint == 3);
+    const auto masked = fw.psf(k.theta, mask);
+    // The masked render's pixels spread onto the grid (0 where it lists none).
+    std::vector<double> spread[4];
+    for (auto& v : spread) v.assign(b.size(), 0.0);
+    size_t outside_lit = 0;
+    for (size_t i = 0; i < masked.size(); ++i) {
+      const auto& q = masked[i];
+      REQUIRE(q.index < b.size());
+      if (i > 0) REQUIRE(masked[i - 1].index < q.index);  // by index
+      if (!mask.covers(int(q.index % uint32_t(whole.width)), int(q.index / uint32_t(whole.width)))) ++outside_lit;
+      spread[0][q.index] = q.b;
+      for (int a = 0; a < 3; ++a) spread[1 + a][q.index] = q.db[a];
+    }
+    double inside = 0;
+    std::vector<double> want[4], got[4];
+    for (int c = 0; c < 4; ++c) {
+      const auto w = channel(whole, c);
+      for (size_t i = 0; i < w.size(); ++i)
+        if (mask.covers(int(i % size_t(whole.width)), int(i / size_t(whole.width)))) {
+          want[c].push_back(w[i]), got[c].push_back(spread[c][i]);
+          if (c == 0) inside += w[i];
+        }
+    }
+    CHECK(outside_lit == 0);
+    REQUIRE(inside > 0);
+    MESSAGE(k.name << ": " << mask.count() << " of " << mask.tiles_w * mask.tiles_h << " tiles marked, "
+                   << inside / std::accumulate(b.begin(), b.end(), 0.0) << " of the light in them");
+    for (int c = 0; c < 4; ++c) {
+      auto cmp = prism::test::compare(want[c], got[c], {.abs = 1e-5 * prism::test::peak_abs(want[c])});
+      CHECK_MESSAGE(cmp.ok(), cmp.report("channel " + std::to_string(c) + " on the marked tiles (masked vs whole)"));
+    }
+    // A mask of another grid is refused, not read past its end.
+    CHECK_THROWS_WITH_AS(fw.psf(k.theta, prism::TileMask::of(prism::AnalysisGrid::of(k.sys, 16))),
+                         doctest::Contains("another grid"), std::invalid_argument);
+  }
+  prism::test::check_validation_clean();
+}

@@ -645,3 +645,45 @@ TEST_CASE("goodness of fit: the Monte Carlo p-value equals the exact one of a sm
   CHECK(prism::binary_fit_pvalue(rates, some, dark, double(n), 1000, 3) ==
         prism::binary_fit_pvalue(rates, some, dark, double(n), 1000, 3));
 }
+
+TEST_CASE("refinement: a focused model renders the clicks' tiles as the whole render does, its P over the sensor's light") {
+  // The polish's model at fine pixels (27.6 um here) renders only the tiles
+  // around the clicks and takes the sensor's light from a render of every
+  // pixel at 110 um with the same cells: P and its gradient at and near the
+  // clicks are the whole render's (normalised by its own sum), to float
+  // sums. A few clicks at the brightest pixels and a few in faint light.
+  const auto fine = prism::refine_trace_settings(4);
+  auto whole_model = prism::make_scene_model(small_scene(), fine, &prism::test::gpu());
+  auto masked = prism::make_masked_scene_model(small_scene(), fine, prism::refine_trace_settings(binning), prism::test::gpu());
+  const std::vector<glm::dvec3> theta{{0.7, -0.4, 12.0}};
+  CHECK_THROWS_WITH_AS(masked->render(theta), doctest::Contains("focus"), std::logic_error);
+  const auto whole = whole_model->render(theta).front();
+  REQUIRE(whole.pixels.size() > 1000);
+  std::vector<prism::ModelPixel> by_p = whole.pixels;
+  std::sort(by_p.begin(), by_p.end(), [](const auto& a, const auto& b) { return a.p > b.p; });
+  std::vector<uint32_t> clicks{by_p[0].index, by_p[1].index, by_p[by_p.size() / 2].index, by_p[by_p.size() - 10].index};
+  const int reach = 9;
+  masked->focus(clicks, reach);
+  const auto part = masked->render(theta).front();
+  CHECK(part.photons == doctest::Approx(whole.photons).epsilon(1e-4));
+  CHECK(part.pixels.size() < whole.pixels.size() / 4);
+  const int W = prism::AnalysisGrid::of(small_scene().optics, 4).width;
+  size_t compared = 0;
+  double peak = by_p[0].p, peak_g = 0;
+  for (const auto& m : whole.pixels) peak_g = std::max(peak_g, glm::length(m.g));
+  for (uint32_t c : clicks)
+    for (int dy = -reach; dy <= reach; ++dy)
+      for (int dx = -reach; dx <= reach; ++dx) {
+        const uint32_t i = uint32_t(int(c) + dy * W + dx);
+        const prism::ModelPixel* w = whole.find(i);
+        const prism::ModelPixel* q = part.find(i);
+        CAPTURE(i);
+        REQUIRE(bool(w) == bool(q));
+        if (!w) continue;
+        ++compared;
+        CHECK(std::abs(q->p - w->p) <= 1e-4 * peak);
+        CHECK(glm::length(q->g - w->g) <= 1e-4 * peak_g);
+      }
+  CHECK(compared > 100);
+  prism::test::check_validation_clean();
+}
