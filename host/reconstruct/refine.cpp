@@ -935,7 +935,8 @@ Refinement::Refinement(RefineModel choice, const Scene& scene, const DictionaryR
   // On the device the scene's model renders only around each event's
   // clicks (focus, in refine and local_fit), with the sensor's light from
   // the refine level's whole render.
-  if (choice == RefineModel::scene && ctx)
+  fine_focused_ = choice == RefineModel::scene && ctx;
+  if (fine_focused_)
     fine_model_ = make_masked_scene_model(scene, refine_trace_settings(m.base_binning << click_level),
                                           refine_trace_settings(m.base_binning << refine_level), *ctx);
   else
@@ -953,9 +954,18 @@ std::vector<ReconstructedVertex> Refinement::refine(const Event& event, std::vec
   if (!polish_) return coarse_->refine(event, std::move(rows));
   Event binned = event;
   binned.clicks = binned_clicks(event.clicks, click_width_, refine_level_ - click_level_, refine_width_);
-  rows = coarse_->refine(binned, std::move(rows));
+  const std::vector<ReconstructedVertex> coarse = coarse_->refine(binned, std::move(rows));
   fine_model_->focus(event.clicks, focus_reach_px_);
-  return polish_->polish(event, std::move(rows), polish_blur_px_);
+  std::vector<ReconstructedVertex> out = polish_->polish(event, coarse, polish_blur_px_);
+  // A focused model's draws would fall in the clicks' tiles alone, all the
+  // event's clicks do: its p-value would not test the fit. The coarse
+  // level's does (every pixel, the same clicks binned).
+  if (fine_focused_)
+    for (size_t i = 0; i < out.size(); ++i) {
+      out[i].fit_pvalue = coarse[i].fit_pvalue;
+      out[i].flags = (out[i].flags & ~uint32_t(poor_fit)) | (coarse[i].flags & uint32_t(poor_fit));
+    }
+  return out;
 }
 
 Refiner::LocalFit Refinement::local_fit(const Event& event, const glm::dvec3& at, double alpha) {

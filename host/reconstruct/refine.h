@@ -103,7 +103,8 @@ std::unique_ptr<SourceModel> make_scene_model(const Scene& scene, const TraceSet
 // refinement's polish at the sensor's own pixels, where a render of every
 // pixel costs a minute on lavapipe. Its images hold those tiles' pixels
 // alone, so a refinement's Fisher information (its steps' metric, and the
-// CRLB and p-value it reports) counts only them.
+// CRLB it reports) counts only them, and its p-value would not test the fit
+// (Refinement reports the coarse level's instead).
 std::unique_ptr<SourceModel> make_masked_scene_model(const Scene& scene, const TraceSettings& settings,
                                                      const TraceSettings& photons_settings, vk::Context& ctx);
 
@@ -259,6 +260,7 @@ class Refinement {
   std::unique_ptr<Refiner> coarse_, polish_;
   std::vector<double> polish_blur_px_;  // the polish's continuation, click-grid pixels
   int focus_reach_px_ = 0;  // the fine model renders the pixels this near the clicks (focus)
+  bool fine_focused_ = false;  // the fine model is focused: the polish's p-value is the coarse level's
 };
 
 // The refine_level for clicks on `click_level`: `requested` where >= 0, else

@@ -321,7 +321,7 @@ TEST_CASE("footprint splat: a masked render gives its tiles the whole render's l
   auto plain = prism::builtin_scene("prototype").optics;
   auto airy = plain;
   airy.effects.diffraction = true;
-  airy.effects.wavelength_nm = 20000.0;  // a core of ~1.3 px at 27.6 um: the blur crosses tiles
+  airy.effects.wavelength_nm = 20000.0;  // a square of half side ~1.6 px at 55 um: the blur crosses tiles
   struct Case {
     std::string name;
     prism::OpticalSystem sys;
@@ -329,9 +329,11 @@ TEST_CASE("footprint splat: a masked render gives its tiles the whole render's l
   } cases[] = {{"real lenses, 3 mm deep", plain, {-9.0, 5.0, 3.0}}, {"with the Airy square", airy, {-9.0, 5.0, 3.0}}};
   for (const auto& k : cases) {
     CAPTURE(k.name);
-    const auto t = footprint(prism::test::under_sanitizer ? 256 : 1024, 4);
+    const auto t = footprint(prism::test::under_sanitizer ? 256 : 1024, 8);
     prism::ForwardVulkan fw(gpu(), k.sys, t);
     const auto whole = fw.psf(k.theta);
+    REQUIRE(std::count_if(fw.last_kernel_times().begin(), fw.last_kernel_times().end(),
+                          [](const auto& p) { return p.kernel == "psf_footprint_large"; }) == 1);
     const auto b = channel(whole, 0);
     const double peak = prism::test::peak_abs(b);
     prism::TileMask mask = prism::TileMask::of(fw.grid());
