@@ -663,10 +663,9 @@ std::vector<LitPixel> ForwardVulkan::psf(const glm::dvec3& theta, const TileMask
   constexpr uint64_t tile_px = uint64_t(shared::LARGE_TILE_PX) * shared::LARGE_TILE_PX;
   constexpr uint32_t pixel_floats = 8;  // b, then the gradient from each half of the cells (render_bands)
   const uint64_t image_bytes = tiles.size() * tile_px * pixel_floats * sizeof(float);
-  if (image_bytes > m.list_limit_bytes)
+  if (tiles.size() > max_masked_tiles())
     throw std::invalid_argument("ForwardVulkan::psf: the tile mask marks " + std::to_string(tiles.size()) +
-                                " tiles, more than one image buffer holds (" +
-                                std::to_string(m.list_limit_bytes / (tile_px * pixel_floats * sizeof(float))) +
+                                " tiles, more than one image buffer holds (" + std::to_string(max_masked_tiles()) +
                                 "); render the whole image instead");
   if (!m.mask || m.mask->bytes() < slot.size() * sizeof(uint32_t))
     m.mask = std::make_unique<vk::Buffer>(m.ctx, slot.size() * sizeof(uint32_t));
@@ -717,6 +716,10 @@ std::vector<LitPixel> ForwardVulkan::psf(const glm::dvec3& theta, const TileMask
     first = end;
   }
   return out;
+}
+
+size_t ForwardVulkan::max_masked_tiles() const {
+  return size_t(impl_->list_limit_bytes / (uint64_t(shared::LARGE_TILE_PX) * shared::LARGE_TILE_PX * 8 * sizeof(float)));
 }
 
 PixelImage ForwardVulkan::psf(const glm::dvec3& theta, const Tangents& tangents, int only_lens) {

@@ -86,6 +86,7 @@ class ForwardVulkan {
   // that hold light, the same light as the whole image's there; the rest is
   // not computed. Throws where the marked tiles outgrow one image buffer.
   std::vector<LitPixel> psf(const glm::dvec3& theta, const TileMask& mask);
+  size_t max_masked_tiles() const;  // the most tiles a mask may mark (one image buffer)
   // Trace another scene with the same kernels: the same lenslets (count,
   // diameters), lens model, effects and sensor, with other positions, focal
   // lengths, tilts, distances and sensor pose (calibration's steps; a tilted

@@ -112,22 +112,24 @@ SourceImage normalise(std::vector<ModelPixel> raw, const double* sensor_b = null
   return out;
 }
 
+// The pixels of `im` that hold light or a gradient, by index.
+std::vector<ModelPixel> lit_pixels(const PixelImage& im) {
+  std::vector<ModelPixel> raw;
+  const size_t n = size_t(im.width) * size_t(im.height);
+  for (size_t i = 0; i < n; ++i) {
+    const float* v = &im.data[4 * i];
+    if (v[0] != 0 || v[1] != 0 || v[2] != 0 || v[3] != 0)
+      raw.push_back({uint32_t(i), double(v[0]), glm::dvec3(v[1], v[2], v[3])});
+  }
+  return raw;
+}
+
 class SceneModelVulkan : public SourceModel {
  public:
   SceneModelVulkan(vk::Context& ctx, const Scene& scene, const TraceSettings& t) : fw_(ctx, scene.optics, t) {}
 
  protected:
-  std::vector<ModelPixel> render_raw(const glm::dvec3& theta) override {
-    PixelImage im = fw_.psf(theta);
-    std::vector<ModelPixel> raw;
-    const size_t n = size_t(im.width) * size_t(im.height);
-    for (size_t i = 0; i < n; ++i) {
-      const float* v = &im.data[4 * i];
-      if (v[0] != 0 || v[1] != 0 || v[2] != 0 || v[3] != 0)
-        raw.push_back({uint32_t(i), double(v[0]), glm::dvec3(v[1], v[2], v[3])});
-    }
-    return raw;
-  }
+  std::vector<ModelPixel> render_raw(const glm::dvec3& theta) override { return lit_pixels(fw_.psf(theta)); }
 
  private:
   ForwardVulkan fw_;
@@ -135,22 +137,27 @@ class SceneModelVulkan : public SourceModel {
 
 class SceneModelMasked : public SourceModel {
  public:
-  SceneModelMasked(vk::Context& ctx, const Scene& scene, const TraceSettings& t, const TraceSettings& photons)
-      : fw_(ctx, scene.optics, t), photons_(ctx, scene.optics, photons), mask_(TileMask::of(fw_.grid())) {}
+  SceneModelMasked(vk::Context& ctx, const Scene& scene, const TraceSettings& t, const TraceSettings& photons,
+                   uint64_t image_budget_bytes)
+      : fw_(ctx, scene.optics, t, image_budget_bytes), photons_(ctx, scene.optics, photons), mask_(TileMask::of(fw_.grid())) {}
   void focus(std::span<const uint32_t> clicks, int reach_px) override {
     mask_ = TileMask::of(fw_.grid());
     const uint32_t W = uint32_t(fw_.grid().width);
     for (uint32_t c : clicks) mask_.mark_around(int(c % W), int(c / W), reach_px);
+    // Clicks so many that their tiles outgrow an image buffer: every pixel.
+    whole_ = mask_.count() > fw_.max_masked_tiles();
   }
 
  protected:
   std::vector<ModelPixel> render_raw(const glm::dvec3& theta) override {
     if (mask_.count() == 0) throw std::logic_error("SceneModelMasked: focus on an event's clicks before rendering");
+    if (whole_) return lit_pixels(fw_.psf(theta));
     std::vector<ModelPixel> raw;
     for (const LitPixel& q : fw_.psf(theta, mask_)) raw.push_back({q.index, double(q.b), glm::dvec3(q.db)});
     return raw;
   }
   bool sensor_photons(const glm::dvec3& theta, double& b, glm::dvec3& db) override {
+    if (whole_) return false;
     const PixelImage im = photons_.psf(theta);
     b = 0, db = glm::dvec3(0);
     for (size_t i = 0; i < im.data.size(); i += 4)
@@ -161,6 +168,7 @@ class SceneModelMasked : public SourceModel {
  private:
   ForwardVulkan fw_, photons_;
   TileMask mask_;
+  bool whole_ = false;
 };
 
 class SceneModelCpu : public SourceModel {
@@ -200,11 +208,12 @@ std::vector<SourceImage> SourceModel::render(std::span<const glm::dvec3> theta) 
 }
 
 std::unique_ptr<SourceModel> make_masked_scene_model(const Scene& scene, const TraceSettings& settings,
-                                                     const TraceSettings& photons_settings, vk::Context& ctx) {
+                                                     const TraceSettings& photons_settings, vk::Context& ctx,
+                                                     uint64_t image_budget_bytes) {
   if (photons_settings.rays_per_lenslet != settings.rays_per_lenslet ||
       photons_settings.stratification != settings.stratification || photons_settings.splat != settings.splat)
     throw std::invalid_argument("make_masked_scene_model: the sensor's photons need the render's own cells");
-  return std::make_unique<SceneModelMasked>(ctx, scene, settings, photons_settings);
+  return std::make_unique<SceneModelMasked>(ctx, scene, settings, photons_settings, image_budget_bytes);
 }
 
 std::unique_ptr<SourceModel> make_scene_model(const Scene& scene, const TraceSettings& settings, vk::Context* ctx) {

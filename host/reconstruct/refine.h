@@ -105,8 +105,11 @@ std::unique_ptr<SourceModel> make_scene_model(const Scene& scene, const TraceSet
 // alone, so a refinement's Fisher information (its steps' metric, and the
 // CRLB it reports) counts only them, and its p-value would not test the fit
 // (Refinement reports the coarse level's instead).
-std::unique_ptr<SourceModel> make_masked_scene_model(const Scene& scene, const TraceSettings& settings,
-                                                     const TraceSettings& photons_settings, vk::Context& ctx);
+// Clicks whose tiles outgrow one image buffer (ForwardVulkan::max_masked_tiles
+// at `image_budget_bytes`) are rendered over every pixel instead.
+std::unique_ptr<SourceModel> make_masked_scene_model(
+    const Scene& scene, const TraceSettings& settings, const TraceSettings& photons_settings, vk::Context& ctx,
+    uint64_t image_budget_bytes = ForwardVulkan::default_image_budget_bytes);
 
 // The model from a dictionary alone, at click level `level`: the 8 PSFs
 // around a position, moved by the magnification and blended (bilinear

@@ -685,5 +685,17 @@ TEST_CASE("refinement: a focused model renders the clicks' tiles as the whole re
         CHECK(glm::length(q->g - w->g) <= 1e-4 * peak_g);
       }
   CHECK(compared > 100);
+  // Clicks whose tiles outgrow the image buffer (1 MiB: 8 tiles): every
+  // pixel rendered, the whole model's image.
+  auto small = prism::make_masked_scene_model(small_scene(), fine, prism::refine_trace_settings(binning),
+                                              prism::test::gpu(), 1u << 20);
+  small->focus(clicks, 100);
+  const auto all = small->render(theta).front();
+  REQUIRE(all.pixels.size() == whole.pixels.size());
+  CHECK(all.photons == doctest::Approx(whole.photons).epsilon(1e-5));
+  for (size_t i = 0; i < all.pixels.size(); i += 97) {
+    CHECK(all.pixels[i].index == whole.pixels[i].index);
+    CHECK(std::abs(all.pixels[i].p - whole.pixels[i].p) <= 1e-5 * peak);
+  }
   prism::test::check_validation_clean();
 }
