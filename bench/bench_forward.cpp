@@ -27,6 +27,7 @@
 #include "engine/forward.h"
 #include "engine/ref/forward_ref.h"
 #include "engine/ref/thin_lens_oracle.h"
+#include "host/reconstruct/refine.h"  // refine_trace_settings
 #include "host/scene/scene.h"
 
 using namespace prism;
@@ -243,9 +244,7 @@ void effects(vk::Context& ctx, const Options& o) {
 // rasterised), the cut cells.
 void passes_at(vk::Context& ctx, const Options& o, unsigned binning) {
   Scene scene = builtin_scene("prototype");
-  TraceSettings t = TraceSettings::defaults_for(Splat::footprint);
-  t.rays_per_lenslet = defaults::refine_rays_per_lenslet;
-  t.binning = binning;
+  const TraceSettings t = refine_trace_settings(binning);
   ForwardVulkan fw(ctx, scene.optics, t);
   std::printf("\n## 4. Where a refinement render's time goes: prototype (real lenses), %u cells/lenslet, %.1f um, "
               "with derivatives; device ms per pass\n",
@@ -302,13 +301,9 @@ void masked(vk::Context& ctx, const Options& o) {
   Scene scene = builtin_scene("prototype");
   scene.optics.effects.diffraction = true;
   scene.optics.effects.wavelength_nm = defaults::wavelength_nm;
-  TraceSettings coarse_t = TraceSettings::defaults_for(Splat::footprint);
-  coarse_t.rays_per_lenslet = defaults::refine_rays_per_lenslet;
-  coarse_t.binning = 16;
-  ForwardVulkan coarse(ctx, scene.optics, coarse_t);
+  ForwardVulkan coarse(ctx, scene.optics, refine_trace_settings(16));
   for (unsigned binning : o.masked_binnings) {
-    TraceSettings t = coarse_t;
-    t.binning = binning;
+    const TraceSettings t = refine_trace_settings(binning);
     ForwardVulkan fw(ctx, scene.optics, t);
     std::printf("\n## 5. A render masked to the tiles around 100 clicks against the whole image: prototype with "
                 "diffraction, %u cells/lenslet, %.1f um, with derivatives (median of %d)\n",

@@ -657,8 +657,13 @@ std::vector<LitPixel> ForwardVulkan::psf(const glm::dvec3& theta, const TileMask
     throw std::invalid_argument("ForwardVulkan::psf: the tile mask is for another grid");
   // Each marked tile's slot in the image (1 + its rank; 0: unmarked).
   std::vector<uint32_t> slot(size_t(mask.tiles_w) * size_t(mask.tiles_h), 0u), tiles;
-  for (size_t t = 0; t < slot.size(); ++t)
-    if ((mask.bits[t / 32] >> (t % 32)) & 1u) tiles.push_back(uint32_t(t)), slot[t] = uint32_t(tiles.size());
+  for (int r = 0; r < mask.tiles_h; ++r)
+    for (int c = 0; c < mask.tiles_w; ++c)
+      if (mask.marked(c, r)) {
+        const size_t t = size_t(r) * size_t(mask.tiles_w) + size_t(c);
+        tiles.push_back(uint32_t(t));
+        slot[t] = uint32_t(tiles.size());
+      }
   if (tiles.empty()) return {};
   constexpr uint64_t tile_px = uint64_t(shared::LARGE_TILE_PX) * shared::LARGE_TILE_PX;
   constexpr uint32_t pixel_floats = 8;  // b, then the gradient from each half of the cells (render_bands)
