@@ -13,6 +13,7 @@
 #include <limits>
 #include <mutex>
 #include <optional>
+#include <random>
 #include <stdexcept>
 #include <thread>
 #include <unordered_map>
@@ -471,18 +472,18 @@ std::pair<double, double> best_scale(const MeasuredPsf& psf, const Model& model,
 struct Sums {
   std::vector<double> grad, gn, meat;
   explicit Sums(size_t P) : grad(P, 0.0), gn(P * P, 0.0), meat(P * P, 0.0) {}
-  void add(const Sums& o) {
-    for (size_t i = 0; i < grad.size(); ++i) grad[i] += o.grad[i];
-    for (size_t i = 0; i < gn.size(); ++i) gn[i] += o.gn[i], meat[i] += o.meat[i];
+  void add(const Sums& o, double times = 1) {
+    for (size_t i = 0; i < grad.size(); ++i) grad[i] += times * o.grad[i];
+    for (size_t i = 0; i < gn.size(); ++i) gn[i] += times * o.gn[i], meat[i] += times * o.meat[i];
   }
 };
 
 // Runs of PSFs whose derivative sums are kept apart in an evaluation.
 constexpr size_t kSumBlocks = 64;
 
-// Adds PSF `psf`'s terms under `model` to `sums` (when non-null).
-PsfTerms psf_terms(const MeasuredPsf& psf, const Model& model, const CalibrationOptions& o, size_t lenses, size_t P,
-                   Sums* sums) {
+// Adds PSF `psf`'s terms under `model` to `sums` (when non-null), once.
+PsfTerms psf_terms_once(const MeasuredPsf& psf, const Model& model, const CalibrationOptions& o, size_t lenses,
+                        size_t P, Sums* sums) {
   const Noise noise = noise_of(psf, o);
   const auto [s, wbb] = best_scale(psf, model, noise);
   PsfTerms out;
@@ -530,6 +531,20 @@ PsfTerms psf_terms(const MeasuredPsf& psf, const Model& model, const Calibration
         sums->meat[a * P + c] += -ca * v[c] - v[a] * cc + q * ca * cc;
       }
   return out;
+}
+
+// The same, counted psf.count times (a bootstrap replicate draws some PSFs
+// more than once): its own sums, then added that many times.
+PsfTerms psf_terms(const MeasuredPsf& psf, const Model& model, const CalibrationOptions& o, size_t lenses, size_t P,
+                   Sums* sums) {
+  if (psf.count == 1) return psf_terms_once(psf, model, o, lenses, P, sums);
+  std::optional<Sums> own;
+  if (sums) own.emplace(P);
+  PsfTerms t = psf_terms_once(psf, model, o, lenses, P, own ? &*own : nullptr);
+  if (sums) sums->add(*own, psf.count);
+  t.fit.chi2 *= psf.count, t.fit.pixels *= psf.count;
+  for (size_t l = 0; l < lenses; ++l) t.lens_chi2[l] *= psf.count, t.lens_pixels[l] *= psf.count;
+  return t;
 }
 
 // Whether a fit's scenes have an extended source: the start's, or a fitted one.
@@ -750,7 +765,7 @@ std::vector<MeasuredPsf> binned(const std::vector<MeasuredPsf>& psfs, const Anal
     PsfLevel sl{0, grid.width, grid.height, std::vector<float>(p.p.size())};
     for (size_t i = 0; i < p.p.size(); ++i) sl.p[i] = known(p, i, n) ? 0.0f : float(n.reliable);
     PsfLevel l = bin_level(PsfLevel{0, grid.width, grid.height, p.p}, k);
-    out.push_back({p.theta_mm, std::move(l.p), p.name, bin_level(sl, k).p});
+    out.push_back({p.theta_mm, std::move(l.p), p.name, bin_level(sl, k).p, p.count});
   }
   return out;
 }
@@ -778,6 +793,45 @@ std::vector<double> cells_check(const OpticalSystem& start, const std::vector<Me
   }
   r.check_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   return moved;
+}
+
+// The bootstrap over the PSFs (calibrate.h): per parameter, the standard
+// deviation of its value over options.bootstrap replicates, each the fit's
+// end r.fitted refitted on the model's pixels to the PSFs drawn with
+// replacement. Zeros when not asked for; records the count and time in r.
+std::vector<double> bootstrap(const std::vector<MeasuredPsf>& psfs, const std::vector<CalibrationParameter>& free,
+                              const CalibrationOptions& options, CalibrationResult& r) {
+  const size_t P = free.size(), N = psfs.size();
+  std::vector<double> spread(P, 0.0);
+  if (options.bootstrap < 2) return spread;
+  const auto t0 = std::chrono::steady_clock::now();
+  CalibrationOptions o = options;
+  o.coarse_levels = 0;  // from the fit's end: the replicate's optimum lies near it
+  o.max_steps = options.bootstrap_steps;
+  o.cells_check = 1, o.bootstrap = 0;
+  o.progress = nullptr, o.bootstrap_progress = nullptr;
+  std::vector<double> sum(P, 0.0), sum2(P, 0.0);
+  for (unsigned rep = 1; rep <= options.bootstrap; ++rep) {
+    std::seed_seq seq{options.bootstrap_seed, uint64_t(rep)};
+    std::mt19937_64 rng(seq);
+    std::uniform_int_distribution<size_t> draw(0, N - 1);
+    std::vector<unsigned> drawn(N, 0);
+    for (size_t i = 0; i < N; ++i) ++drawn[draw(rng)];
+    std::vector<MeasuredPsf> sample;
+    for (size_t k = 0; k < N; ++k)
+      if (drawn[k]) sample.push_back(psfs[k]), sample.back().count = psfs[k].count * drawn[k];
+    const CalibrationResult fit = calibrate(r.fitted, sample, free, o);
+    for (size_t j = 0; j < P; ++j) {
+      const double d = fit.estimates[j].value - fit.estimates[j].start;  // about the fit's end, for precision
+      sum[j] += d, sum2[j] += d * d;
+    }
+    if (options.bootstrap_progress) options.bootstrap_progress(rep, fit);
+  }
+  const double R = options.bootstrap;
+  for (size_t j = 0; j < P; ++j) spread[j] = std::sqrt(std::max(0.0, (sum2[j] - sum[j] * sum[j] / R) / (R - 1)));
+  r.bootstrap_replicates = options.bootstrap;
+  r.bootstrap_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  return spread;
 }
 
 }  // namespace
@@ -856,9 +910,14 @@ CalibrationResult calibrate(const OpticalSystem& start, const std::vector<Measur
       if (var > 0) sigma[act[a]] = std::sqrt(var);
     }
   const std::vector<double> cells = cells_check(start, psfs, free, options, x, act, r);
+  const std::vector<double> spread = bootstrap(psfs, free, options, r);
   for (size_t j = 0; j < P; ++j) {
-    ParameterEstimate e{free[j], free[j].get(start), x[j], sigma[j], sigma[j], cells[j], at_bound[j]};
-    if (std::isfinite(e.sigma)) e.sigma = std::hypot(e.sigma_residuals, e.sigma_cells);
+    ParameterEstimate e{free[j], free[j].get(start), x[j], sigma[j], sigma[j], cells[j], spread[j], at_bound[j]};
+    // The sandwich and the bootstrap estimate the same spread, each missing
+    // something (independent pixels and H's curvature; what all PSFs share):
+    // the larger counts.
+    if (std::isfinite(e.sigma))
+      e.sigma = std::hypot(std::max(e.sigma_residuals, e.sigma_bootstrap), e.sigma_cells);
     r.estimates.push_back(e);
   }
   r.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count() - t0;

@@ -41,6 +41,16 @@
 // reported sigma adds it to the sandwich's in quadrature. The fitted values
 // stay the N-cell model's: the one the refinement renders with.
 //
+// The bootstrap over the PSFs (CalibrationOptions::bootstrap, off by
+// default: each replicate costs a few steps of the fit): the fit's end
+// refitted on the model's pixels, replicate by replicate, to the PSFs drawn
+// with replacement (a PSF drawn twice counts twice); the replicates' spread
+// is each parameter's sigma_bootstrap. It assumes neither independent pixels
+// nor chi2's Gauss-Newton curvature, which on the f = 3 mm lenslets' valley
+// of position and tilt overstates chi2's own 4-5x (README "Calibration"),
+// but it sees only what differs between PSFs. The reported sigma takes the
+// larger of it and the sandwich's, with the cells' term in quadrature.
+//
 // Derivatives: forward mode with respect to the scene's parameters
 // (Tangents), each lenslet's image rendered alone so that its own
 // parameters touch only its own pixels: on a device with the splat kernels'
@@ -99,6 +109,9 @@ struct MeasuredPsf {
   // censored sub-pixels may hold (their count times the reliable value), 0
   // where every sub-pixel is measured; empty: decided from p.
   std::vector<float> unknown;
+  // How many times it counts in chi2 (a bootstrap replicate draws some PSFs
+  // more than once).
+  unsigned count = 1;
 };
 
 // The PSFs `prism dictionary merge-hdr` wrote into `dir` (each <name>.json
@@ -121,6 +134,8 @@ struct CalibrationStep {
   double seconds = 0;    // since the start
 };
 
+struct CalibrationResult;
+
 struct CalibrationOptions {
   TraceSettings settings;  // the model: splat, cells per lenslet, binning of the measured grid
   int max_steps = defaults::calibration_max_steps;  // per level
@@ -136,10 +151,17 @@ struct CalibrationOptions {
   // After the fit: the model with this many times the cells, for the
   // uncertainty its cells leave (above); 1: not checked.
   unsigned cells_check = defaults::calibration_cells_check_factor;
+  // After the fit (and the cells' check): this many bootstrap replicates
+  // over the PSFs (above), each at most bootstrap_steps steps; 0 or 1: none.
+  unsigned bootstrap = 0;
+  int bootstrap_steps = defaults::calibration_bootstrap_steps;
+  uint64_t bootstrap_seed = 1;  // replicate r draws its PSFs from (seed, r) alone
   // The calibrate kernels on this device (engine/forward.h,
   // Derivatives::scene); null: the double-precision CPU reference.
   vk::Context* device = nullptr;
   std::function<void(const CalibrationStep&)> progress;      // after each accepted step
+  // After each bootstrap replicate: its number from 1, its fit.
+  std::function<void(unsigned, const CalibrationResult&)> bootstrap_progress;
 };
 
 struct ParameterEstimate {
@@ -150,9 +172,11 @@ struct ParameterEstimate {
   // the range CalibrationParameter::bounds allows, so no interior optimum
   // exists to take an uncertainty at; the others' sigmas hold it fixed).
   double sigma = 0;
-  // Its two parts: the sandwich's (the residuals), and the model's cells'
-  // (how far the check's finer model moves it; 0 when not checked).
-  double sigma_residuals = 0, sigma_cells = 0;
+  // Its parts: the sandwich's (the residuals), the model's cells' (how far
+  // the check's finer model moves it; 0 when not checked) and the bootstrap
+  // replicates' standard deviation (0 when not run). sigma is
+  // hypot(max(sigma_residuals, sigma_bootstrap), sigma_cells).
+  double sigma_residuals = 0, sigma_cells = 0, sigma_bootstrap = 0;
   bool at_bound = false;
 };
 
@@ -182,6 +206,8 @@ struct CalibrationResult {
   double seconds = 0;
   unsigned check_cells = 0;    // cells per 3 mm lenslet of the check's model (0: not checked, or no step found)
   double check_seconds = 0;    // of seconds, the check's
+  unsigned bootstrap_replicates = 0;  // run (0: none)
+  double bootstrap_seconds = 0;       // of seconds, the replicates'
   double reduced_chi2() const { return dof ? chi2 / double(dof) : 0.0; }
 };
 
