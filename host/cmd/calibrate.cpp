@@ -273,8 +273,8 @@ void run(const CalibrateArgs& a) {
                 "(no parameter with a sigma, or its matrix singular)\n",
                 o.cells_check);
   if (r.bootstrap_replicates)
-    std::printf("sigma_residuals replaced where the bootstrap's is larger: %u replicates over the PSFs drawn with "
-                "replacement, each at most %d steps from the fit's end (%.1f s of it)\n",
+    std::printf("sigma's residual part is the bootstrap's where larger than the sandwich's: %u replicates over the "
+                "PSFs drawn with replacement, each at most %d steps from the fit's end (%.1f s of it)\n",
                 r.bootstrap_replicates, o.bootstrap_steps, r.bootstrap_seconds);
   if (source_only)
     std::printf("The calibration source's extent (sigma %.4g mm) is in the table, not in %s: events are point "
