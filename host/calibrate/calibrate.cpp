@@ -853,7 +853,10 @@ CalibrationResult calibrate(const OpticalSystem& start, const std::vector<Measur
   // 2^k times larger the start lies within the basin, and each finer level
   // starts from the coarser one's optimum.
   const AnalysisGrid grid = AnalysisGrid::of(start, options.settings.binning);
-  r.chi2_start = Fitter(start, psfs, free, options).evaluate(x, false).chi2;
+  // chi2 at the start on the model's pixels: the first level's own
+  // evaluation when that level is the model's (a refit, a bootstrap
+  // replicate), else one evaluation of its own.
+  if (options.coarse_levels > 0) r.chi2_start = Fitter(start, psfs, free, options).evaluate(x, false).chi2;
   Evaluation cur;
   for (int k = std::max(0, options.coarse_levels); k >= 0; --k) {
     const std::vector<MeasuredPsf> level = k ? binned(psfs, grid, k, options) : std::vector<MeasuredPsf>{};
@@ -869,6 +872,7 @@ CalibrationResult calibrate(const OpticalSystem& start, const std::vector<Measur
     for (size_t j = 0; j < P; ++j)
       hold[j] = k > 0 && (free[j].param == Param::lens_tilt_x || free[j].param == Param::lens_tilt_y);
     cur = fitter.evaluate(x, true);
+    if (k == 0 && options.coarse_levels <= 0) r.chi2_start = cur.chi2;
     r.steps +=
         levenberg_marquardt(fitter, x, lo, hi, hold, psfs.size(), at, r.steps, t0, cur, r.converged, r.stretched);
     if (k == 0) r.fitted = fitter.system(x);

@@ -264,18 +264,25 @@ void run(const CalibrateArgs& a) {
   std::printf("chi2 %.6g -> %.6g over %zu pixels of %zu PSFs, chi2 / dof %.4g, %d steps (%d stretched)%s, %.1f s\n",
               r.chi2_start, r.chi2, r.pixels, psfs.size(), r.reduced_chi2(), r.steps, r.stretched,
               r.converged ? " (converged)" : " (step limit reached)", r.seconds);
+  // One line says what sigma is made of: the residuals' part (the sandwich,
+  // or the bootstrap where larger) and the model's cells' part.
+  const std::string residual_part =
+      r.bootstrap_replicates
+          ? "the larger of the residuals' (sandwich) and the bootstrap's (" + std::to_string(r.bootstrap_replicates) +
+                " replicates over the PSFs drawn with replacement, each at most " +
+                std::to_string(o.bootstrap_steps) + " steps from the fit's end, " +
+                format_number(r.bootstrap_seconds) + " s)"
+          : std::string("the residuals' (sandwich)");
   if (r.check_cells)
-    std::printf("sigma = the residuals' (sandwich) and the model's cells' in quadrature: the fit's %u cells per "
-                "lenslet checked against %u (%.1f s of it)\n",
-                o.settings.rays(), r.check_cells, r.check_seconds);
+    std::printf("sigma = %s and the model's cells' in quadrature: the fit's %u cells per lenslet checked against %u "
+                "(%.1f s of it)\n",
+                residual_part.c_str(), o.settings.rays(), r.check_cells, r.check_seconds);
   else if (o.cells_check > 1)
-    std::printf("sigma = the residuals' (sandwich) alone: the model with %ux the cells gave no Gauss-Newton step "
-                "(no parameter with a sigma, or its matrix singular)\n",
-                o.cells_check);
-  if (r.bootstrap_replicates)
-    std::printf("sigma's residual part is the bootstrap's where larger than the sandwich's: %u replicates over the "
-                "PSFs drawn with replacement, each at most %d steps from the fit's end (%.1f s of it)\n",
-                r.bootstrap_replicates, o.bootstrap_steps, r.bootstrap_seconds);
+    std::printf("sigma = %s alone: the model with %ux the cells gave no Gauss-Newton step (no parameter with a "
+                "sigma, or its matrix singular)\n",
+                residual_part.c_str(), o.cells_check);
+  else
+    std::printf("sigma = %s alone (--cells-check 1: the model's cells not checked)\n", residual_part.c_str());
   if (source_only)
     std::printf("The calibration source's extent (sigma %.4g mm) is in the table, not in %s: events are point "
                 "sources. To simulate the calibration source, add the effect source_extent with that sigma.\n",

@@ -178,7 +178,10 @@ TEST_CASE("blur term: the calibrate kernels and the CPU reference give the same 
   s.effects.source_sigma_mm = 0.25;
   prism::CalibrationOptions o;
   o.settings = settings(1024, 0);
-  o.max_steps = 0, o.coarse_levels = 0;
+  // One coarser level, so that chi2 at the start is an evaluation of its own
+  // on the model's pixels, without derivatives (on the model's pixels alone
+  // the start's chi2 is the first evaluation's, with them).
+  o.max_steps = 0, o.coarse_levels = 1;
   const prism::AnalysisGrid grid = prism::AnalysisGrid::of(s, 16);
   std::vector<prism::MeasuredPsf> psfs;
   for (const glm::dvec3 theta : {glm::dvec3(-6, -3, 6), glm::dvec3(2, 3, 30)}) {
