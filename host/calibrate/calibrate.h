@@ -131,6 +131,10 @@ struct CalibrationStep {
   int step = 0;          // steps accepted so far
   double chi2 = 0;       // at the current parameters
   double damping = 0;    // Levenberg-Marquardt's mu
+  // chi2's fall over this step and what Gauss-Newton's quadratic model
+  // predicted for the step it solved (before a stretch or a pattern move):
+  // their ratio near 1 where the model holds.
+  double gain = 0, predicted = 0;
   double seconds = 0;    // since the start
 };
 
@@ -156,6 +160,11 @@ struct CalibrationOptions {
   unsigned bootstrap = 0;
   int bootstrap_steps = defaults::calibration_bootstrap_steps;
   uint64_t bootstrap_seed = 1;  // replicate r draws its PSFs from (seed, r) alone
+  // After each accepted step, a point along the line through the point two
+  // steps back and the new one, values only, taken where chi2 is lower
+  // (calibrate.cpp, pattern_move): a fit that zig-zags down a narrow valley
+  // goes along it.
+  bool pattern_moves = false;
   // The calibrate kernels on this device (engine/forward.h,
   // Derivatives::scene); null: the double-precision CPU reference.
   vk::Context* device = nullptr;
@@ -202,6 +211,7 @@ struct CalibrationResult {
   size_t dof = 0;         // pixels - parameters - scales
   int steps = 0;          // accepted, all levels
   int stretched = 0;      // of those, taken further along their line where chi2 fell faster than predicted
+  int pattern_moves = 0;  // points taken along the last two steps' line (CalibrationOptions::pattern_moves)
   bool converged = false; // at the finest level: the last step gained less than 1e-3 of chi2 / dof, or no step could
   double seconds = 0;
   unsigned check_cells = 0;    // cells per 3 mm lenslet of the check's model (0: not checked, or no step found)

@@ -117,7 +117,7 @@ TEST_CASE("calibration recovers an as-built array from HDR-merged PSFs within 3 
   REQUIRE(free.size() == nominal.lenslets.size() * 5 + 6);
   const auto r = prism::calibrate(nominal, psfs, free, o);
   MESSAGE("chi2 " << r.chi2_start << " -> " << r.chi2 << ", chi2/dof " << r.reduced_chi2() << ", " << r.steps
-                  << " steps (" << r.stretched << " stretched), " << r.seconds
+                  << " steps (" << r.stretched << " stretched, " << r.pattern_moves << " pattern moves), " << r.seconds
                   << " s, of which the check of the model's cells (" << r.check_cells
                   << " cells) " << r.check_seconds << " s");
   CHECK(r.chi2 < 0.05 * r.chi2_start);
@@ -333,7 +333,35 @@ TEST_CASE("calibration's bootstrap: a PSF drawn twice counts as the PSF given tw
   std::vector<prism::MeasuredPsf> twice = psfs, counted = psfs;
   twice.push_back(psfs[1]);
   counted[1].count = 2;
+  // Each accepted step's progress: chi2's fall and what Gauss-Newton's model
+  // predicted for it. The model is right here but for its cells and the
+  // noise, so the first step (the largest) gains about what was predicted.
+  std::vector<prism::CalibrationStep> steps;
+  o.progress = [&](const prism::CalibrationStep& s) { steps.push_back(s); };
   const prism::CalibrationResult a = prism::calibrate(nominal, twice, free, o);
+  o.progress = nullptr;
+  REQUIRE(steps.size() == size_t(a.steps));
+  REQUIRE(!steps.empty());
+  for (const auto& s : steps) {
+    CAPTURE(s.step);
+    CHECK(s.gain > 0);
+    CHECK(s.predicted > 0);
+  }
+  MESSAGE("first step: gain " << steps[0].gain << ", predicted " << steps[0].predicted);
+  CHECK(steps[0].gain / steps[0].predicted > 0.5);
+  CHECK(steps[0].gain / steps[0].predicted < 2);
+  // Pattern moves take a point only where chi2 is lower: the same optimum,
+  // reached no worse within the same steps.
+  o.pattern_moves = true;
+  const prism::CalibrationResult patterned = prism::calibrate(nominal, twice, free, o);
+  o.pattern_moves = false;
+  MESSAGE("pattern moves: " << patterned.pattern_moves << " taken, " << patterned.steps << " steps, chi2 "
+                            << patterned.chi2 << " (without: " << a.steps << " steps, " << a.chi2 << ")");
+  CHECK(patterned.chi2 <= a.chi2 * (1 + 1e-6));
+  for (size_t j = 0; j < free.size(); ++j) {
+    CAPTURE(free[j].name());
+    CHECK(std::abs(patterned.estimates[j].value - a.estimates[j].value) < 0.2 * a.estimates[j].sigma_residuals);
+  }
   const prism::CalibrationResult b = prism::calibrate(nominal, counted, free, o);
   CHECK(b.chi2_start == doctest::Approx(a.chi2_start).epsilon(1e-12));
   CHECK(b.chi2 == doctest::Approx(a.chi2).epsilon(1e-9));
