@@ -326,8 +326,8 @@ void add_calibrate(CLI::App& app) {
   c->add_flag("--pattern-moves", a->pattern_moves,
               "after each accepted step, try points along the line through the point two steps back and the new "
               "one (values only, about a fifth of a step each) and take the lowest: a fit zig-zagging down a narrow "
-              "valley goes along it (README \"Calibration\": on a creeping fit 3.3x the fall per step, on one "
-              "that converges 1.27x the time)");
+              "valley goes along it (README \"Calibration\": on the whole prototype's creeping fit 3.3x the fall "
+              "over 8 steps, not beyond; on a fit that converges 1.27x the time)");
   c->add_option("--max-steps", a->max_steps,
                 "Levenberg-Marquardt steps accepted at most on each pixel size (with the default --coarse-levels: "
                 "4x, 2x, 1x the model's)")
