@@ -420,7 +420,7 @@ Noise noise_of(const MeasuredPsf& psf, const CalibrationOptions& o) {
 // A pixel's weight: the inverse of its variance's shape (calibrate.h).
 double weight(double p, const Noise& n) { return 1.0 / (std::max(p, 0.0) + n.floor); }
 
-// Whether pixel i is fitted: measured above the reliable value (at a coarse
+// Whether pixel i is measured whole: above the reliable value (at a coarse
 // level: every sub-pixel was, MeasuredPsf::unknown).
 bool known(const MeasuredPsf& psf, size_t i, const Noise& n) {
   return psf.unknown.empty() ? psf.p[i] >= n.reliable : psf.unknown[i] == 0;
@@ -433,12 +433,19 @@ double upper_bound(const MeasuredPsf& psf, size_t i, const Noise& n) {
 }
 
 // The value pixel i is fitted to where the model gives it s b: its measured
-// value, or a censored pixel's bound where s b exceeds that; NaN where the
-// pixel does not count.
+// value; for a censored pixel, the nearer end of the interval it may lie in
+// where s b is outside it (below: what its measured sub-pixels hold, 0 on
+// the model's pixels; above: upper_bound); NaN where the pixel does not
+// count. A coarse pixel with some sub-pixels censored still holds at least
+// its measured ones' light: counted as a bound above only, such pixels
+// pulled no light toward them, and on 441.6 um pixels the faint discs of
+// an f = 3 mm corner lenslet were left 150 um of position and focal length
+// from the truth (README "Calibration").
 double target(const MeasuredPsf& psf, size_t i, double sb, const Noise& n) {
   if (known(psf, i, n)) return psf.p[i];
-  const double bound = upper_bound(psf, i, n);
-  return sb > bound ? bound : std::numeric_limits<double>::quiet_NaN();
+  const double lower = psf.unknown.empty() ? 0.0 : double(psf.p[i]), upper = upper_bound(psf, i, n);
+  if (sb < lower) return lower;
+  return sb > upper ? upper : std::numeric_limits<double>::quiet_NaN();
 }
 
 // The PSF's photon scale that minimises chi2 under `model`: over its measured
@@ -514,10 +521,11 @@ PsfTerms psf_terms_once(const MeasuredPsf& psf, const Model& model, const Calibr
       }
     }
   }
-  // Lit pixels the model leaves dark: the whole value is residual.
+  // Lit pixels the model leaves dark: what it should at least hold is residual.
   for (size_t i = 0; i < psf.p.size(); ++i) {
-    const double p = psf.p[i];
-    if (!(p > 0) || !known(psf, i, noise) || model.count(int64_t(i))) continue;
+    if (!(psf.p[i] > 0) || model.count(int64_t(i))) continue;
+    const double p = target(psf, i, 0.0, noise);
+    if (!(p > 0)) continue;  // NaN too: a censored pixel may be dark
     out.fit.chi2 += weight(p, noise) * p * p;
     ++out.fit.pixels;
   }
@@ -736,8 +744,8 @@ bool pattern_move(const Fitter& fitter, const std::vector<double>& back2, double
 
 int levenberg_marquardt(const Fitter& fitter, std::vector<double>& x, const std::vector<double>& lo,
                         const std::vector<double>& hi, const std::vector<bool>& hold, size_t scales,
-                        const CalibrationOptions& o, int first_step, double t0, Evaluation& cur, bool& converged,
-                        int& stretched, int& pattern_moves) {
+                        const CalibrationOptions& o, int level, int first_step, double t0, Evaluation& cur,
+                        bool& converged, int& stretched, int& pattern_moves) {
   const size_t P = x.size();
   auto dof_of = [&](const Evaluation& e) { return e.pixels > P + scales ? e.pixels - P - scales : size_t(1); };
   double mu = 1e-3;
@@ -795,7 +803,8 @@ int levenberg_marquardt(const Fitter& fitter, std::vector<double>& x, const std:
       accepted = true;
       if (o.progress)
         o.progress({first_step + steps, cur.chi2, mu, gain, predicted,
-                    std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count() - t0});
+                    std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count() - t0,
+                    level, fitter.system(x)});
       // The device's model is a float sum in no fixed order: the same
       // parameters evaluated twice (the trial, then with derivatives) differ
       // a little, and a gain within a few times that is noise.
@@ -808,17 +817,21 @@ int levenberg_marquardt(const Fitter& fitter, std::vector<double>& x, const std:
 }
 
 // The PSFs binned by 2^k (each a sum over 2^k x 2^k pixels, as the
-// dictionary's levels are); a pixel with a censored sub-pixel is censored,
-// its bound the sum of what its sub-pixels may hold.
+// dictionary's levels are): per pixel, the sum of its measured sub-pixels
+// and the most its censored ones may add (their count times the reliable
+// value). A pixel with a censored sub-pixel is censored to that interval.
 std::vector<MeasuredPsf> binned(const std::vector<MeasuredPsf>& psfs, const AnalysisGrid& grid, int k,
                                 const CalibrationOptions& o) {
   std::vector<MeasuredPsf> out;
   for (const auto& p : psfs) {
     const Noise n = noise_of(p, o);
-    PsfLevel sl{0, grid.width, grid.height, std::vector<float>(p.p.size())};
-    for (size_t i = 0; i < p.p.size(); ++i) sl.p[i] = known(p, i, n) ? 0.0f : float(n.reliable);
-    PsfLevel l = bin_level(PsfLevel{0, grid.width, grid.height, p.p}, k);
-    out.push_back({p.theta_mm, std::move(l.p), p.name, bin_level(sl, k).p, p.count});
+    PsfLevel measured{0, grid.width, grid.height, p.p}, censored{0, grid.width, grid.height, p.p};
+    for (size_t i = 0; i < p.p.size(); ++i) {
+      const bool m = known(p, i, n);
+      measured.p[i] = m ? p.p[i] : 0.0f;
+      censored.p[i] = m ? 0.0f : float(n.reliable);
+    }
+    out.push_back({p.theta_mm, bin_level(measured, k).p, p.name, bin_level(censored, k).p, p.count});
   }
   return out;
 }
@@ -927,7 +940,7 @@ CalibrationResult calibrate(const OpticalSystem& start, const std::vector<Measur
     cur = fitter.evaluate(x, true);
     if (k == 0 && options.coarse_levels <= 0) r.chi2_start = cur.chi2;
     r.steps +=
-        levenberg_marquardt(fitter, x, lo, hi, hold, psfs.size(), at, r.steps, t0, cur, r.converged, r.stretched,
+        levenberg_marquardt(fitter, x, lo, hi, hold, psfs.size(), at, k, r.steps, t0, cur, r.converged, r.stretched,
                             r.pattern_moves);
     if (k == 0) r.fitted = fitter.system(x);
   }

@@ -107,7 +107,8 @@ struct MeasuredPsf {
   std::string name;  // for messages: its file
   // Binned PSFs (calibrate's coarse levels): per pixel, the most light its
   // censored sub-pixels may hold (their count times the reliable value), 0
-  // where every sub-pixel is measured; empty: decided from p.
+  // where every sub-pixel is measured; p holds the measured sub-pixels'
+  // sum alone. Empty: decided from p.
   std::vector<float> unknown;
   // How many times it counts in chi2 (a bootstrap replicate draws some PSFs
   // more than once).
@@ -136,6 +137,8 @@ struct CalibrationStep {
   // their ratio near 1 where the model holds.
   double gain = 0, predicted = 0;
   double seconds = 0;    // since the start
+  int level = 0;         // on pixels 2^level times the model's (coarse to fine)
+  OpticalSystem reached;  // the scene at the current parameters: a fit stopped here resumes from it
 };
 
 struct CalibrationResult;

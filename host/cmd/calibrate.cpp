@@ -49,6 +49,7 @@ struct CalibrateArgs {
   std::string device;
   std::string csv;
   std::string residuals;
+  std::string checkpoint;
 };
 
 std::vector<std::string> split_commas(const std::string& text) {
@@ -75,6 +76,18 @@ void write_text(const std::string& path, const std::string& text) {
     out << text;
     if (!out) throw std::runtime_error("cannot write " + path);
   });
+}
+
+// The scene a command writes for fitted optics: the start's, its optics
+// replaced. A fitted source extent is the calibration source's (an LED's
+// die), not the optics': events are point sources, so the scene keeps the
+// start's effects.
+Scene fitted_scene(const Scene& start, const OpticalSystem& optics) {
+  Scene fitted = start;
+  fitted.optics = optics;
+  fitted.name = start.name + "-calibrated";
+  if (optics.effects.source_extent && !start.optics.effects.source_extent) fitted.optics.effects = start.optics.effects;
+  return fitted;
 }
 
 // The measured PSFs, the scene they are fitted with and the model's binning.
@@ -139,6 +152,11 @@ void run(const CalibrateArgs& a) {
   check_not_input(a.out, "--out", inputs);
   if (!a.csv.empty()) check_writable(a.csv), check_not_input(a.csv, "--csv", inputs);
   if (!a.residuals.empty()) check_not_input(a.residuals, "--residuals", inputs);
+  if (!a.checkpoint.empty()) {
+    check_writable(a.checkpoint), check_not_input(a.checkpoint, "--checkpoint", inputs);
+    if (fs::weakly_canonical(a.checkpoint) == fs::weakly_canonical(a.out))
+      throw std::invalid_argument("--checkpoint: " + a.checkpoint + " is also --out; give the checkpoint its own file");
+  }
   Inputs in = a.dictionary.empty() ? from_merged(a) : from_dictionary(a);
   const Scene& scene = in.scene;
   std::vector<MeasuredPsf>& psfs = in.psfs;
@@ -184,9 +202,18 @@ void run(const CalibrateArgs& a) {
 
   std::fprintf(stderr, "prism calibrate: %s (%.1f um pixels), %zu parameters, footprint at %u cells per lenslet, on %s\n",
                in.what.c_str(), grid.pixel_mm * 1e3, free.size(), o.settings.rays(), on.c_str());
-  o.progress = [](const CalibrationStep& s) {
+  int checkpoint_level = -1;
+  o.progress = [&](const CalibrationStep& s) {
     std::fprintf(stderr, "prism calibrate: step %d: chi2 %.6g (damping %.3g; gain %.3g, predicted %.3g), %.1f s\n",
                  s.step, s.chi2, s.damping, s.gain, s.predicted, s.seconds);
+    if (a.checkpoint.empty()) return;
+    write_text(a.checkpoint, to_json(fitted_scene(scene, s.reached)).dump(2) + "\n");
+    if (s.level != checkpoint_level)
+      std::fprintf(stderr,
+                   "prism calibrate: on %.1f um pixels; %s holds the scene reached after each step (stopped, the fit "
+                   "resumes with --scene %s --coarse-levels %d)\n",
+                   grid.pixel_mm * 1e3 * double(1 << s.level), a.checkpoint.c_str(), a.checkpoint.c_str(), s.level);
+    checkpoint_level = s.level;
   };
   o.bootstrap_progress = [&](unsigned rep, const CalibrationResult& f) {
     std::fprintf(stderr, "prism calibrate: bootstrap replicate %u of %u: chi2 %.6g, %d steps, %.1f s\n", rep,
@@ -194,14 +221,8 @@ void run(const CalibrateArgs& a) {
   };
   const CalibrationResult r = calibrate(scene.optics, psfs, free, o);
 
-  Scene fitted = scene;
-  fitted.optics = r.fitted;
-  fitted.name = scene.name + "-calibrated";
-  // A fitted source extent is the calibration source's (an LED's die), not
-  // the optics': events are point sources. The scene keeps the start's effects.
   const bool source_only = r.fitted.effects.source_extent && !scene.optics.effects.source_extent;
-  if (source_only) fitted.optics.effects = scene.optics.effects;
-  write_text(a.out, to_json(fitted).dump(2) + "\n");
+  write_text(a.out, to_json(fitted_scene(scene, r.fitted)).dump(2) + "\n");
 
   std::string table =
       "parameter,start,fitted,sigma,change_over_sigma,at_bound,sigma_residuals,sigma_cells,sigma_bootstrap\n";
@@ -391,6 +412,9 @@ void add_calibrate(CLI::App& app) {
   c->add_option("--csv", a->csv,
                 "the parameters' table: start, fitted, sigma, change / sigma, at_bound, and sigma's parts "
                 "(residuals, the model's cells, the bootstrap's)");
+  c->add_option("--checkpoint", a->checkpoint,
+                "after each accepted step, write the scene reached to this JSON file (replaced whole each time): a fit "
+                "stopped resumes from it with the --coarse-levels its progress names");
   c->add_option("--residuals", a->residuals,
                 "a folder for the residual maps (residual-NNNN.png: (p - s b) / sigma per PSF, red above the model, "
                 "blue below, full at 3 sigma), psfs.csv, lenslets.csv and lenslets.png");

@@ -157,6 +157,40 @@ TEST_CASE("calibration recovers an as-built array from HDR-merged PSFs within 3 
   CHECK(beyond_residuals.find("lenslets[1].x_mm") != std::string::npos);
 }
 
+TEST_CASE("calibration: on coarse pixels a partly censored pixel holds at least its measured sub-pixels' light") {
+  // A coarse pixel over a faint rim mixes measured sub-pixels with censored
+  // ones. Counted as "at most" alone, such pixels pulled no light toward
+  // them: on the whole prototype the coarse levels left the faint discs of
+  // an f = 3 mm corner lenslet 150 um of position and focal length from the
+  // truth (README "Calibration"). Here every other pixel of the PSF is censored, a
+  // checkerboard: each 2 x 2 coarse pixel is partly censored, and only what
+  // its measured half holds can pull lenslet 3 (f = 9 mm, its spot bright 30
+  // mm deep) back from 40 um off. The fit is stopped at the model's pixels.
+  const prism::OpticalSystem truth = nominal_row();
+  prism::MeasuredPsf psf = measured(truth, {2, 3, 30}, 7);
+  const auto grid = prism::AnalysisGrid::of(truth, model_settings().binning);
+  for (size_t i = 0; i < psf.p.size(); ++i)
+    if ((i % size_t(grid.width) + i / size_t(grid.width)) % 2) psf.p[i] = 0;  // censored: below any reliable value
+  prism::OpticalSystem start = truth;
+  start.lenslets[3].x_mm += 0.040;
+  prism::CalibrationOptions o;
+  o.settings = model_settings();
+  o.coarse_levels = 1;
+  std::vector<double> x_after;  // lenslet 3's x after each step on the 2x pixels
+  struct ModelPixels {};
+  o.progress = [&](const prism::CalibrationStep& s) {
+    if (s.level == 0) throw ModelPixels{};
+    x_after.push_back(s.reached.lenslets[3].x_mm);
+  };
+  const auto free = prism::calibration_parameters(start, {"lens_xy"});
+  REQUIRE(free[6].name() == "lenslets[3].x_mm");
+  CHECK_THROWS_AS(prism::calibrate(start, {psf}, {free.begin() + 6, free.begin() + 8}, o), ModelPixels);
+  REQUIRE_MESSAGE(!x_after.empty(), "no step on the coarse pixels: nothing there pulled the lenslet");
+  const double error_um = 1e3 * (x_after.back() - truth.lenslets[3].x_mm);
+  MESSAGE(x_after.size() << " steps on the coarse pixels: x error 40 um -> " << error_um << " um");
+  CHECK(std::abs(error_um) < 10);
+}
+
 TEST_CASE("calibration: the blur term (an extended source's sigma) is found and frees the rest of its bias") {
   // Three lenslets as built, imaging a Gaussian source of 0.25 mm per axis.
   // The truth is the engine's source_extent (a random source offset per
@@ -466,11 +500,23 @@ TEST_CASE("prism calibrate: a dictionary of HDR-merged PSFs in, a scene every co
     prism::write_psf_file((dir / "dict" / m.file_of(i)).string(), m, i, {0, m.width, m.height, psf.p}, 0.0);
   }
   const std::string out = (dir / "fitted.json").string(), csv = (dir / "params.csv").string();
+  const std::string checkpoint = (dir / "reached.json").string();
   auto run = prism::test::run_prism("calibrate --dictionary " + (dir / "dict").string() + " --out " + out + " --csv " +
-                                    csv + " --residuals " + (dir / "residuals").string() + " --backend vulkan");
+                                    csv + " --residuals " + (dir / "residuals").string() + " --checkpoint " +
+                                    checkpoint + " --backend vulkan");
   INFO(run.output);
   REQUIRE(run.status == 0);
   CHECK(run.output.find("6 of 6 PSFs") != std::string::npos);
+  // The checkpoint holds the scene after the last accepted step: the scene
+  // written, to the byte; the progress said how to resume from it, level by level.
+  auto text_of = [](const std::string& path) {
+    std::ifstream in(path);
+    return std::string(std::istreambuf_iterator<char>(in), {});
+  };
+  CHECK(text_of(checkpoint) == text_of(out));
+  CHECK(run.output.find("reached.json holds the scene reached after each step (stopped, the fit resumes with "
+                        "--scene " + checkpoint + " --coarse-levels 2)") != std::string::npos);
+  CHECK(run.output.find("--coarse-levels 0)") != std::string::npos);
   CHECK(run.output.find("on llvmpipe") != std::string::npos);  // the calibrate kernels, on lavapipe here
   const prism::Scene fitted = prism::load_scene(out);
   CHECK(fitted.name == "row-calibrated");
@@ -526,6 +572,10 @@ TEST_CASE("prism calibrate: a dictionary of HDR-merged PSFs in, a scene every co
   bad = prism::test::run_prism("calibrate --dictionary " + (dir / "dict").string() + " --out " + out + " --level 20");
   CHECK(bad.status != 0);
   CHECK(bad.output.find("--level: 20 is beyond the dictionary's levels 0..") != std::string::npos);
+  bad = prism::test::run_prism("calibrate --dictionary " + (dir / "dict").string() + " --out " + out +
+                               " --checkpoint " + out);
+  CHECK(bad.status != 0);
+  CHECK(bad.output.find("--checkpoint: " + out + " is also --out") != std::string::npos);
   bad = prism::test::run_prism("calibrate --dictionary " + (dir / "dict").string() + " --out " +
                                (dir / "dict" / "x.json").string());
   CHECK(bad.status != 0);
