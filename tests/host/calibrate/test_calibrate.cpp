@@ -384,15 +384,19 @@ TEST_CASE("calibration's bootstrap: a PSF drawn twice counts as the PSF given tw
   MESSAGE("first step: gain " << steps[0].gain << ", predicted " << steps[0].predicted);
   CHECK(steps[0].gain / steps[0].predicted > 0.5);
   CHECK(steps[0].gain / steps[0].predicted < 2);
-  // Pattern moves take a point only where chi2 is lower: the same optimum,
-  // reached no worse within the same steps.
+  // Pattern moves take a point only where chi2 is lower: no worse within
+  // the same steps, and where both fits converge, the same optimum. (Under
+  // the sanitizers, 256 cells and two PSFs, the fit without them stops at
+  // its step limit, 4 a level: there the pattern moves only go further.)
   o.pattern_moves = true;
   const prism::CalibrationResult patterned = prism::calibrate(nominal, twice, free, o);
   o.pattern_moves = false;
   MESSAGE("pattern moves: " << patterned.pattern_moves << " taken, " << patterned.steps << " steps, chi2 "
-                            << patterned.chi2 << " (without: " << a.steps << " steps, " << a.chi2 << ")");
+                            << patterned.chi2 << " (without: " << a.steps << " steps, " << a.chi2
+                            << std::string(a.converged ? ", converged)" : ", at the step limit)"));
   CHECK(patterned.chi2 <= a.chi2 * (1 + 1e-6));
-  for (size_t j = 0; j < free.size(); ++j) {
+  if (!prism::test::under_sanitizer) REQUIRE(a.converged);
+  for (size_t j = 0; j < free.size() && a.converged && patterned.converged; ++j) {
     CAPTURE(free[j].name());
     CHECK(std::abs(patterned.estimates[j].value - a.estimates[j].value) < 0.2 * a.estimates[j].sigma_residuals);
   }
