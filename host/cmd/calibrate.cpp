@@ -78,15 +78,20 @@ void write_text(const std::string& path, const std::string& text) {
   });
 }
 
+// Whether the fit found a source extent the start scene lacked: the
+// calibration source's (an LED's die), not the optics'. Events are point
+// sources, so the scene written keeps the start's effects.
+bool extent_is_the_source_only(const Scene& start, const OpticalSystem& optics) {
+  return optics.effects.source_extent && !start.optics.effects.source_extent;
+}
+
 // The scene a command writes for fitted optics: the start's, its optics
-// replaced. A fitted source extent is the calibration source's (an LED's
-// die), not the optics': events are point sources, so the scene keeps the
-// start's effects.
+// replaced (but for a source-only extent, above).
 Scene fitted_scene(const Scene& start, const OpticalSystem& optics) {
   Scene fitted = start;
   fitted.optics = optics;
   fitted.name = start.name + "-calibrated";
-  if (optics.effects.source_extent && !start.optics.effects.source_extent) fitted.optics.effects = start.optics.effects;
+  if (extent_is_the_source_only(start, optics)) fitted.optics.effects = start.optics.effects;
   return fitted;
 }
 
@@ -221,7 +226,7 @@ void run(const CalibrateArgs& a) {
   };
   const CalibrationResult r = calibrate(scene.optics, psfs, free, o);
 
-  const bool source_only = r.fitted.effects.source_extent && !scene.optics.effects.source_extent;
+  const bool source_only = extent_is_the_source_only(scene, r.fitted);
   write_text(a.out, to_json(fitted_scene(scene, r.fitted)).dump(2) + "\n");
 
   std::string table =
