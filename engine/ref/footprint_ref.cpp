@@ -20,18 +20,24 @@ namespace prism::ref {
 namespace {
 
 // A traced corner in grid pixels (u, v from the sensor's top-left corner)
-// with its weight density (photons per mm^2 of aperture).
+// with its weight density (photons per mm^2 of aperture). `landed`: its ray
+// got through the lens (its landing point counts where a piece's size is
+// judged); `ok`: and landed within the sensor's band, so its light counts.
 struct GridCorner {
-  bool ok = false;
+  bool ok = false, landed = false;
   D u, v, w;
 };
 
-GridCorner to_grid(const SampleHit& h, double half_w, double half_h, double px) {
+// Stopped where its ray is, or where it lands beyond the sensor's band
+// (shared::lands_by_sensor: the kernels' own test).
+GridCorner to_grid(const SampleHit& h, double half_w, double half_h, double px, double blur_half_px) {
   GridCorner c;
-  c.ok = h.ok;
   c.u = D((h.x_mm + half_w) / px, h.dx / px);
   c.v = D((h.y_mm + half_h) / px, h.dy / px);
   c.w = D(h.weight, h.dweight);
+  c.landed = h.ok;
+  c.ok = h.ok && shared::lands_by_sensor(float(c.u.v), float(c.v.v), float(2 * half_w / px), float(2 * half_h / px),
+                                         float(blur_half_px));
   return c;
 }
 
@@ -364,7 +370,8 @@ SparseImage psf_footprint(const OpticalSystem& sys, const TraceSettings& setting
     auto unit = [&](uint32_t i, uint32_t j) { return glm::dvec2(shared::aperture_corner(i, j, n, turn)); };
     // From the source, moved by sigma times per_sigma (source_extent).
     auto trace = [&](const glm::dvec3& per_sigma, glm::dvec2 u) {
-      return to_grid(trace_point(sys, settings, theta, per_sigma, l, u, 1.0, tangents), half_w, half_h, px);
+      return to_grid(trace_point(sys, settings, theta, per_sigma, l, u, 1.0, tangents), half_w, half_h, px,
+                     target.blur_half_px);
     };
     // The corners, shared by neighbouring cells (without an extended source).
     std::vector<GridCorner> shared_corners;
@@ -386,7 +393,7 @@ SparseImage psf_footprint(const OpticalSystem& sys, const TraceSettings& setting
         auto large = [](const GridCorner* k) {
           double lo_u = 1e300, hi_u = -1e300, lo_v = 1e300, hi_v = -1e300;
           for (int q = 0; q < 3; ++q)
-            if (k[q].ok)
+            if (k[q].landed)
               lo_u = std::min(lo_u, k[q].u.v), hi_u = std::max(hi_u, k[q].u.v), lo_v = std::min(lo_v, k[q].v.v),
               hi_v = std::max(hi_v, k[q].v.v);
           return std::max(hi_u - lo_u, hi_v - lo_v) > double(shared::LARGE_TRIANGLE_PX);

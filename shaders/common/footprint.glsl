@@ -93,6 +93,26 @@ const int SPLIT_DEPTH = 3;
 // retrace of its piece counts (README "Performance").
 const int LARGE_TILE_PX = 64;
 
+// A corner whose ray lands more than STOPPED_BEYOND_SENSOR_PX grid pixels
+// (plus the blur's reach) beyond the sensor's edge counts as stopped, as one
+// an aperture or total internal reflection stops, and its triangle is cut
+// where its rays leave that band, after the splits its landing point asks
+// for (is_large judges a piece by every corner that got through the lens:
+// cut unsplit, the f = 3 mm near-face annulus lost its convergence).
+// Such light is lost anyway; traced whole,
+// a triangle with a corner near the critical angle (a ray leaving the flat
+// face almost grazing, landing metres away) spread its light along an image
+// the linear map has nothing to do with, and its landing point's
+// derivative (as 1 / cos^3 of the refracted angle) made the pixels'
+// forward-mode derivatives 10-1000x their differences (README "Calibration").
+// The band's width only sets where the cut falls in light the sensor does
+// not see: the cut part keeps the light per image area it had.
+const float STOPPED_BEYOND_SENSOR_PX = 16.0f;
+PRISM_FN bool lands_by_sensor(float u, float v, float u_max, float v_max, float blur_half_px) {
+  float m = STOPPED_BEYOND_SENSOR_PX + blur_half_px;
+  return u >= -m && v >= -m && u <= u_max + m && v <= v_max + m;  // false for NaN
+}
+
 // The aperture area (mm^2) one of a cell's two triangles carries: half of
 // the cell's, which is an equal share of the disc (the concentric map
 // preserves area).

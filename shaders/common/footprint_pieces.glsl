@@ -7,7 +7,9 @@
 // one tile per invocation.
 //
 // An aperture cut: the boundary is found by bisection along each edge between
-// a corner whose ray passes and one whose ray does not (CUT_STEPS halvings of
+// a corner whose ray passes and one whose ray does not, stopped by an
+// aperture, total internal reflection or the band around the sensor
+// (lands_by_sensor, footprint.glsl) (CUT_STEPS halvings of
 // the aperture segment), and the part that passes (a triangle, or a quad as
 // two triangles) carries its share of the aperture area. The cut's aperture
 // point is held fixed in theta: its motion, like a point ray crossing an

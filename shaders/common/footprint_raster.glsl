@@ -105,13 +105,16 @@ void deposit_windowed(uint image_base, int col, int row, Dual value, uint half_o
 }
 
 // A traced corner: landing point in grid pixels (u, v from the sensor's
-// top-left corner), weight density (photons per mm^2 of aperture), and
-// whether the ray got through.
+// top-left corner), weight density (photons per mm^2 of aperture), whether
+// the ray got through the lens (`landed`: its landing point counts where a
+// piece's size is judged) and whether it also landed within the sensor's
+// band (`ok`: its light counts; lands_by_sensor).
 struct Corner {
   Dual u;
   Dual v;
   Dual w;
   bool ok;
+  bool landed;
 };
 
 // Whether triangle (a, b, c), blurred by half side blur_half_px, may give
@@ -145,8 +148,11 @@ Corner trace_corner(CellSource from, Lenslet lens, vec2 unit) {
   Hit hit = trace_aperture_point(from.theta, from.per_sigma, lens, unit, 1.0f, P, LENS_MODEL, SCINT_REFRACTION, HOLDER,
                                  AS_BUILT);
   float inv_px = 1.0f / P.pixel_mm;
-  return Corner(d_scale(d_addc(hit.x_mm, P.sensor_half_w_mm), inv_px),
-                d_scale(d_addc(hit.y_mm, P.sensor_half_h_mm), inv_px), hit.weight, hit.ok);
+  Corner k = Corner(d_scale(d_addc(hit.x_mm, P.sensor_half_w_mm), inv_px),
+                    d_scale(d_addc(hit.y_mm, P.sensor_half_h_mm), inv_px), hit.weight, hit.ok, hit.ok);
+  k.ok = k.landed && lands_by_sensor(k.u.v, k.v.v, sensor_u_max(), sensor_v_max(),
+                                 DIFFRACTION ? airy_half_side_px(lens) : 0.0f);
+  return k;
 }
 
 const int MAX_SIDES = 5;  // a triangle clipped by the sensor's two far edges
@@ -465,9 +471,9 @@ bool is_large(Corner a, Corner b, Corner c) {
   float u_hi = -1e30f;
   float v_lo = 1e30f;
   float v_hi = -1e30f;
-  if (a.ok) u_lo = min(u_lo, a.u.v), u_hi = max(u_hi, a.u.v), v_lo = min(v_lo, a.v.v), v_hi = max(v_hi, a.v.v);
-  if (b.ok) u_lo = min(u_lo, b.u.v), u_hi = max(u_hi, b.u.v), v_lo = min(v_lo, b.v.v), v_hi = max(v_hi, b.v.v);
-  if (c.ok) u_lo = min(u_lo, c.u.v), u_hi = max(u_hi, c.u.v), v_lo = min(v_lo, c.v.v), v_hi = max(v_hi, c.v.v);
+  if (a.landed) u_lo = min(u_lo, a.u.v), u_hi = max(u_hi, a.u.v), v_lo = min(v_lo, a.v.v), v_hi = max(v_hi, a.v.v);
+  if (b.landed) u_lo = min(u_lo, b.u.v), u_hi = max(u_hi, b.u.v), v_lo = min(v_lo, b.v.v), v_hi = max(v_hi, b.v.v);
+  if (c.landed) u_lo = min(u_lo, c.u.v), u_hi = max(u_hi, c.u.v), v_lo = min(v_lo, c.v.v), v_hi = max(v_hi, c.v.v);
   return max(u_hi - u_lo, v_hi - v_lo) > LARGE_TRIANGLE_PX;
 }
 
