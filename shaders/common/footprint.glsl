@@ -95,18 +95,18 @@ const int LARGE_TILE_PX = 64;
 
 // A corner whose ray lands more than STOPPED_BEYOND_SENSOR_PX grid pixels
 // (plus the blur's reach) beyond the sensor's edge counts as stopped, as one
-// an aperture or total internal reflection stops, and its triangle is cut
-// where its rays leave that band, after the splits its landing point asks
-// for (is_large judges a piece by every corner that got through the lens:
-// cut unsplit, the f = 3 mm near-face annulus lost its convergence).
-// Such light is lost anyway; traced whole,
-// a triangle with a corner near the critical angle (a ray leaving the flat
+// an aperture or total internal reflection stops: its triangle is cut where
+// its rays leave that band. Such light is lost anyway. Traced whole, a
+// triangle with a corner near the critical angle (a ray leaving the flat
 // face almost grazing, landing metres away) spread its light along an image
-// the linear map has nothing to do with, and its landing point's
-// derivative (as 1 / cos^3 of the refracted angle) made the pixels'
-// forward-mode derivatives 10-1000x their differences (README "Calibration").
-// The band's width only sets where the cut falls in light the sensor does
-// not see: the cut part keeps the light per image area it had.
+// the linear map has nothing to do with, and that corner's landing
+// derivative (of order 1 / cos^3 of the refracted angle) put an f = 3 mm
+// lens's forward-mode derivatives at 2.5-14x their central differences
+// (README "Calibration"). The band's width only sets where the cut falls in
+// light the sensor does not see: the part kept has the light per image area
+// it had. The cut comes after the splits the corner's landing point asks
+// for (is_large judges a piece by every corner that got through the lens;
+// cut unsplit, the f = 3 mm near-face annulus stopped converging).
 const float STOPPED_BEYOND_SENSOR_PX = 16.0f;
 PRISM_FN bool lands_by_sensor(float u, float v, float u_max, float v_max, float blur_half_px) {
   float m = STOPPED_BEYOND_SENSOR_PX + blur_half_px;
