@@ -86,11 +86,16 @@ bool extent_is_the_source_only(const Scene& start, const OpticalSystem& optics) 
 }
 
 // The scene a command writes for fitted optics: the start's, its optics
-// replaced (but for a source-only extent, above).
+// replaced (but for a source-only extent, above), named "<start>-calibrated".
 Scene fitted_scene(const Scene& start, const OpticalSystem& optics) {
   Scene fitted = start;
   fitted.optics = optics;
-  fitted.name = start.name + "-calibrated";
+  // Once: a fit resumed from a checkpoint or refined from a fitted scene
+  // keeps the name it had.
+  const std::string suffix = "-calibrated";
+  const bool named = start.name.size() >= suffix.size() &&
+                     start.name.compare(start.name.size() - suffix.size(), suffix.size(), suffix) == 0;
+  fitted.name = named ? start.name : start.name + suffix;
   if (extent_is_the_source_only(start, optics)) fitted.optics.effects = start.optics.effects;
   return fitted;
 }

@@ -545,6 +545,7 @@ TEST_CASE("prism calibrate: a dictionary of HDR-merged PSFs in, a scene every co
   CHECK(run.output.find("sigma = the larger of the residuals' (sandwich) and the bootstrap's (2 replicates") !=
         std::string::npos);
   check_table(csv_refined, truth, prism::load_scene(refined).optics);
+  CHECK(prism::load_scene(refined).name == "row-calibrated");  // not "-calibrated" twice
 
   // A fitted source extent is the calibration source's: in the table, not
   // in the scene written (events are point sources).
