@@ -92,10 +92,7 @@ Scene fitted_scene(const Scene& start, const OpticalSystem& optics) {
   fitted.optics = optics;
   // Once: a fit resumed from a checkpoint or refined from a fitted scene
   // keeps the name it had.
-  const std::string suffix = "-calibrated";
-  const bool named = start.name.size() >= suffix.size() &&
-                     start.name.compare(start.name.size() - suffix.size(), suffix.size(), suffix) == 0;
-  fitted.name = named ? start.name : start.name + suffix;
+  fitted.name = start.name.ends_with("-calibrated") ? start.name : start.name + "-calibrated";
   if (extent_is_the_source_only(start, optics)) fitted.optics.effects = start.optics.effects;
   return fitted;
 }
