@@ -97,11 +97,11 @@ int main(int argc, char** argv) {
       }
   });
   const double values_s = bench::median_seconds(repeats, [&] { (void)fw.psf_values(theta); });
-  const double ref_s = bench::median_seconds(1, [&] {
+  const double ref_s = bench::median_seconds(repeats, [&] {
     for (int l = 0; l < L; ++l)
       for (const auto& p : passes_of(l)) (void)ref::psf(proto, t, theta, p, l);
   });
-  const double ref_values_s = bench::median_seconds(1, [&] { (void)ref::psf(proto, t, theta); });
+  const double ref_values_s = bench::median_seconds(repeats, [&] { (void)ref::psf(proto, t, theta); });
   std::printf("\n## 1. One PSF's model, prototype (%d lenslets, 216 parameters), %.1f um pixels, %u cells per lenslet\n"
               "# derivative images: %zu renders (each lenslet alone, 3 parameters a pass); values: one render.\n"
               "# The device's first use compiles its kernels: %.1f s here (once per process).\n",
