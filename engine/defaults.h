@@ -254,7 +254,7 @@ inline constexpr unsigned calibration_rays_per_lenslet = 1024;
 // The step is the model's own error less the finer model's, which is 1/2 of
 // it at 4x the cells (noise-like, 1 / sqrt(cells)) and 1/4 at 16x; at 110 um
 // pixels the check's time grows slowly with the cells (the whole prototype:
-// 75 s at 16x, 56 s at 4x). At 4x the f = 3 mm lenslets' cell error came out
+// 54-75 s at 16x, 39-56 s at 4x). At 4x the f = 3 mm lenslets' cell error came out
 // too small: the synthetic row's f = 3 mm position sigma 7 um at 4x, 10.6 um
 // at 16x for an error of 15 um; the whole prototype 207 of 216 parameters
 // within 3 sigma at 4x, 211 at 16x (README "Calibration").
