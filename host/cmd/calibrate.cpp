@@ -394,8 +394,8 @@ void add_calibrate(CLI::App& app) {
       ->capture_default_str();
   c->add_option("--cells-check", a->cells_check,
                 "after the fit, evaluate the model with this many times its cells (one evaluation with derivatives; "
-                "at 16x about a step's time at 110 um pixels): how far that moves each parameter is its uncertainty from the model's "
-                "cells, added to sigma; 1: no check")
+                "at 16x about a step's time at 110 um pixels): how far that moves each parameter is its uncertainty "
+                "from the model's cells, added to sigma; 1: no check")
       ->check(CLI::Range(1u, 64u))
       ->capture_default_str();
   c->add_option("--bootstrap", a->bootstrap,

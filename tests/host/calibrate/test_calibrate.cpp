@@ -100,8 +100,9 @@ std::vector<glm::dvec3> positions(bool few) {
 
 // The whole central row, its f = 3 and 4.5 mm lenslets too, from PSFs
 // rendered at 16x the model's cells, the check's count (defaults.h), with
-// another stratification: the check is not the truth's own rendering. Under the sanitizers the
-// command's test below fits every default parameter with both backends.
+// another stratification: the check is not the truth's own rendering.
+// Under the sanitizers the command's test below fits every default
+// parameter with both backends.
 TEST_CASE("calibration recovers an as-built array from HDR-merged PSFs within 3 of its uncertainties" *
           prism::test::skip_under_sanitizer) {
   const prism::OpticalSystem nominal = nominal_row(0);
