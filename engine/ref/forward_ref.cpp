@@ -327,9 +327,9 @@ double SparseImage::photons() const {
 }
 
 std::array<double, 4> SparseImage::value(int64_t key) const {
-  auto it = pixels.find(key);
-  if (it == pixels.end()) return {0, 0, 0, 0};
-  const auto& v = it->second;
+  const std::array<double, 7>* found = pixels.find(key);
+  if (!found) return {0, 0, 0, 0};
+  const auto& v = *found;
   return {v[0], 0.5 * (v[1] + v[4]), 0.5 * (v[2] + v[5]), 0.5 * (v[3] + v[6])};
 }
 

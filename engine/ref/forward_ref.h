@@ -8,13 +8,13 @@
 #include <array>
 #include <cstdint>
 #include <optional>
-#include <unordered_map>
 
 #include <glm/glm.hpp>
 
 #include "engine/fisher.h"
 #include "engine/optical_system.h"
 #include "engine/ref/dual_ref.h"
+#include "engine/ref/pixel_map.h"
 
 namespace prism::ref {
 
@@ -31,10 +31,9 @@ using prism::Tangents;
 struct SparseImage {
   int width = 0;
   int height = 0;
-  std::unordered_map<int64_t, std::array<double, 7>> pixels;
-  // Memory per lit pixel, for estimates: the map's node (key, 7 doubles, link,
-  // allocator overhead) and its bucket.
-  static constexpr double bytes_per_pixel = 96;
+  PixelMap<std::array<double, 7>> pixels;
+  // Memory per lit pixel at most, for estimates (pixel_map.h).
+  static constexpr double bytes_per_pixel = PixelMap<std::array<double, 7>>::bytes_per_entry_bound;
   double photons() const;
   // b and the mean gradient of pixel `key`.
   std::array<double, 4> value(int64_t key) const;

@@ -16,9 +16,9 @@
 #include <random>
 #include <stdexcept>
 #include <thread>
-#include <unordered_map>
 
 #include "engine/forward.h"
+#include "engine/ref/pixel_map.h"
 #include "host/calibrate/source_blur.h"
 #include "host/dictionary/store.h"                  // bin_level
 #include "host/util/format.h"
@@ -171,7 +171,7 @@ struct ModelPixel {
     d.push_back({param, value});
   }
 };
-using Model = std::unordered_map<int64_t, ModelPixel>;
+using Model = ref::PixelMap<ModelPixel>;
 
 // One render of a PSF: of lenslet `only_lens` (-1: every one), with or
 // without derivatives by `tangents`; calls visit(key, {b, db/dslot 0..2})
@@ -193,13 +193,14 @@ struct SourceBlurModel {
 LensImage bin_lens_image(const LensImage& img, unsigned f, int width, int height) {
   if (f == 1) return img;
   LensImage out{width, height, img.channels, {}, {}};
-  std::unordered_map<int64_t, size_t> row_of;
+  ref::PixelMap<size_t> row_of;  // 1 + the key's row in out; 0: none yet
   for (size_t i = 0; i < img.keys.size(); ++i) {
     const int64_t col = img.keys[i] % img.width / f, row = img.keys[i] / img.width / f;
     if (col >= width || row >= height) continue;
-    const auto [it, fresh] = row_of.try_emplace(row * width + col, out.keys.size());
-    if (fresh) out.keys.push_back(row * width + col), out.values.resize(out.values.size() + img.channels, 0.0);
-    for (size_t c = 0; c < img.channels; ++c) out.values[it->second * img.channels + c] += img.values[i * img.channels + c];
+    size_t& at = row_of[row * width + col];
+    if (at == 0) out.keys.push_back(row * width + col), out.values.resize(out.values.size() + img.channels, 0.0),
+                 at = out.keys.size();
+    for (size_t c = 0; c < img.channels; ++c) out.values[(at - 1) * img.channels + c] += img.values[i * img.channels + c];
   }
   return out;
 }
@@ -232,11 +233,11 @@ Model assemble(size_t lenses, const std::vector<CalibrationParameter>& free, boo
         slots.push_back(j);
     // Channels: b, db/d(source x, y, depth) (a source pass's), then one per slot.
     LensImage img{blur.width, blur.height, 4 + slots.size(), {}, {}};
-    std::unordered_map<int64_t, size_t> row_of;
+    ref::PixelMap<size_t> row_of;  // 1 + the key's row in img; 0: none yet
     auto values_of = [&](int64_t key) {
-      const auto [it, fresh] = row_of.try_emplace(key, img.keys.size());
-      if (fresh) img.keys.push_back(key), img.values.resize(img.values.size() + img.channels, 0.0);
-      return &img.values[it->second * img.channels];
+      size_t& at = row_of[key];
+      if (at == 0) img.keys.push_back(key), img.values.resize(img.values.size() + img.channels, 0.0), at = img.keys.size();
+      return &img.values[(at - 1) * img.channels];
     };
     std::optional<std::array<double, 6>> J;
     if (blurred) J = motion(l);
@@ -267,6 +268,7 @@ Model assemble(size_t lenses, const std::vector<CalibrationParameter>& free, boo
       ModelPixel& m = model[img.keys[i]];
       m.b += v[0];
       if (v[0] > m.lens_b) m.lens_b = v[0], m.lens = int(l);
+      m.d.reserve(m.d.size() + slots.size() + 1);  // one allocation, not one per doubling
       for (size_t k = 0; k < slots.size(); ++k)
         if (v[4 + k] != 0) m.add(slots[k], v[4 + k]);
       if (blurred && sigma_slot >= 0 && v[4 + slots.size()] != 0) m.add(uint32_t(sigma_slot), v[4 + slots.size()]);
@@ -523,7 +525,7 @@ PsfTerms psf_terms_once(const MeasuredPsf& psf, const Model& model, const Calibr
   }
   // Lit pixels the model leaves dark: what it should at least hold is residual.
   for (size_t i = 0; i < psf.p.size(); ++i) {
-    if (!(psf.p[i] > 0) || model.count(int64_t(i))) continue;
+    if (!(psf.p[i] > 0) || model.contains(int64_t(i))) continue;
     const double p = target(psf, i, 0.0, noise);
     if (!(p > 0)) continue;  // NaN too: a censored pixel may be dark
     out.fit.chi2 += weight(p, noise) * p * p;
@@ -1008,8 +1010,8 @@ void calibration_residuals(const OpticalSystem& sys, const std::vector<MeasuredP
     std::vector<float> out(psf.p.size());
     for (size_t i = 0; i < out.size(); ++i) {
       const double p = psf.p[i];
-      auto it = model.find(int64_t(i));
-      const double b = it == model.end() ? 0.0 : it->second.b;
+      const ModelPixel* m = model.find(int64_t(i));
+      const double b = m ? m->b : 0.0;
       out[i] = known(psf, i, noise) ? float((p - s * b) * std::sqrt(weight(p, noise))) : 0.0f;
     }
     each(k, out);
