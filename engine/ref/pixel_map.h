@@ -50,7 +50,8 @@ class PixelMap {
   auto end() const { return entries_.end(); }
 
   // Bytes per entry at most, for memory estimates: the entry, the vector's
-  // doubling slack, and an index table at most a quarter full after growth.
+  // doubling slack, and at most 4 index slots per entry (the table doubles
+  // when half full).
   static constexpr double bytes_per_entry_bound = 2.0 * sizeof(Entry) + 4 * sizeof(uint32_t);
 
  private:

@@ -478,7 +478,9 @@ TEST_CASE("prism simulate writes a reproducible event file, dictionary truth and
   std::string dir = fs::path(temp_path("x")).parent_path().string();
   std::string args = "simulate --scene prototype --vertex 0,0,25 --vertex 3,-2,15,50 --events 200 --binning 32 "
                      "--rays 256 --seed 7 --out ";
-  auto [status, out] = run_prism(args + dir + "/a.events");
+  // lavapipe on one thread: the PSF the same to the bit in both runs (below).
+  const std::string one_thread = "LP_NUM_THREADS=1";
+  auto [status, out] = run_prism(args + dir + "/a.events", one_thread);
   INFO(out);
   REQUIRE(status == 0);
   CHECK(out.find("200 events of 2 vertices") != std::string::npos);
@@ -503,12 +505,13 @@ TEST_CASE("prism simulate writes a reproducible event file, dictionary truth and
   CHECK(clicks > 200 * 100);  // ~150 photons per event, most on distinct pixels
   CHECK(clicks < 200 * 150);
 
-  // Same seed, same events. The forward model's PSF is a float sum by
-  // atomic adds whose order varies between runs on a multi-threaded device,
-  // so P and S may differ in their last bits (EVENTS.md, "Randomness"): the
-  // clicks are the same unless a draw falls within that rounding of a pixel's
-  // probability, which a run of 200 events may meet once at most.
-  auto again = run_prism(args + dir + "/b.events");
+  // Same seed and the same PSF, same events, every click. The forward
+  // model's PSF is a float sum by atomic adds whose order varies between runs
+  // on a multi-threaded device, and one last bit of it can re-pair Vose's
+  // alias table from there on, so that most clicks differ (EVENTS.md,
+  // "Randomness"; a clean clone's run met 187 of 200 events changed). On one
+  // lavapipe thread the adds come in one order.
+  auto again = run_prism(args + dir + "/b.events", one_thread);
   REQUIRE(again.status == 0);
   prism::EventReader ra(dir + "/a.events"), rb(dir + "/b.events");
   CHECK(ra.header().provenance == rb.header().provenance);
@@ -525,7 +528,7 @@ TEST_CASE("prism simulate writes a reproducible event file, dictionary truth and
     }
   }
   CHECK(events == 200);
-  CHECK(same_clicks >= 199);
+  CHECK(same_clicks == 200);
   CHECK_FALSE(rb.next(eb));
 
   // Jitter: every event its own positions, within +-1 mm.
