@@ -189,18 +189,24 @@ struct SourceBlurModel {
   int model_width = 0, model_height = 0;
 };
 
+// Pixel `key`'s channels in `img`, a zeroed row appended on its first use;
+// `row_of` holds 1 + each key's row (0: none yet).
+double* values_of(LensImage& img, ref::PixelMap<size_t>& row_of, int64_t key) {
+  size_t& at = row_of[key];
+  if (at == 0) img.keys.push_back(key), img.values.resize(img.values.size() + img.channels, 0.0), at = img.keys.size();
+  return &img.values[(at - 1) * img.channels];
+}
+
 // `img` summed over f x f pixels onto the width x height grid.
 LensImage bin_lens_image(const LensImage& img, unsigned f, int width, int height) {
   if (f == 1) return img;
   LensImage out{width, height, img.channels, {}, {}};
-  ref::PixelMap<size_t> row_of;  // 1 + the key's row in out; 0: none yet
+  ref::PixelMap<size_t> row_of;
   for (size_t i = 0; i < img.keys.size(); ++i) {
     const int64_t col = img.keys[i] % img.width / f, row = img.keys[i] / img.width / f;
     if (col >= width || row >= height) continue;
-    size_t& at = row_of[row * width + col];
-    if (at == 0) out.keys.push_back(row * width + col), out.values.resize(out.values.size() + img.channels, 0.0),
-                 at = out.keys.size();
-    for (size_t c = 0; c < img.channels; ++c) out.values[(at - 1) * img.channels + c] += img.values[i * img.channels + c];
+    double* o = values_of(out, row_of, row * width + col);
+    for (size_t c = 0; c < img.channels; ++c) o[c] += img.values[i * img.channels + c];
   }
   return out;
 }
@@ -233,18 +239,13 @@ Model assemble(size_t lenses, const std::vector<CalibrationParameter>& free, boo
         slots.push_back(j);
     // Channels: b, db/d(source x, y, depth) (a source pass's), then one per slot.
     LensImage img{blur.width, blur.height, 4 + slots.size(), {}, {}};
-    ref::PixelMap<size_t> row_of;  // 1 + the key's row in img; 0: none yet
-    auto values_of = [&](int64_t key) {
-      size_t& at = row_of[key];
-      if (at == 0) img.keys.push_back(key), img.values.resize(img.values.size() + img.channels, 0.0), at = img.keys.size();
-      return &img.values[(at - 1) * img.channels];
-    };
+    ref::PixelMap<size_t> row_of;
     std::optional<std::array<double, 6>> J;
     if (blurred) J = motion(l);
     const bool source_pass = blurred && !J;
     if (source_pass)
       render(source_tangents, int(l), true, [&](int64_t key, const std::array<double, 4>& v) {
-        std::copy(v.begin(), v.end(), values_of(key));
+        std::copy(v.begin(), v.end(), values_of(img, row_of, key));
       });
     const size_t slot_passes = (slots.size() + 2) / 3;
     const size_t passes = source_pass ? slot_passes : std::max<size_t>(1, slot_passes);
@@ -253,7 +254,7 @@ Model assemble(size_t lenses, const std::vector<CalibrationParameter>& free, boo
       const size_t first = 3 * pass, n = std::min<size_t>(3, slots.size() - std::min(slots.size(), first));
       for (size_t k = 0; k < n; ++k) tangents[k] = {free[slots[first + k]].param, free[slots[first + k]].lens};
       render(tangents, int(l), derivatives, [&](int64_t key, const std::array<double, 4>& v) {
-        double* o = values_of(key);
+        double* o = values_of(img, row_of, key);
         if (!source_pass && pass == 0) o[0] = v[0];
         for (size_t k = 0; k < n; ++k) o[4 + first + k] = v[1 + k];
       });
@@ -268,7 +269,7 @@ Model assemble(size_t lenses, const std::vector<CalibrationParameter>& free, boo
       ModelPixel& m = model[img.keys[i]];
       m.b += v[0];
       if (v[0] > m.lens_b) m.lens_b = v[0], m.lens = int(l);
-      m.d.reserve(m.d.size() + slots.size() + 1);  // one allocation, not one per doubling
+      if (m.d.empty()) m.d.reserve(slots.size() + 1);  // one allocation for its first lenslet
       for (size_t k = 0; k < slots.size(); ++k)
         if (v[4 + k] != 0) m.add(slots[k], v[4 + k]);
       if (blurred && sigma_slot >= 0 && v[4 + slots.size()] != 0) m.add(uint32_t(sigma_slot), v[4 + slots.size()]);
