@@ -1,7 +1,8 @@
-// HDR merge of calibration exposures (paper Sec. III.A.2): per pixel, the mean
-// of the exposure-normalised values (raw - dark) / T over the valid exposures,
-// kept only with enough valid exposures, linear response and a normal dark
-// level; the result normalised to sum 1. Vulkan kernel (shaders/hdr_merge.comp)
+// HDR merge of calibration exposures (paper Sec. III.A.2): per pixel, the
+// valid exposures' summed signal (raw - dark) over their summed time T (the
+// paper takes the mean of the (raw - dark) / T; why not: shaders/common/hdr.glsl,
+// hdr_estimate), kept only with enough valid exposures, linear response and
+// a normal dark level; the result normalised to sum 1. Vulkan kernel (shaders/hdr_merge.comp)
 // here, double-precision reference in engine/ref/hdr_merge_ref.h.
 #pragma once
 #include <array>

@@ -1,7 +1,7 @@
 // HDR merge of one calibration stack, one invocation per pixel of a band of
 // sensor rows: fit the pixel's dark level, keep the exposures that are neither
-// saturated nor lost in noise, and write the mean of their exposure-normalised
-// values (DN/s, not yet normalised) with a status word saying why.
+// saturated nor lost in noise, and write their summed signal over their
+// summed time (DN/s, not yet normalised; hdr_estimate) with a status word saying why.
 #version 460
 #extension GL_GOOGLE_include_directive : require
 #define PRISM_FN
@@ -48,6 +48,6 @@ void main() {
     mask |= 1u << j;
   }
   uint reason = hdr_reason(hot, unsaturated, valid, P);
-  estimate[pixel] = reason == HDR_KEPT ? valid.sum_f / valid.n : 0.0f;
+  estimate[pixel] = reason == HDR_KEPT ? hdr_estimate(valid) : 0.0f;
   status[pixel] = hdr_status_word(reason, uint(valid.n), mask);
 }

@@ -61,7 +61,7 @@ HdrResult hdr_merge(const HdrFrames& f, const HdrOptions& o) {
     valid_t.clear();
     valid_signal.clear();
     uint32_t unsaturated = 0, mask = 0;
-    double sum_f = 0;
+    double sum_signal = 0, sum_t = 0;
     for (size_t j = 0; j < m; ++j) {
       double raw = f.exposures[j][i];
       if (raw >= lim.saturation_dn) continue;
@@ -70,7 +70,7 @@ HdrResult hdr_merge(const HdrFrames& f, const HdrOptions& o) {
       if (signal <= lim.floor_dn) continue;
       valid_t.push_back(f.exposure_s[j]);
       valid_signal.push_back(signal);
-      sum_f += signal / f.exposure_s[j];
+      sum_signal += signal, sum_t += f.exposure_s[j];
       mask |= 1u << j;
     }
     HdrReason why = HdrReason::kept;
@@ -78,7 +78,7 @@ HdrResult hdr_merge(const HdrFrames& f, const HdrOptions& o) {
     else if (unsaturated < o.min_valid_exposures) why = HdrReason::saturated;
     else if (valid_t.size() < o.min_valid_exposures) why = HdrReason::faint;
     else if (!(pearson(valid_t, valid_signal) > o.min_correlation)) why = HdrReason::nonlinear;
-    if (why == HdrReason::kept) estimate[i] = float(sum_f / double(valid_t.size()));
+    if (why == HdrReason::kept) estimate[i] = float(sum_signal / sum_t);
     status[i] = uint32_t(why) | uint32_t(valid_t.size()) << 8 | mask << 16;
   }
   return hdr_finish(f, std::move(estimate), std::move(status), dark, lim);

@@ -1,7 +1,7 @@
 // Device math of the HDR calibration merge (paper Sec. III.A.2): per pixel,
 // classify each exposure as valid, saturated or lost in noise, model the dark
-// level against exposure time, and accumulate the exposure-normalised values
-// and their correlation with exposure time.
+// level against exposure time, and accumulate the valid exposures' signals
+// and times and their correlation.
 //
 // Same GLSL/C++ subset as dual.glsl; engine/hdr_shared.h compiles it as C++
 // and checks HdrParams against its std430 push-constant size. The CPU
@@ -10,7 +10,7 @@
 #define PRISM_HDR_GLSL
 
 // Why a pixel was kept or rejected (the low 8 bits of its status word).
-const uint HDR_KEPT = 0u;              // PSF = mean of the valid exposure-normalised values
+const uint HDR_KEPT = 0u;              // PSF = the valid exposures' signal over their time (hdr_estimate)
 const uint HDR_REJECT_HOT_DARK = 1u;   // dark level far above the frame's: dark current unknown at other T
 const uint HDR_REJECT_SATURATED = 2u;  // fewer than min_valid exposures below the saturation level
 const uint HDR_REJECT_FAINT = 3u;      // enough unsaturated exposures, too few above the noise floor
@@ -45,10 +45,9 @@ struct HdrStats {
   float m2_t;   // sum of squared deviations of t
   float m2_s;   // sum of squared deviations of s
   float c_ts;   // sum of products of deviations
-  float sum_f;  // sum of s / t (exposure-normalised values)
 };
 
-PRISM_FN HdrStats hdr_stats_empty() { return HdrStats(0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f); }
+PRISM_FN HdrStats hdr_stats_empty() { return HdrStats(0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f); }
 
 PRISM_FN HdrStats hdr_stats_add(HdrStats a, float t, float s) {
   float n = a.n + 1.0f;
@@ -57,8 +56,19 @@ PRISM_FN HdrStats hdr_stats_add(HdrStats a, float t, float s) {
   float mean_t = a.mean_t + dt / n;
   float mean_s = a.mean_s + ds / n;
   return HdrStats(n, mean_t, mean_s, a.m2_t + dt * (t - mean_t), a.m2_s + ds * (s - mean_s),
-                  a.c_ts + dt * (s - mean_s), a.sum_f + s / t);
+                  a.c_ts + dt * (s - mean_s));
 }
+
+// The pixel's rate (DN/s): the valid exposures' summed signal over their
+// summed time, each exposure weighed by its time (the estimate of a photon
+// count, shot noise alone). Not the paper's mean of the exposure-normalised
+// signals s / t: an exposure counts only when its own noisy signal clears
+// the floor, so the shortest valid one is kept on upward noise, and in the
+// mean it weighs as much as the longest; the merged values rose and fell by
+// about 1% with brightness, one tooth per exposure step, which tilted a
+// calibrated lenslet (README "HDR calibration merge"). Weighed by time, the
+// shortest of n valid exposures 4.2x apart counts about 1 / 4.2^(n-1).
+PRISM_FN float hdr_estimate(HdrStats valid) { return valid.mean_s / valid.mean_t; }
 
 // Pearson correlation; 0 when either variable does not vary (no evidence of linearity).
 PRISM_FN float hdr_correlation(HdrStats a) {

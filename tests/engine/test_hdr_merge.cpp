@@ -98,10 +98,12 @@ void check_recovery(const HdrResult& r, const std::vector<double>& truth) {
   CHECK(e.lost_mass < 0.01);
   // Noise, per pixel: the paper's unweighted mean of >= 3 exposure-normalised values is dominated by the
   // shortest valid exposure, whose signal lies anywhere in 16..74 DN (the floor times the 4.64x exposure step):
-  // relative noise sqrt(2^2 + 0.25 S) / S = 18%..7%, over 3..4 exposures 6%..2% (1 sigma) per pixel.
-  CHECK(e.l1 < 0.04);
-  CHECK(e.median_rel < 0.04);
-  CHECK(e.p99_rel < 0.12);
+  // relative noise sqrt(2^2 + 0.25 S) / S = 18%..7%, over 3..4 exposures 6%..2% per pixel (it measured L1
+  // 0.026, median 2.3%). The merge's summed signal over summed time weighs that exposure by its time, 1/4.64
+  // and less: L1 0.0095, median 0.73%, 99th percentile 3.1%.
+  CHECK(e.l1 < 0.02);
+  CHECK(e.median_rel < 0.015);
+  CHECK(e.p99_rel < 0.06);
   // Bias: the same average is unbiased (dark model right, no clipped values used), to well under the noise.
   CHECK(std::abs(e.mean_signed) < 0.005);
   CHECK(e.bright > 200);
@@ -116,7 +118,7 @@ TEST_CASE("HDR shared math: correlation, dark model and verdict order") {
   sh::HdrStats s = sh::hdr_stats_empty();
   for (float t : {1e-3f, 5e-3f, 2e-2f}) s = sh::hdr_stats_add(s, t, 4000.0f * t + 7.0f);
   CHECK(sh::hdr_correlation(s) == doctest::Approx(1.0).epsilon(1e-5));
-  CHECK(s.sum_f == doctest::Approx((4000 * 1e-3 + 7) / 1e-3 + (4000 * 5e-3 + 7) / 5e-3 + (4000 * 2e-2 + 7) / 2e-2));
+  CHECK(sh::hdr_estimate(s) == doctest::Approx((4000 * (1e-3 + 5e-3 + 2e-2) + 3 * 7) / (1e-3 + 5e-3 + 2e-2)));
   sh::HdrStats flat = sh::hdr_stats_add(sh::hdr_stats_add(sh::hdr_stats_empty(), 1.0f, 5.0f), 2.0f, 5.0f);
   CHECK(sh::hdr_correlation(flat) == 0.0f);  // a constant signal is no evidence of linearity
   // Darks at 0.1 s and 0.3 s: 100 + 50 DN/s * T.
@@ -255,7 +257,10 @@ TEST_CASE("HDR merge: darks at several times fit the dark current the constant m
   Recovery good = compare(a, s.truth), bad = compare(merger.merge(f, constant), s.truth);
   MESSAGE("dark current 400 DN/s: L1 linear " << good.l1 << ", constant " << bad.l1);
   CHECK(good.l1 < 0.03);
-  CHECK(bad.l1 > 2 * good.l1);
+  // 0.0094 against 0.0158: each exposure weighs by its time, and the longer
+  // ones, which dominate, are the least off (with the paper's mean of the
+  // exposure-normalised signals, more than 2x).
+  CHECK(bad.l1 > 1.4 * good.l1);
   HdrResult c = ref::hdr_merge(f, linear);
   CHECK(c.sum_dn_per_s == doctest::Approx(a.sum_dn_per_s).epsilon(1e-4));
 
@@ -325,8 +330,76 @@ TEST_CASE("HDR merge: darks spread over the exposures take the camera's own dark
                                                                                          << spread_out);
   CHECK_FALSE(one_time_linear);
   CHECK(spread_linear);
+  // Measured: 0.15% spread, 0.48% at one time (with the paper's mean of the
+  // exposure-normalised signals, which weighs the shorter exposures the
+  // constant level is most off on as much as the longest: 0.36% and 2.0%).
   CHECK(spread_out < 0.01);  // about 2x the medians' noise
-  CHECK(one_time > 0.015);
+  CHECK(one_time > 2 * spread_out);
+}
+
+TEST_CASE("HDR merge: the estimate does not rise and fall with brightness where an exposure joins (the paper's "
+          "mean does)") {
+  // An exposure counts only when its own noisy signal clears the floor, so
+  // the shortest valid one is kept on upward noise. The paper's mean of the
+  // (raw - dark) / T weighs it as much as the longest; the merge's summed
+  // signal over summed time (hdr_estimate) weighs it by its time. Exposures
+  // 4.2x apart (20 us .. 2 s), darks spread; per brightness band 1.5x wide,
+  // from 1.5 to 86 times the level where the third longest exposure reaches
+  // the floor, the mean error of the kept pixels against the truth in DN/s
+  // (no scale fitted), over 6 stacks; the RMS over the bands, for the merge
+  // and for the paper's mean of the same frames and the same valid exposures.
+  CalibrationScene s;
+  s.sensor.hot_pixels.clear();
+  s.times = log_spaced_times(20e-6, 2.0, 9);
+  s.dark_times = dark_times(s.times, 3);
+  const double floor_level = HdrOptions{}.floor_min_dn / s.times[6];
+  constexpr size_t kBands = 11;
+  std::vector<double> merge_sum(kBands, 0), paper_sum(kBands, 0);
+  std::vector<size_t> count(kBands, 0);
+  for (uint64_t seed = 21; seed <= 26; ++seed) {
+    const HdrFrames f = s.frames(seed);
+    const HdrResult r = ref::hdr_merge(f, {});
+    REQUIRE(r.limits.dark_linear);
+    for (size_t i = 0; i < s.truth.size(); ++i) {
+      if (HdrResult::reason(r.status[i]) != HdrReason::kept) continue;
+      const double level = s.truth[i] / floor_level;
+      if (!(level >= 1.5)) continue;
+      const auto band = size_t(std::log(level / 1.5) / std::log(1.5));
+      if (band >= kBands) continue;
+      // The pixel's dark line through its darks (least squares), and the
+      // paper's mean over the exposures the merge found valid.
+      double mt = 0, md = 0, stt = 0, std_ = 0;
+      for (size_t k = 0; k < f.darks.size(); ++k) mt += f.dark_s[k], md += f.darks[k][i];
+      mt /= double(f.darks.size()), md /= double(f.darks.size());
+      for (size_t k = 0; k < f.darks.size(); ++k)
+        stt += (f.dark_s[k] - mt) * (f.dark_s[k] - mt), std_ += (f.dark_s[k] - mt) * (f.darks[k][i] - md);
+      double paper = 0;
+      unsigned n = 0;
+      for (size_t j = 0; j < f.exposures.size(); ++j)
+        if (r.status[i] >> (16 + j) & 1u) {
+          const double dark = md + std_ / stt * (f.exposure_s[j] - mt);
+          paper += (f.exposures[j][i] - dark) / f.exposure_s[j], ++n;
+        }
+      REQUIRE(n == HdrResult::valid_count(r.status[i]));
+      merge_sum[band] += r.psf[i] * r.sum_dn_per_s / s.truth[i] - 1;
+      paper_sum[band] += paper / n / s.truth[i] - 1;
+      ++count[band];
+    }
+  }
+  double merge_rms = 0, paper_rms = 0;
+  for (size_t b = 0; b < kBands; ++b) {
+    REQUIRE(count[b] > 600);  // over 6 stacks: a band mean's noise about 0.2-0.4%
+    const double m = merge_sum[b] / double(count[b]), p = paper_sum[b] / double(count[b]);
+    MESSAGE("band " << 1.5 * std::pow(1.5, b) << "x the floor's level, " << count[b] << " pixels: mean error "
+                    << m << " (the paper's mean: " << p << ")");
+    merge_rms += m * m, paper_rms += p * p;
+  }
+  merge_rms = std::sqrt(merge_rms / kBands), paper_rms = std::sqrt(paper_rms / kBands);
+  MESSAGE("RMS over the bands of the mean error: merge " << merge_rms << ", the paper's mean " << paper_rms);
+  // Measured: merge 0.05%, the paper's mean 0.75% (teeth of +1.2% and +1.6%
+  // at 3.4x and 17x: 4.2x apart, one exposure step).
+  CHECK(merge_rms < 0.002);
+  CHECK(paper_rms > 0.004);
 }
 
 TEST_CASE("HDR merge: bad frames and options are refused with the field named") {
