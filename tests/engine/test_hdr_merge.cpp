@@ -366,18 +366,16 @@ TEST_CASE("HDR merge: the estimate does not rise and fall with brightness where 
       if (!(level >= 1.5)) continue;
       const auto band = size_t(std::log(level / 1.5) / std::log(1.5));
       if (band >= kBands) continue;
-      // The pixel's dark line through its darks (least squares), and the
-      // paper's mean over the exposures the merge found valid.
-      double mt = 0, md = 0, stt = 0, std_ = 0;
-      for (size_t k = 0; k < f.darks.size(); ++k) mt += f.dark_s[k], md += f.darks[k][i];
-      mt /= double(f.darks.size()), md /= double(f.darks.size());
+      // The paper's mean over the exposures the merge found valid, with the
+      // merge's own dark line (shared math).
+      prism::shared::HdrStats darks = prism::shared::hdr_stats_empty();
       for (size_t k = 0; k < f.darks.size(); ++k)
-        stt += (f.dark_s[k] - mt) * (f.dark_s[k] - mt), std_ += (f.dark_s[k] - mt) * (f.darks[k][i] - md);
+        darks = prism::shared::hdr_stats_add(darks, float(f.dark_s[k]), float(f.darks[k][i]));
       double paper = 0;
       unsigned n = 0;
       for (size_t j = 0; j < f.exposures.size(); ++j)
         if (r.status[i] >> (16 + j) & 1u) {
-          const double dark = md + std_ / stt * (f.exposure_s[j] - mt);
+          const double dark = prism::shared::hdr_dark_level(darks, 1u, float(f.exposure_s[j]));
           paper += (f.exposures[j][i] - dark) / f.exposure_s[j], ++n;
         }
       REQUIRE(n == HdrResult::valid_count(r.status[i]));
