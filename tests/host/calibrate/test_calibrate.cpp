@@ -394,18 +394,30 @@ TEST_CASE("calibration's bootstrap: a PSF drawn twice counts as the PSF given tw
   MESSAGE("first step: gain " << steps[0].gain << ", predicted " << steps[0].predicted);
   CHECK(steps[0].gain / steps[0].predicted > 0.5);
   CHECK(steps[0].gain / steps[0].predicted < 2);
-  // Pattern moves take a point only where chi2 is lower: no worse within
-  // the same steps, and where both fits converge, the same optimum. (Under
-  // the sanitizers, 256 cells and two PSFs, the fit without them stops at
-  // its step limit, 4 a level: there the pattern moves only go further.)
+  // Pattern moves take a point only where chi2 is lower than the step's
+  // own: every step still gains, and where both fits converge, they reach
+  // the same optimum. At a step limit neither end is bound to be the lower:
+  // the paths part at the first move (under the sanitizers, 256 cells and
+  // two PSFs, 4 steps a level stop both fits, and with 2 moves taken the
+  // patterned one ended 24% higher). At 1024 cells none is taken here and
+  // the two fits are one.
   o.pattern_moves = true;
+  std::vector<prism::CalibrationStep> patterned_steps;
+  o.progress = [&](const prism::CalibrationStep& s) { patterned_steps.push_back(s); };
   const prism::CalibrationResult patterned = prism::calibrate(nominal, twice, free, o);
   o.pattern_moves = false;
+  o.progress = nullptr;
   MESSAGE("pattern moves: " << patterned.pattern_moves << " taken, " << patterned.steps << " steps, chi2 "
-                            << patterned.chi2 << " (without: " << a.steps << " steps, " << a.chi2
+                            << patterned.chi2 << std::string(patterned.converged ? " converged" : " at the step limit")
+                            << " (without: " << a.steps << " steps, " << a.chi2
                             << std::string(a.converged ? ", converged)" : ", at the step limit)"));
-  CHECK(patterned.chi2 <= a.chi2 * (1 + 1e-6));
-  if (!prism::test::under_sanitizer) REQUIRE(a.converged);
+  for (const auto& s : patterned_steps) {
+    CAPTURE(s.step);
+    CHECK(s.gain > 0);
+  }
+  CHECK(patterned.chi2 < patterned.chi2_start);
+  if (!prism::test::under_sanitizer) REQUIRE((a.converged && patterned.converged));
+  if (a.converged && patterned.converged) CHECK(patterned.chi2 == doctest::Approx(a.chi2).epsilon(1e-5));
   for (size_t j = 0; j < free.size() && a.converged && patterned.converged; ++j) {
     CAPTURE(free[j].name());
     CHECK(std::abs(patterned.estimates[j].value - a.estimates[j].value) < 0.2 * a.estimates[j].sigma_residuals);
