@@ -166,6 +166,37 @@ TEST_CASE("calibration recovers an as-built array from HDR-merged PSFs within 3 
   CHECK(beyond_residuals.find("lenslets[1].x_mm") != std::string::npos);
 }
 
+// A fit pulled toward shorter focal lengths (the f = 3 mm lenslets, on PSFs
+// of another pixel model) met validate's plano-convex wall inside its
+// bounds and stopped there as "converged": every trial beyond the wall was
+// untraceable. The wall is now the bound: clamped steps, `at_bound`.
+TEST_CASE("calibration: a real lens's focal length is bounded at the plano-convex limit that the model can trace") {
+  const prism::OpticalSystem nominal = nominal_row(0);
+  size_t walled = 0;
+  for (const auto& p : prism::calibration_parameters(nominal, {"lens_focal"})) {
+    CAPTURE(p.name());
+    const auto [lo, hi] = p.bounds(nominal);
+    const double f = p.get(nominal), wall = 0.5 * nominal.lenslets[size_t(p.lens)].diameter_mm / (nominal.glass_index - 1);
+    CHECK(lo >= wall);
+    CHECK(hi == doctest::Approx(f * (1 + prism::defaults::calibration_max_focal_change)));
+    if (lo > f * (1 - prism::defaults::calibration_max_focal_change)) {
+      ++walled;
+      CHECK(lo == doctest::Approx(wall).epsilon(1e-9));
+    }
+    prism::OpticalSystem at = nominal;
+    p.set(at, lo);
+    CHECK_NOTHROW(prism::validate(at));  // the bound itself is a lens the model traces
+    p.set(at, wall * (1 - 1e-9));
+    CHECK_THROWS_AS(prism::validate(at), std::invalid_argument);  // just beyond the wall, none
+  }
+  CHECK(walled > 0);  // the row's f = 3 mm lenslet (D = 3 mm: f >= 2.90 mm, within 20% of 3)
+  // A thin lens has no such wall: the 20% range alone.
+  prism::OpticalSystem thin = nominal;
+  thin.lens_model = prism::LensModel::thin;
+  for (const auto& p : prism::calibration_parameters(thin, {"lens_focal"}))
+    CHECK(p.bounds(thin).first == doctest::Approx(p.get(thin) * (1 - prism::defaults::calibration_max_focal_change)));
+}
+
 TEST_CASE("calibration: on coarse pixels a partly censored pixel holds at least its measured sub-pixels' light") {
   // A coarse pixel over a faint rim mixes measured sub-pixels with censored
   // ones. Counted as "at most" alone, such pixels pulled no light toward
