@@ -14,7 +14,7 @@ fi
 
 # Debian 12 packages: toolchain, Vulkan (loader, lavapipe, validation layer,
 # glslang), libraries, the tools the tests use (umockdev, OpenEXR tools), and
-# Open MPI for `mpirun -n N prism ...` (README "MPI").
+# Open MPI for `mpirun -n N prism ...` (docs/mpi.md).
 packages=(cmake g++ make pkg-config
   libvulkan-dev mesa-vulkan-drivers vulkan-validationlayers glslang-tools
   libglm-dev libopenexr-dev openexr libdeflate-dev libusb-1.0-0-dev doctest-dev nlohmann-json3-dev libcli11-dev
@@ -54,7 +54,7 @@ $prism dictionary build --scene prototype --out out/prototype-dictionary --binni
 $prism simulate --scene prototype --vertex 1,1,31,100 --events 1000 --binning 16 --seed 1 --out out/events.events
 $prism reconstruct --dictionary out/prototype-dictionary --events out/events.events --vertices 1 --out out/vertices.csv --model none
 # Continuous refinement with the scene's forward model costs ~20 s per event
-# on a CPU device, ~50 s near the face (README "Reconstruction"): 8 events
+# on a CPU device, ~50 s near the face (docs/reconstruction.md): 8 events
 # here; the 500-event figures are in results/ (results/README.md).
 $prism evaluate --dictionary out/prototype-dictionary --experiments volume --volume-events 8 --volume-x-mm -15,15 \
   --volume-y-mm -15,15 --volume-depth-mm 2,48 --model scene --out out/volume

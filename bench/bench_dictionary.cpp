@@ -105,7 +105,7 @@ int main(int argc, char** argv) {
       o.grid = {{-5.0, 5.0}, {0.0}, {10.0, 30.0}};
       o.base_binning = binning;
       o.rays_per_lenslet = 4096;
-      o.splat = Splat::point;  // as the README's figures were measured
+      o.splat = Splat::point;  // as docs/dictionary.md's figures were measured
       auto report = build_dictionary(ctx, scene, dir, o);
       TraceSettings t = TraceSettings::defaults_for(o.splat);
       t.rays_per_lenslet = o.rays_per_lenslet;

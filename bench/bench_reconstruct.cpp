@@ -239,10 +239,10 @@ int main(int argc, char** argv) {
   if (dict_dir.empty()) {
     dict_dir = (fs::temp_directory_path() / "prism-bench-reconstruct-dict").string();
     DictionaryBuildOptions o;
-    o.grid = DictionaryGrid::paper();  // the grid its README figures were measured on (not the default's 2783)
+    o.grid = DictionaryGrid::paper();  // the grid its figures in docs/ were measured on (not the default's 2783)
     o.base_binning = 16;
     o.rays_per_lenslet = 4096;
-    o.splat = Splat::point;  // as the README's demo, and the figures measured with it
+    o.splat = Splat::point;  // as the README's demo, and the figures in docs/ measured with it
     std::fprintf(stderr, "bench_reconstruct: building (or reusing) the 1210-PSF dictionary in %s\n", dict_dir.c_str());
     build_dictionary(ctx, scene, dict_dir, o);
   }
@@ -422,7 +422,7 @@ int main(int argc, char** argv) {
       o.grid = {{-5.0, 0.0, 5.0}, {-5.0, 0.0, 5.0}, {15.0, 20.0, 25.0}};
       o.base_binning = 1;
       o.rays_per_lenslet = 1024;
-      o.splat = Splat::footprint;  // a full-resolution tier worth reading (README "PSF dictionary")
+      o.splat = Splat::footprint;  // a full-resolution tier worth reading (docs/dictionary.md)
       std::fprintf(stderr, "bench_reconstruct: building (or reusing) the full-resolution dictionary in %s\n",
                    native_dir.c_str());
       build_dictionary(ctx, scene, native_dir, o);

@@ -80,7 +80,7 @@ int main(int argc, char** argv) {
   // 1. Throughput at the sweep's default trace settings on a small sample grid.
   {
     DesignSpace small = focal_space(1, 3);
-    // The point splat, as the figures in the README were measured.
+    // The point splat, as the figures in docs/performance.md were measured.
     TraceSettings t = TraceSettings::defaults_for(Splat::point);
     t.rays_per_lenslet = 4096;
     t.binning = 32;

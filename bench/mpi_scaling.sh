@@ -117,6 +117,6 @@ compare "evaluate: 16 volume events, the dictionary model's refinement" figures 
   evaluate --dictionary dict --experiments volume --volume-events 16 --volume-x-mm -15,15 --volume-y-mm -15,15 \
   --volume-depth-mm 2,48 --model dictionary
 # A sweep's batches of 8 designs, 4 a rank (footprint splat: a design's
-# last bits depend on the designs beside it in a dispatch, README "MPI").
+# last bits depend on the designs beside it in a dispatch, docs/mpi.md).
 compare "sweep: 16 designs of focal-assignment.json, batches of 8, 256 cells" figures sweep \
   sweep --space "$source/host/sweep/spaces/focal-assignment.json" --budget 16 --batch 8 --rays 256

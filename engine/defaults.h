@@ -54,7 +54,7 @@ inline constexpr double wavelength_nm = 570.0;       // effect diffraction: the 
 inline constexpr double airy_gaussian_factor = 0.42;
 inline constexpr double airy_square_half_side_per_sigma = 1.7320508075688772;  // sqrt(3)
 
-// Analysis defaults, chosen by the convergence study (README, "Convergence";
+// Analysis defaults, chosen by the convergence study (docs/model.md "Convergence";
 // bench/bench_forward, six positions of the prototype). Footprint splat (box
 // pixels, the default) at 16384 cells per 3 mm lenslet: thin lenses within
 // 0.3% of the exact box-pixel oracle at 110, 27.6 and 6.9 um; real lenses
@@ -78,7 +78,7 @@ inline constexpr unsigned sweep_binning = 32;                   // 221 um analys
 inline constexpr double crlb_convergence_tol = 0.01;       // relative change of the 3D CRLB over 4x the rays (cells)
 // Analysis pixels finer than this see the real lenses' caustics: their
 // geometric CRLB need not settle with the cells (27.6 um: 4.5% between 16384
-// and 65536; 110 um: 0.5%; README "Convergence"), and `prism crlb` says so.
+// and 65536; 110 um: 0.5%; docs/model.md "Convergence"), and `prism crlb` says so.
 inline constexpr double caustic_pixel_mm = 0.06;
 
 // Dictionary grid (prism dictionary build): lateral nodes every 5 mm over
@@ -88,7 +88,7 @@ inline constexpr double caustic_pixel_mm = 0.06;
 // pitch x (1 + L / D) apart, D = depth + working distance, and their blur
 // grows like 1 / D). Planes every 1 mm to 12 mm, 1.5-2.5 mm to 20 mm, then
 // 5 mm: on 40 thin-lens events at depth 2..12 mm with the refinement the
-// catastrophic rate fell from 60% (5 mm planes) to 10% (README "Accuracy").
+// catastrophic rate fell from 60% (5 mm planes) to 10% (docs/reconstruction.md "Accuracy").
 inline constexpr double dictionary_depth_planes_mm[] = {0,  1,  2,  3,  4,    5,  6,    7,  8,  9,  10, 11,
                                                         12, 13.5, 15, 17.5, 20, 25, 30, 35, 40, 45, 50};
 
@@ -100,7 +100,7 @@ inline constexpr double dictionary_depth_planes_mm[] = {0,  1,  2,  3,  4,    5,
 // shift place() can give). On 1000 volume events level 4 took a seventh to
 // a tenth of level 2's time (two series) with the same catastrophic count
 // and median error; coarser, the scan gains little and more PSFs must be
-// carried down (README "Reconstruction", "The scan's lattice"). The
+// carried down (docs/reconstruction.md, "The scan's lattice"). The
 // 1210-PSF paper grid holds 1.32e5 / 3.8e4 on levels 2 / 3 and gets level 3
 // (level 2 was 3.2-3.3x slower there, 113 against 108 events beyond 3 mm).
 inline constexpr double search_shifts_per_click = 1.0e5;
@@ -110,7 +110,7 @@ inline constexpr double search_shifts_per_click = 1.0e5;
 // clicks' level + 2 where that is coarser. The PSFs within the carry margin
 // (up to 512) go down to it one level at a time, each through the tiles
 // around its clicks, before the best 8 go on to the clicks: at 6.9 um clicks
-// the clicks' level + 2 (27.6 um) cost five levels of tiles for each (README
+// the clicks' level + 2 (27.6 um) cost five levels of tiles for each (docs/reconstruction.md
 // "Clicks at the sensor's own pixels").
 inline constexpr int select_pixel_sensor_px = 64;
 // The refine_candidates PSFs ranked at the select level go down to the
@@ -118,7 +118,7 @@ inline constexpr int select_pixel_sensor_px = 64;
 // (the clicks' level where that is coarser) and are ranked by their NLL
 // there; only the best goes on to the clicks. At 110 um clicks (16 sensor
 // pixels) that is the clicks' level, as before; at 6.9 um clicks it is 27.6
-// um, which spares seven of the eight the two finest levels of tiles (README
+// um, which spares seven of the eight the two finest levels of tiles (docs/reconstruction.md
 // "Clicks at the sensor's own pixels").
 inline constexpr int rank_pixel_sensor_px = 4;
 // Device backends scan a pass's events this many at a time (one dispatch
@@ -130,19 +130,19 @@ inline constexpr int scan_chunks_per_batch = 4;
 // The search's likelihood floor (ReconstructionSettings::search_dark_rate),
 // expected counts per sensor pixel and event: 1e-4 per 110 um click pixel
 // (16 x 16 sensor pixels). Of 1e-6..1e-3 per 110 um pixel on 1000 volume
-// events (seed 7), and checked on 1000 others (seed 8): README "The floor
+// events (seed 7), and checked on 1000 others (seed 8): docs/reconstruction.md "The floor
 // with the refinement". At the sensor's own pixels it is below the weights'
 // dark rate, which the search then keeps.
 inline constexpr double search_dark_rate_per_sensor_pixel = 1e-4 / 256;
 
 // Continuous refinement of reconstructed vertices (host/reconstruct/refine.h):
 // the scene's forward model, footprint splat, at this many cells per lenslet
-// (1% L1 from 16384 cells on the prototype at 110 um; README "Reconstruction").
+// (1% L1 from 16384 cells on the prototype at 110 um; docs/reconstruction.md).
 inline constexpr unsigned refine_rays_per_lenslet = 1024;
 // The refinement renders on pixels of at least this many sensor pixels per
 // axis (110.4 um on the prototype's 6.9 um sensor); finer clicks are binned
 // to them for it, and its answer is then fitted locally on the clicks' own
-// pixels (host/reconstruct/refine.h, Refinement; README "Refinement at the
+// pixels (host/reconstruct/refine.h, Refinement; docs/reconstruction.md "Refinement at the
 // sensor's own pixels": a render at 6.9 um costs 50-100 times one at 110 um).
 inline constexpr int refine_pixel_sensor_px = 16;
 // The polish on the clicks' own pixels (Refinement) starts where the
@@ -186,14 +186,13 @@ inline constexpr double refine_always_scan_below_mm = 10.0;
 // at 100 photons deeper than 10 mm the scan changed no estimate by a CRLB
 // for 3.1x the renders (12 prototype events: median 285 against 90). So
 // events with fewer clicks than this get it; between 17 and 43 clicks the
-// need is not measured (README "Reconstruction").
+// need is not measured (docs/reconstruction.md).
 inline constexpr int refine_always_scan_below_clicks = 30;
 inline constexpr int refine_lattice_scan_depths = 3;  // the best voted depths tried, while the fit stays below it and improves
 // The ladder: after the other starts, points every 0.75 mm up to 3 mm along
 // the estimate's weakest direction and along depth, the best 2 probed. On 60
 // events over the prototype's volume 9 ended 1-2.4 mm off in a local optimum
-// along that direction, with the truth's basin the better one (README
-// "Reconstruction").
+// along that direction, with the truth's basin the better one (docs/reconstruction.md).
 inline constexpr int refine_ladder_starts = 2;
 inline constexpr int refine_ladder_rungs = 4;          // per side and direction
 inline constexpr double refine_ladder_step_mm = 0.75;
@@ -246,7 +245,7 @@ inline constexpr double calibration_pixel_um = 110.0;
 // synthetic as-built test the sandwich alone leaves the f = 3 mm near
 // hemisphere's lenslet 6-10 sigma off at 1024 (its images are the largest
 // and most curved); with the cells' term (below) every parameter lies within
-// 3 sigma (README "Calibration").
+// 3 sigma (docs/calibration.md).
 inline constexpr unsigned calibration_rays_per_lenslet = 1024;
 // After the fit, the model is evaluated again with this many times its cells
 // (one Gauss-Newton step, calibrate.h): how far that moves each parameter is
@@ -257,7 +256,7 @@ inline constexpr unsigned calibration_rays_per_lenslet = 1024;
 // 54-75 s at 16x, 39-56 s at 4x). At 4x the f = 3 mm lenslets' cell error came out
 // too small: the synthetic row's f = 3 mm position sigma 7 um at 4x, 10.6 um
 // at 16x for an error of 15 um; the whole prototype 207 of 216 parameters
-// within 3 sigma at 4x, 211 at 16x (README "Calibration").
+// within 3 sigma at 4x, 211 at 16x (docs/calibration.md).
 inline constexpr unsigned calibration_cells_check_factor = 16;
 // A bootstrap replicate (calibrate --bootstrap) starts at the fit's end and
 // takes at most this many steps on the model's pixels: on the whole
@@ -287,8 +286,7 @@ inline constexpr double calibration_max_source_sigma_mm = 2.0;
 // 0.25 mm blurs a deep, sharp image by about one 110 um pixel, and the 110
 // um image does not say where within its pixel the light lies. On three
 // lenslets finer pixels gained little (sigma 1.8% and 1.7% high, 6 and 9 of
-// 22 parameters within 3 sigma at 1 and 4) for 34x the time (README
-// "Calibration", the blur term).
+// 22 parameters within 3 sigma at 1 and 4) for 34x the time (docs/calibration.md, the blur term).
 inline constexpr unsigned calibration_blur_supersample = 1;
 
 }  // namespace prism::defaults

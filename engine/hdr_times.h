@@ -28,7 +28,7 @@ inline std::vector<double> log_spaced_times(double min_t, double max_t, unsigned
 // 7.6 and 9.4 DN off the second and third longest, beside the 16 DN floor.
 // The error depends on where a pixel's exposures fall against the floor, a
 // saw-tooth of a few per cent in brightness that no photon scale absorbs
-// (README "HDR calibration merge"). One dark: the longest exposure.
+// (docs/dictionary.md "HDR calibration merge"). One dark: the longest exposure.
 inline std::vector<double> dark_times(const std::vector<double>& exposure_t, unsigned darks) {
   std::vector<double> t;
   if (exposure_t.empty()) return t;

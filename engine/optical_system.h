@@ -155,7 +155,7 @@ struct TraceSettings {
 
   // The converged default rays (cells) per lenslet of a splat (defaults.h),
   // its Fisher estimator (the point splat's plug-in estimate is biased by ray
-  // noise, README "Convergence"; the footprint's pixels are smooth), and
+  // noise, docs/model.md "Convergence"; the footprint's pixels are smooth), and
   // settings with a splat's defaults.
   static unsigned default_rays(Splat s) {
     return s == Splat::point ? defaults::rays_per_lenslet_point : defaults::rays_per_lenslet;

@@ -82,7 +82,7 @@ struct SupportScanVulkan::Impl {
     return *k;
   }
   // The layouts of a run (ScanLayout): serial scan and fits on a CPU device,
-  // workgroups elsewhere (measured on llvmpipe: README "Reconstruction",
+  // workgroups elsewhere (measured on llvmpipe: docs/reconstruction.md,
   // kernel layout).
   std::pair<bool, bool> serial() const {
     if (which == ScanKernel::dense || layout == ScanLayout::group) return {false, false};
@@ -278,7 +278,7 @@ std::vector<ScanResult> SupportScanVulkan::run(const ScanLevel& level, std::span
     // along x: llvmpipe runs the workgroups in x's order, so the next ones
     // read the same 64 PSFs (their values stay in the core's cache) rather
     // than the next 64 of the dictionary (1.09x over the 1000 volume events:
-    // README "The scan's kernels, this round").
+    // docs/reconstruction.md "The scan's kernels, this round").
     auto record = [&](vk::Stream& st, vk::Kernel& k, uint32_t phase, bool serial) {
       p.phase = phase;
       for (const Range& r : ranges) {

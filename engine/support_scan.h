@@ -110,7 +110,7 @@ enum class ScanLayout { automatic, group, serial };
 // How the sparse kernel reads the PSF values, the clicks and their rates:
 // through uniform texel buffers (one vector gather per look-up on llvmpipe,
 // where a storage-buffer load runs one invocation at a time: 1.28x the
-// reconstruction, README "Reconstruction"), or as storage buffers, the way
+// reconstruction, docs/reconstruction.md), or as storage buffers, the way
 // before, kept to measure against. The same results either way.
 enum class ScanLoads { texel, storage };
 

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Reconstruct single-vertex events at random positions and plot each
-event's error against its CRLB, axis by axis (README "Accuracy over the
+event's error against its CRLB, axis by axis (docs/reconstruction.md "Accuracy over the
 whole volume" does the same at scale with `prism evaluate`).
 
     PYTHONPATH=build/python python3 examples/reconstruct_vs_crlb.py \\

@@ -167,7 +167,7 @@ bool locate(bool serial) {
 // Serial: SUB shifts at a time, each click read once for all of them (its
 // position and weight), the SUB scores in registers. Each score is the same
 // sum in the same order as one shift at a time; measured on llvmpipe, phase
-// 0 takes half the time (README "Reconstruction", the scan kernel). The
+// 0 takes half the time (docs/reconstruction.md, the scan kernel). The
 // shifts left after the whole passes of SUB go one at a time (a lattice of
 // (2n + 1)^2 shifts leaves one: for 9 shifts, 9 look-ups per click instead
 // of 16). An event with more clicks than SCAN_BUDGET / SUB goes one shift at

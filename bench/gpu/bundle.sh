@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Pack what bench/gpu/run.sh needs into one file, for a machine that has a
 # Vulkan GPU driver but none of PRISM's build dependencies (the GPU figures in
-# README "Performance" were made this way): the built binaries (stripped),
+# docs/performance.md were made this way): the built binaries (stripped),
 # the shared libraries they load that are not the C and C++ runtimes, the
 # Vulkan validation layer (the tests run with it on), PLplot's cairo driver
 # and data (the plots), and the one reference file a test reads from ../shared.

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# One timed session on a machine with a Vulkan GPU (the README's GPU figures):
+# One timed session on a machine with a Vulkan GPU (docs/performance.md "On a GPU"):
 # bench_forward, the main job of ./setup.sh demo, bench_reconstruct and the
 # test files (validation layer on), in that order unless STEPS names others,
 # each stopped at its share of a time budget. Logs and CSVs go to OUT; a

@@ -418,7 +418,7 @@ bool damped_step(const Evaluation& e, const std::vector<size_t>& act, size_t P, 
 // it: the likelihood of a censored measurement. Left out altogether, they
 // would cost a lenslet nothing for light it puts where the camera saw none.
 // Neither way finds lenslets whose images lie below what the merge keeps
-// (README "Calibration": the whole prototype at 0.2 s and at 2 s exposures).
+// (docs/calibration.md: the whole prototype at 0.2 s and at 2 s exposures).
 struct Noise {
   double floor = 0;     // weight floor (calibrate.h)
   double reliable = 0;  // the faintest value fitted
@@ -454,7 +454,7 @@ double upper_bound(const MeasuredPsf& psf, size_t i, const Noise& n) {
 // its measured ones' light: counted as a bound above only, such pixels
 // pulled no light toward them, and on 441.6 um pixels the faint discs of
 // an f = 3 mm corner lenslet were left 150 um of position and focal length
-// from the truth (README "Calibration").
+// from the truth (docs/calibration.md).
 double target(const MeasuredPsf& psf, size_t i, double sb, const Noise& n) {
   if (known(psf, i, n)) return psf.p[i];
   const double lower = psf.unknown.empty() ? 0.0 : double(psf.p[i]), upper = upper_bound(psf, i, n);
@@ -690,8 +690,7 @@ constexpr double kGainsOfNoise = 4;
 // d2b). Where the model's misfit is large, as on the f = 3 mm lenslets' faint
 // rims counted at --reliable 2, it overstates chi2's curvature: accepted
 // steps gained 1.8-1.9 times what the quadratic model predicted (chi2 almost
-// linear along them) and the fit crept to the step limit (README
-// "Calibration"). From chi2 at the start, its slope along the step and its
+// linear along them) and the fit crept to the step limit (docs/calibration.md). From chi2 at the start, its slope along the step and its
 // value at the step's end, a parabola gives chi2's own curvature along the
 // step; where its minimum lies beyond the end (by more than kStretchFrom),
 // the point there (at most kStretchMost steps out, clamped to the bounds) is

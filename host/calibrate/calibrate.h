@@ -28,7 +28,7 @@
 // it): a model that cannot explain the PSFs reports larger uncertainties,
 // not smaller. It takes pixels as independent; with few PSFs, where the
 // model's own errors run alike along an image's edges, it comes out about a
-// third small (README "Calibration"). chi2 / dof is the goodness of fit, per
+// third small (docs/calibration.md). chi2 / dof is the goodness of fit, per
 // PSF and per lenslet in the result.
 //
 // The model's cells: a footprint of N cells per lenslet is itself an
@@ -47,7 +47,7 @@
 // with replacement (a PSF drawn twice counts twice); the replicates' spread
 // is each parameter's sigma_bootstrap. It assumes neither independent pixels
 // nor chi2's Gauss-Newton curvature, which on the f = 3 mm lenslets' valley
-// of position and tilt overstates chi2's own 4-5x (README "Calibration"),
+// of position and tilt overstates chi2's own 4-5x (docs/calibration.md),
 // but it sees only what differs between PSFs. The reported sigma takes the
 // larger of it and the sandwich's, with the cells' term in quadrature.
 //

@@ -12,7 +12,7 @@
 // derivative by sigma is that of the kernel. The engine's own source_extent
 // samples a random offset per footprint cell instead: right on average, but
 // speckled at the pixel scale, and a fit cannot tell that speckle from the
-// measurement's noise (README "Calibration", the blur term).
+// measurement's noise (docs/calibration.md, the blur term).
 //
 // What first order leaves out: a deeper or shallower source changes a
 // defocus disc's size, not only where it lies (for a near-face source the

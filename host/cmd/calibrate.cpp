@@ -184,7 +184,7 @@ void run(const CalibrateArgs& a) {
   o.bootstrap_steps = a.bootstrap_steps;
   o.bootstrap_seed = a.seed;
   // auto: the calibrate kernels on a GPU; on a CPU device (lavapipe) the
-  // reference on --threads cores is as fast (bench_calibrate, README).
+  // reference on --threads cores is as fast (bench_calibrate, docs/calibration.md "Time").
   std::unique_ptr<vk::Context> ctx;
   std::string on = "the CPU reference with " + std::to_string(o.threads) + " threads";
   if (a.backend == "auto" && a.device.empty()) {
@@ -354,7 +354,7 @@ void add_calibrate(CLI::App& app) {
   c->add_flag("--pattern-moves", a->pattern_moves,
               "after each accepted step, try points along the line through the point two steps back and the new "
               "one (values only, about a fifth of a step each) and take the lowest: a fit zig-zagging down a narrow "
-              "valley goes along it (README \"Calibration\": on the whole prototype's creeping fit 3.3x the fall "
+              "valley goes along it (docs/calibration.md: on the whole prototype's creeping fit 3.3x the fall "
               "over 8 steps, not beyond; on a fit that converges 1.27x the time)");
   c->add_option("--max-steps", a->max_steps,
                 "Levenberg-Marquardt steps accepted at most on each pixel size (with the default --coarse-levels: "
@@ -389,7 +389,7 @@ void add_calibrate(CLI::App& app) {
                 "with an extended source (source_extent fitted, or in the scene; a fitted one is the calibration "
                 "source's and stays out of --out unless the scene had it): blur each lenslet's image on "
                 "pixels this many times finer (1, 2, 4 or 8; at most the binning), at about its fourth power in time; "
-                "on the README's test it gained little (README \"Calibration\")")
+                "on docs/calibration.md's test it gained little")
       ->check(CLI::IsMember({1u, 2u, 4u, 8u}))
       ->capture_default_str();
   c->add_option("--cells-check", a->cells_check,
@@ -401,7 +401,7 @@ void add_calibrate(CLI::App& app) {
   c->add_option("--bootstrap", a->bootstrap,
                 "after the fit, this many bootstrap replicates: the fit's end refitted to the PSFs drawn with "
                 "replacement (each at most --bootstrap-steps steps on the model's pixels); their spread, where larger "
-                "than the sandwich's, is sigma's residual part (README \"Calibration\": on the whole prototype fitted "
+                "than the sandwich's, is sigma's residual part (docs/calibration.md: on the whole prototype fitted "
                 "from the truth, 10 replicates put 215 of 216 parameters within 3 sigma, the sandwich 207; they cost "
                 "5 times that fit). 0: none")
       ->check(CLI::Validator(
@@ -427,7 +427,7 @@ void add_calibrate(CLI::App& app) {
                 "blue below, full at 3 sigma), psfs.csv, lenslets.csv and lenslets.png");
   c->footer(
       "The model's derivatives by the scene's parameters come from the splat kernels' calibrate variants or from the "
-      "double-precision reference, as --backend says (README \"Calibration\" gives the time per PSF and step); "
+      "double-precision reference, as --backend says (docs/calibration.md gives the time per PSF and step); "
       "--every N fits a sample of the PSFs.");
   c->callback([a] { run(*a); });
 }

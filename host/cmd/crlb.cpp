@@ -150,7 +150,7 @@ void run(const CrlbArgs& a) {
       std::printf("# %s: real lenses at %.1f um pixels without the diffraction effect: the geometric CRLB follows the "
                   "caustics' slivers of light and does not settle with more cells; with the lenslets' Airy core it "
                   "does: a scene file with {\"base\": \"%s\", \"effects\": [\"diffraction\"]} "
-                  "(README \"Convergence\")\n",
+                  "(docs/model.md \"Convergence\")\n",
                   scene.name.c_str(), g0.pixel_mm * 1e3, scene.name.c_str());
   }
 

@@ -150,7 +150,7 @@ void add_dictionary_build(CLI::App& dictionary) {
   c->add_option("--grid-x-mm", a->grid_x, "x positions: A,B,C, FIRST:LAST:STEP or both (0:10:1,12.5,15:50:5)")->capture_default_str();
   c->add_option("--grid-y-mm", a->grid_y, "y positions")->capture_default_str();
   c->add_option("--grid-depth-mm", a->grid_depth,
-                "depths from the scintillator face (the default is dense near the face, README \"Dictionary\"; the paper's planes: 5:50:5)")->capture_default_str();
+                "depths from the scintillator face (the default is dense near the face, docs/dictionary.md; the paper's planes: 5:50:5)")->capture_default_str();
   c->add_option("--binning", a->binning, "level 0 = sensor pixels binned B x B (1: full resolution, 128 MB/PSF in memory)")
       ->capture_default_str()->check(CLI::Range(1, 256));
   c->add_option("--rays", a->rays, std::string("rays per 3 mm lenslet for each PSF, ") + rays_rounding)->capture_default_str()->check(CLI::Range(4u, 1u << 24));

@@ -2,7 +2,7 @@
 // of a scene's PSFs (what `prism camera capture-hdr` writes), from the forward
 // model with a synthetic 12-bit sensor's noise. It rehearses a calibration:
 // simulate-hdr of an as-built system, then merge-hdr, assemble or calibrate
-// --merged, as on the bench (README "Calibration").
+// --merged, as on the bench (docs/calibration.md).
 #include <algorithm>
 #include <atomic>
 #include <cstdio>

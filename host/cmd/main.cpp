@@ -37,18 +37,18 @@ int main(int argc, char** argv) {
   for (const char* name : {"simulate", "reconstruct"})
     app.get_subcommand(name)->footer("Under an MPI launcher (mpirun -n N prism " + std::string(name) +
                                      " ...) the events are split over the ranks, each on its own device; rank 0 "
-                                     "writes the output, as one process would (README \"MPI\").");
+                                     "writes the output, as one process would (docs/mpi.md).");
   app.get_subcommand("dictionary")->get_subcommand("build")->footer(
       "Under an MPI launcher (mpirun -n N prism dictionary build ...) rank r renders the PSFs i with i mod N = r, "
-      "each on its own device; rank 0 writes the manifest first (README \"MPI\").");
+      "each on its own device; rank 0 writes the manifest first (docs/mpi.md).");
   app.get_subcommand("evaluate")->footer(
       "Under an MPI launcher (mpirun -n N prism evaluate ...) rank r reconstructs the events i with i mod N = r of "
       "those the journals lack, each rank on its own device and appending to its own part of each journal; rank 0 "
-      "gathers them and writes the journals and figures, as one process would (README \"MPI\").");
+      "gathers them and writes the journals and figures, as one process would (docs/mpi.md).");
   app.get_subcommand("sweep")->footer(
       "Under an MPI launcher (mpirun -n N prism sweep ...) every rank runs the same search from the seed and scores "
       "the candidates i with i mod N = r of each batch, on its own device; the scores are shared after each batch and "
-      "rank 0 writes the state and every output, as one process would (README \"MPI\"). Use a --batch of N or more.");
+      "rank 0 writes the state and every output, as one process would (docs/mpi.md). Use a --batch of N or more.");
   for (const char* name : {"crlb", "psf", "calibrate", "devices"})
     prism::cmd::ranks::single_process_only(*app.get_subcommand(name));
   for (const char* name : {"merge-hdr", "info"})

@@ -17,7 +17,7 @@ void ForwardOptions::add_to(CLI::App* app, unsigned default_binning) {
                   std::string("rays (footprint: aperture cells) per 3 mm lenslet, ") + rays_rounding +
                       "; other lens sizes get the same per mm^2; 0: the converged default, " +
                       std::to_string(defaults::rays_per_lenslet) + " footprint cells or " +
-                      std::to_string(defaults::rays_per_lenslet_point) + " point rays (README, \"Convergence\")")
+                      std::to_string(defaults::rays_per_lenslet_point) + " point rays (docs/model.md \"Convergence\")")
       ->capture_default_str()->check(CLI::Range(0u, 1u << 24));
   app->add_option("--binning", binning, "analyse on B x B binned sensor pixels")
       ->capture_default_str()->check(CLI::Range(1u, 1024u));

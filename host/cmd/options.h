@@ -43,14 +43,14 @@ inline constexpr const char* device_help =
 inline constexpr const char* dark_rate_help =
     "the likelihood's background, expected counts per click-level pixel and event: the NLL's floor at clicks no "
     "PSF reaches, for the weights and the refinement, and for the search where --search-dark-rate gives less "
-    "(README \"Clicks at the sensor's own pixels\": it sets how much a click the model misses costs)";
+    "(docs/reconstruction.md \"Clicks at the sensor's own pixels\": it sets how much a click the model misses costs)";
 
 // What --search-dark-rate sets, said alike by reconstruct and evaluate.
 inline constexpr const char* search_dark_rate_help =
     "the floor with which the search chooses among the dictionary's PSFs, expected counts per sensor pixel (a click "
     "pixel of b x b sensor pixels holds b^2 of it, and never less than --dark-rate; 0: --dark-rate alone); the "
     "weights, the descent and the refinement keep --dark-rate. Higher makes a click the nearest PSF misses cost the "
-    "search less without biasing the photon count (README \"The floor with the refinement\")";
+    "search less without biasing the photon count (docs/reconstruction.md \"The floor with the refinement\")";
 
 struct ForwardOptions {
   std::string device;

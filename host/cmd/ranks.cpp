@@ -64,7 +64,7 @@ void start(int& argc, char**& argv) {
   if (const long n = launcher_size(); n > 1)
     throw std::runtime_error("started as one of " + std::to_string(n) + " MPI processes, but this prism was built "
                              "without MPI: each would do the whole job and write the same files. Install "
-                             "libopenmpi-dev and build again (README \"MPI\"), or run prism without mpirun");
+                             "libopenmpi-dev and build again (docs/mpi.md), or run prism without mpirun");
 #endif
 }
 
@@ -184,7 +184,7 @@ void fail(const std::string& message) {
 void single_process_only(CLI::App& command) {
   command.preparse_callback([name = command.get_name()](size_t) {
     if (size_ > 1)
-      throw std::runtime_error(name + " does not split its work over MPI ranks (README \"MPI\" lists the commands that "
+      throw std::runtime_error(name + " does not split its work over MPI ranks (docs/mpi.md lists the commands that "
                                "do): run it as one process, without mpirun");
   });
 }

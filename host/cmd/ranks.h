@@ -2,7 +2,7 @@
 // launcher (mpirun, srun), a prism built with MPI runs the same command in
 // every rank: each takes a contiguous share of the work on its own device,
 // and rank 0 gathers the results in rank order and writes every output, so
-// the files equal a single process's (README "MPI"). Only the commands that
+// the files equal a single process's (docs/mpi.md). Only the commands that
 // say so split their work; the others refuse to run under several ranks.
 #pragma once
 #include <cstdint>

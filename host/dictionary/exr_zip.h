@@ -1,6 +1,6 @@
 // OpenEXR's ZIP compression of one chunk, decoded with libdeflate instead of
 // OpenEXR's own zlib path: the search's tile reads spend most of their time
-// inflating (README "Tile reads with libdeflate"), and libdeflate inflates a
+// inflating (docs/reconstruction.md "Tile reads with libdeflate"), and libdeflate inflates a
 // 64 x 64 half tile about twice as fast. PsfFile::read_tile uses it; OpenEXR
 // stays the reference (tests/host/dictionary/test_exr_zip.cpp compares the
 // two on every tile).

@@ -3,7 +3,7 @@
 // impostor source at least `min_separation_mm` away, with the impostor's own
 // best photon count. The CRLB is a local figure (the curvature of the
 // likelihood at the truth); the reconstruction's catastrophic errors are
-// global (README "Accuracy": lattice aliases, where the source moved by a
+// global (docs/reconstruction.md "Accuracy": lattice aliases, where the source moved by a
 // lenslet-lattice vector times (D + L) / L images almost as it does).
 //
 // The figure: the Kullback-Leibler divergence of the impostor's click
@@ -41,7 +41,7 @@
 // limit p_confusion is then the Gaussian tail of the CRLB beyond r along each
 // side of the worst direction. The pairwise comparison at r measured, on
 // unifocal-f9 at 50 photons (300 events), the rate of errors beyond r / 2
-// (11 beyond 1.5 mm against 7.9 predicted; 2 beyond 3 mm): README
+// (11 beyond 1.5 mm against 7.9 predicted; 2 beyond 3 mm): docs/events-and-sweeps.md
 // "Predicted against measured".
 //
 // p_confusion is the sum over the distinct impostors found, capped at 1 (a

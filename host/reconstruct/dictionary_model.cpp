@@ -14,7 +14,7 @@
 // What this cannot know: how a PSF changes between planes. Linear blending of
 // two defocus patterns is not the pattern in between (two rings of different
 // radii instead of one in the middle), so the depth estimate is only as good
-// as the planes are close; README "Reconstruction" measures it against the
+// as the planes are close; docs/reconstruction.md measures it against the
 // forward model.
 #include <algorithm>
 #include <array>

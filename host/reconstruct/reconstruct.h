@@ -48,7 +48,7 @@ struct ReconstructionSettings {
   // weights, the descent and the depth keep dark_rate, so the photon count is
   // not biased by it. 0: dark_rate alone. A PSF at a grid node misses clicks
   // of an off-grid source: a higher floor makes such a click cost the search
-  // less (README "The floor with the refinement"). The default is 1e-4 per
+  // less (docs/reconstruction.md "The floor with the refinement"). The default is 1e-4 per
   // 110 um click pixel (16 x 16 sensor pixels).
   double search_dark_rate = defaults::search_dark_rate_per_sensor_pixel;
   int refine_candidates = 8;     // PSFs carried from the coarse scan (ranked by coarse NLL) to the click level
@@ -65,7 +65,7 @@ struct ReconstructionSettings {
   // rank_level()'s default (27.6 um pixels, or the clicks' level where
   // coarser).
   int rank_level = -1;
-  double carry_margin_nll = 50;  // measured: README "Reconstruction", coarse to fine
+  double carry_margin_nll = 50;  // measured: docs/reconstruction.md, coarse to fine
   // The carry margin at every level of the descent, not at the scan's alone:
   // between the scan and select_level the carried PSFs are ranked again at
   // each level and those beyond the margin dropped; of the refine_candidates

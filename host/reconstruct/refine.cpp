@@ -649,7 +649,7 @@ std::vector<ReconstructedVertex> Refiner::refine(const Event& event, std::vector
       // The ladder: the converged estimate moved along its weakest direction
       // (the position covariance's principal axis, mostly depth) and along
       // depth itself, where the likelihood's other optima lie a millimetre or
-      // two away (README "Reconstruction").
+      // two away (docs/reconstruction.md).
       std::vector<double> grad, fisher;
       f.derivatives(grad, fisher);
       glm::dvec3 weakest = largest_eigenvector(inverse_position_block(fisher, f.n(), k));

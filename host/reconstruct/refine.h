@@ -238,7 +238,7 @@ class Refiner {
 // lavapipe (50-110 s with the Airy square) and a refinement about 100 of
 // them; on the device the polish's scene model renders only the tiles
 // around the event's clicks (make_masked_scene_model), and the native
-// pixels carry 5-6 times the position information of 110 um ones (README
+// pixels carry 5-6 times the position information of 110 um ones (docs/reconstruction.md
 // "Refinement at the sensor's own pixels").
 class Refinement {
  public:

@@ -37,7 +37,7 @@ struct SessionOptions {
 // The host threads when none are asked for: the cpu backend's reference
 // runs on 1; the device backends descend on this machine's hardware threads
 // (at most 8), since the host's descent through the tiles is their cost
-// beside a coarse scan (README "Clicks at the sensor's own pixels").
+// beside a coarse scan (docs/reconstruction.md "Clicks at the sensor's own pixels").
 unsigned host_threads_default(ReconstructionBackend backend);
 
 class ReconstructionSession {

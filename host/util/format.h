@@ -7,7 +7,7 @@ namespace prism {
 
 // Six significant digits ("%.6g"), or `digits` (fitted parameters, whose
 // uncertainties are a millionth of their values); infinities as "inf" and
-// "-inf", NaN as "nan" (a CRLB with no light is infinite, never NaN; see README).
+// "-inf", NaN as "nan" (a CRLB with no light is infinite, never NaN; README "Commands").
 std::string format_number(double v, int digits = 6);
 
 // A CSV field, quoted when it holds a comma or a quote (quotes doubled).

@@ -34,7 +34,7 @@ __all__ = [
 _FORWARD_DOC = """
     rays: rays (footprint: aperture cells) per 3 mm lenslet, rounded up to an
         even square of strata; other lens sizes get the same per mm^2; 0: the
-        splat's converged default (README "Convergence").
+        splat's converged default (docs/model.md "Convergence").
     binning: analyse on binning x binning sensor pixels (6.9 um each).
     splat: "footprint" (each aperture cell's image gives box pixels their
         exact area) or "point" (each ray splatted bilinearly, the paper's way).
@@ -356,7 +356,7 @@ def simulate(scene="prototype", vertices=((1.0, 1.0, 31.0, 100.0),), events=1, *
 # --- dictionaries ---------------------------------------------------------------
 
 class Dictionary:
-    """A PSF dictionary on disk (README "PSF dictionary"), opened and its
+    """A PSF dictionary on disk (docs/dictionary.md), opened and its
     manifest checked.
 
     Entry i is the PSF of a source at positions[i] (x varies fastest, then
@@ -464,7 +464,7 @@ def reconstruct(dictionary, events, *, vertices=1, binning=None, model=None, sce
                 progress=None):
     """The vertices of every event, as `prism reconstruct` (the paper's
     ADCG-inspired search on the sparse likelihood, then the continuous
-    maximum-likelihood refinement; README "Reconstruction").
+    maximum-likelihood refinement; docs/reconstruction.md).
 
     dictionary: a dictionary's folder (or a Dictionary).
     events: an event file's path (read a batch at a time: constant memory),

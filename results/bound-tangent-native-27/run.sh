@@ -1,7 +1,7 @@
 #!/bin/bash
 # Clicks at the sensor's 6.9 um pixels on a 27-PSF full-resolution dictionary:
 # the scan's NLL bound before (PRISM_BEFORE: a build of 7d2989d) and after its
-# tangents (36fbe89), the search alone, at two floors. README "The bound at a
+# tangents (36fbe89), the search alone, at two floors. docs/reconstruction.md "The bound at a
 # high floor". Run from an empty directory; PRISM and PRISM_BEFORE name the binaries.
 set -e
 P=${PRISM:-prism}

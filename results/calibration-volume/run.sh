@@ -30,7 +30,7 @@ mkdir -p "$work" && cd "$work"
 # same 24 positions (simulate-hdr: 12-bit sensor, 9 exposures of 20 us to
 # 2 s, 3 darks, shot, read and dark noise) merged as merge-hdr does. With
 # simulate-hdr's default 0.2 s the f = 3 mm lenslets' discs lie below what
-# the merge keeps and their parameters are not found (README). The camera bins the
+# the merge keeps and their parameters are not found (docs/calibration.md). The camera bins the
 # sensor 16 x 16 (110.4 um pixels; full-resolution stacks would be 640 MB
 # each), so the fit starts from the nominal prototype with that sensor; the
 # fitted scene gets the sensor's own 6.9 um pixels back for reconstruction.

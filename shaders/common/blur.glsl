@@ -11,7 +11,7 @@
 // Gaussian these are integrals of products of error functions with no closed
 // form. The model before this one gave each cell's triangle one Gaussian (its
 // own variance plus the core's); where the core is narrower than the cells'
-// images that sum is lumpy, and the CRLB followed the lumps (README
+// images that sum is lumpy, and the CRLB followed the lumps (docs/model.md
 // "Convergence"). The Airy core is neither shape; the square keeps its width.
 //
 // Across a pixel's lines lo < hi, the blurred pixel's profile is

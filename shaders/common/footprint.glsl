@@ -77,7 +77,7 @@ const float THIN_TRIANGLE = 0.01f;
 // by the kernels in tiles (the large pass, footprint_raster.glsl): its light
 // spread uniformly over its image, where giving it to its centroid's pixel
 // left the faint annulus of an f = 3 mm lens's near-face image 300% off at
-// any cell count (README "Calibration"). The split pass takes one level at a
+// any cell count (docs/calibration.md). The split pass takes one level at a
 // time (one piece per invocation, its children that are still large listed
 // for the next), so only the pieces that exist are traced. Piece codes hold
 // 12 bits (footprint_raster.glsl): SPLIT_DEPTH at most 4.
@@ -90,7 +90,7 @@ const int SPLIT_DEPTH = 3;
 // gives light only to the tiles its mask marks. 64: a tile loops over at
 // most 64 x 64 pixels times (1 + 5 edges), about 25,000 iterations, under
 // llvmpipe's 65,535; 1.2-1.6x faster than 32 at 6.9 um, where each tile's
-// retrace of its piece counts (README "Performance").
+// retrace of its piece counts (docs/performance.md).
 const int LARGE_TILE_PX = 64;
 
 // A corner whose ray lands more than STOPPED_BEYOND_SENSOR_PX grid pixels
@@ -102,7 +102,7 @@ const int LARGE_TILE_PX = 64;
 // the linear map has nothing to do with, and that corner's landing
 // derivative (of order 1 / cos^3 of the refracted angle) put an f = 3 mm
 // lens's forward-mode derivatives at 2.5-14x their central differences
-// (README "Calibration"). The band's width only sets where the cut falls in
+// (docs/calibration.md). The band's width only sets where the cut falls in
 // light the sensor does not see: the part kept has the light per image area
 // it had. The cut comes after the splits the corner's landing point asks
 // for (is_large judges a piece by every corner that got through the lens;

@@ -66,7 +66,7 @@ PRISM_FN HdrStats hdr_stats_add(HdrStats a, float t, float s) {
 // the floor, so the shortest valid one is kept on upward noise, and in the
 // mean it weighs as much as the longest; the merged values rose and fell by
 // about 1% with brightness, one tooth per exposure step, which tilted a
-// calibrated lenslet (README "HDR calibration merge"). Weighed by time, the
+// calibrated lenslet (docs/dictionary.md "HDR calibration merge"). Weighed by time, the
 // shortest of n valid exposures 4.2x apart counts 1 / 4.2^(n-1) of the
 // longest. (The longest is kept near saturation only on downward noise, and
 // now weighs the most; on the prototype's stacks no tooth of that sign
@@ -82,7 +82,7 @@ PRISM_FN float hdr_correlation(HdrStats a) {
 
 // Dark level in DN at exposure time t, from the dark frames' (t, value) stats.
 // Linear: least-squares offset + rate * t. Constant: their mean at every t
-// (capture-hdr takes darks at one time only; see the README for the bias).
+// (capture-hdr takes darks at one time only; docs/dictionary.md "HDR calibration merge" measures the bias).
 PRISM_FN float hdr_dark_level(HdrStats darks, uint linear, float t) {
   if (linear == 0u || !(darks.m2_t > 0.0f)) return darks.mean_s;
   float rate = darks.c_ts / darks.m2_t;

@@ -231,7 +231,7 @@ TEST_CASE("footprint splat: an f = 3 mm lens's faint near-face annulus converges
   // last split, around a faint annulus 2e-4..1e-2 of the peak. Those pieces
   // are rasterised (the kernels: in tiles, the large pass); given to their
   // centroids' pixels instead, the annulus was 190% RMS off at 4096 cells
-  // and 60% at 16384 (README "Calibration"), not converging.
+  // and 60% at 16384 (docs/calibration.md), not converging.
   auto sys = prism::builtin_scene("prototype").optics;
   sys.lenslets = {sys.lenslets[15]};
   REQUIRE(sys.lenslets[0].focal_mm == 3.0);

@@ -11,7 +11,7 @@
 // a term by a large factor. The Fisher comparison is therefore made where
 // every lit pixel holds many rays (coarse binning), to 1e-3 relative; at few
 // rays per pixel both backends show the same upward sampling bias but not
-// the same digits (see README, "Convergence").
+// the same digits (see docs/model.md "Convergence").
 #include <algorithm>
 #include <cmath>
 #include <string>

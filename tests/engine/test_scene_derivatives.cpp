@@ -154,7 +154,7 @@ TEST_CASE("reference derivatives with respect to the scene's parameters equal ce
 // off the sensor; a footprint corner there had a landing derivative of order
 // 1 / cos^3 of the refracted angle, and the pixels' forward-mode derivatives
 // by the lens's tilt and focal length were 2.5-14x their central differences
-// (calibration stalled on them, README "Calibration"). Such corners now count
+// (calibration stalled on them, docs/calibration.md). Such corners now count
 // as stopped beyond a band around the sensor (shared::lands_by_sensor).
 TEST_CASE("reference derivatives stay in their linear range where an f = 3 mm lenslet's rays leave near the critical angle") {
   const auto sys = prism::builtin_scene("prototype-as-built").optics;

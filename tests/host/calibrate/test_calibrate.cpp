@@ -202,7 +202,7 @@ TEST_CASE("calibration: on coarse pixels a partly censored pixel holds at least 
   // ones. Counted as "at most" alone, such pixels pulled no light toward
   // them: on the whole prototype the coarse levels left the faint discs of
   // an f = 3 mm corner lenslet 150 um of position and focal length from the
-  // truth (README "Calibration"). Here every other pixel of the PSF is censored, a
+  // truth (docs/calibration.md). Here every other pixel of the PSF is censored, a
   // checkerboard: each 2 x 2 coarse pixel is partly censored, and only what
   // its measured half holds can pull lenslet 3 (f = 9 mm, its spot bright 30
   // mm deep) back from 40 um off. The fit is stopped at the model's pixels.
@@ -299,8 +299,7 @@ TEST_CASE("calibration: the blur term (an extended source's sigma) is found and 
   CHECK(blurred.chi2 < 0.25 * point.chi2);
   CHECK(worst_blurred < 0.5 * worst_point);
   CHECK(std::isfinite(sigma.sigma));
-  // Found to a few per cent: the first-order blur puts it 2% high (README
-  // "Calibration", the blur term).
+  // Found to a few per cent: the first-order blur puts it 2% high (docs/calibration.md, the blur term).
   CHECK(std::abs(sigma.value - 0.25) < 0.05 * 0.25);
 }
 
@@ -504,7 +503,7 @@ TEST_CASE("calibration's bootstrap: a PSF drawn twice counts as the PSF given tw
   // one spread. Four replicates of six PSFs scatter by a factor of a few
   // (median 0.33 here, seeds 1 and 2 differing up to 30x on one parameter):
   // this catches a spread in the wrong units, not a subtle bias (the whole
-  // prototype's measurement in README "Calibration" is the check of that).
+  // prototype's measurement in docs/calibration.md is the check of that).
   std::sort(ratio.begin(), ratio.end());
   const double median = ratio[ratio.size() / 2];
   MESSAGE("bootstrap / sandwich over " << ratio.size() << " parameters: median " << median << ", range " << ratio.front()
@@ -584,7 +583,7 @@ TEST_CASE("prism calibrate: a dictionary of HDR-merged PSFs in, a scene every co
     CHECK_MESSAGE(fs::exists(dir / "residuals" / file), file);
 
   // A fitted scene refined on the model's pixels alone (--coarse-levels 0,
-  // README "Calibration"): it starts at the optimum and stays there. With
+  // docs/calibration.md): it starts at the optimum and stays there. With
   // two bootstrap replicates, whose spread may only widen sigma.
   const std::string refined = (dir / "refined.json").string(), csv_refined = (dir / "params-refined.csv").string();
   run = prism::test::run_prism("calibrate --dictionary " + (dir / "dict").string() + " --scene " + out +

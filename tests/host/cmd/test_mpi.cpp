@@ -194,7 +194,7 @@ TEST_CASE("mpirun -n 2 and 3: evaluate and sweep give one process's figures, and
   // in a fixed order, and with the point splat: the footprint splat's lists
   // of split triangles interleave the sources of a dispatch, so a design's
   // sums group with those of the designs it shares a dispatch with (1e-9
-  // relative: README "MPI").
+  // relative: docs/mpi.md).
   const std::string one_thread = "LP_NUM_THREADS=1";
   auto ranks = [&](int n, const std::string& args) {
     return prism::test::run_prism(args, one_thread + " " + PRISM_MPIEXEC + " --allow-run-as-root --oversubscribe -n " +

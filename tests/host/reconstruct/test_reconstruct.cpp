@@ -399,7 +399,7 @@ TEST_CASE("reconstruction coarse to fine: the carry margin applied again at ever
   // again on level 1 on their way to the clicks. On 1000 + 1000 volume
   // events of the default dictionary the positions were those of carrying
   // once, but for two events of 2000, both closer to the truth
-  // (README "Reconstruction", "The carry margin at every level").
+  // (docs/reconstruction.md, "The carry margin at every level").
   const auto events = central_events(12, 5, 19, 36, 83);
   auto staged = settings(1), once = settings(1);
   staged.search_level = once.search_level = 4;
@@ -432,11 +432,11 @@ TEST_CASE("reconstruction: the candidates ranked a level above the clicks, the b
   // (depth 5.4: 27 mm off; depth 14.6: 5.5-5.9 mm off); in one, 220 um
   // prefers another plane, as far from the truth (2.0 against 1.8 mm), whose
   // NLL on the clicks is 70 higher: what ranking above the clicks can cost
-  // (README "Clicks at the sensor's own pixels" measures it on 400 native
+  // (docs/reconstruction.md "Clicks at the sensor's own pixels" measures it on 400 native
   // events); in the last, ranked above ends lower in NLL on the clicks
   // (913.1 against 919.0; 0.76 against 0.65 mm off). With the scan's radius
   // rounded up rather than to the nearest pixel (before the radius was made
-  // the lattice place() gives, README "Reconstruction") the event at depth
+  // the lattice place() gives, docs/reconstruction.md) the event at depth
   // 14.6 and the last agreed, and the count was 10.
   const auto events = central_events(12, 6, 5, 40, 84);
   auto above = settings(1);

@@ -370,7 +370,7 @@ TEST_CASE("refinement: the ladder's rungs, moved by whole pixels, take near-face
   // and the ladder freed 20 of 27; one start alone, as this test once had,
   // failed on CI when its start reached a shallower optimum. On the real
   // lenses the moved rungs reached the truth for three events of the
-  // acceptance run where the unmoved ones did not (README "Reconstruction",
+  // acceptance run where the unmoved ones did not (docs/reconstruction.md,
   // defaults::refine_ladder_reach_px).
   constexpr double worse_nll = 10;  // a likelihood ratio of e^10: another optimum, not the truth's
   const glm::dvec3 at(0.6, 0.3, 4.0);
