@@ -77,6 +77,10 @@ struct OpticalSystem {
   double curvature_radius_mm(size_t i) const { return lenslets[i].focal_mm * (glass_index - 1.0); }
   double sag_mm(size_t i) const;
   double center_thickness_mm(size_t i) const { return sag_mm(i) + edge_thickness_mm; }
+  // The shortest focal length lenslet i can have as a real lens: validate
+  // refuses a radius f (n - 1) below the aperture's radius (which the sag's
+  // square root needs). Rounding may put this very value just beyond.
+  double shortest_focal_mm(size_t i) const { return 0.5 * lenslets[i].diameter_mm / (glass_index - 1.0); }
   // Lateral magnification of a source at depth d (from the scintillator face)
   // through a lenslet's centre: a lateral source shift s moves every lenslet
   // image by -s * magnification(d) on the sensor (the images are inverted).

@@ -87,15 +87,13 @@ std::pair<double, double> CalibrationParameter::bounds(const OpticalSystem& nomi
     case Param::sensor_offset_y: return {v - defaults::calibration_max_shift_mm, v + defaults::calibration_max_shift_mm};
     case Param::lens_focal: {
       double lo = v * (1 - defaults::calibration_max_focal_change);
-      // A real lens is plano-convex: its radius f (n - 1) must reach its
-      // aperture's radius (validate). Without this bound a fit pulled toward
-      // shorter f stalled at that wall as "converged", every trial beyond it
-      // untraceable and every other parameter frozen with it; as a bound,
-      // the step is clamped there and the parameter reported at_bound.
-      if (nominal.lens_model == LensModel::real) {
-        const double shortest = 0.5 * nominal.lenslets[size_t(lens)].diameter_mm / (nominal.glass_index - 1.0);
-        lo = std::max(lo, shortest * (1 + 1e-12));
-      }
+      // A real lens cannot be shorter than the plano-convex limit validate
+      // enforces. Without this bound a fit pulled toward shorter f stalled
+      // at that wall as "converged", every trial beyond it untraceable and
+      // every other parameter frozen with it; as a bound, the step is
+      // clamped there and the parameter reported at_bound.
+      if (nominal.lens_model == LensModel::real)
+        lo = std::max(lo, nominal.shortest_focal_mm(size_t(lens)) * (1 + 1e-12));
       return {lo, v * (1 + defaults::calibration_max_focal_change)};
     }
     case Param::lens_tilt_x:

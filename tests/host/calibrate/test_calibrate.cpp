@@ -176,6 +176,7 @@ TEST_CASE("calibration: a real lens's focal length is bounded at the plano-conve
   for (const auto& p : prism::calibration_parameters(nominal, {"lens_focal"})) {
     CAPTURE(p.name());
     const auto [lo, hi] = p.bounds(nominal);
+    // The wall written out here, not through shortest_focal_mm: R = f (n - 1) = D / 2.
     const double f = p.get(nominal), wall = 0.5 * nominal.lenslets[size_t(p.lens)].diameter_mm / (nominal.glass_index - 1);
     CHECK(lo >= wall);
     CHECK(hi == doctest::Approx(f * (1 + prism::defaults::calibration_max_focal_change)));
