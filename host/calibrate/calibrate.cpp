@@ -681,7 +681,12 @@ namespace {
 // step gained less than 1e-3 of chi2 / dof (nothing next to the noise: an
 // uncertainty is where chi2 rises by chi2 / dof) or less than kGainsOfNoise
 // times what two evaluations of the same parameters differ by, or no step
-// could gain.
+// could gain. In that last case `no_gain_rise` is what the smallest step
+// tried (the largest damping) raised chi2 by, over chi2 / dof (infinite if
+// it was a system the model cannot trace; NaN otherwise): near 0 at an
+// optimum of a smooth chi2, far above 1 where the model jumps (the
+// footprint's discrete choices, docs/model.md "Splatting"): no step near
+// the noise gets across such a cliff, and the fit stops at its low edge.
 constexpr double kGainsOfNoise = 4;
 
 // Gauss-Newton's matrix leaves out the residuals' own curvature (sum w r
@@ -756,13 +761,14 @@ bool pattern_move(const Fitter& fitter, const std::vector<double>& back2, double
 int levenberg_marquardt(const Fitter& fitter, std::vector<double>& x, const std::vector<double>& lo,
                         const std::vector<double>& hi, const std::vector<bool>& hold, size_t scales,
                         const CalibrationOptions& o, int level, int first_step, double t0, Evaluation& cur,
-                        bool& converged, int& stretched, int& pattern_moves) {
+                        bool& converged, double& no_gain_rise, int& stretched, int& pattern_moves) {
   const size_t P = x.size();
   auto dof_of = [&](const Evaluation& e) { return e.pixels > P + scales ? e.pixels - P - scales : size_t(1); };
   double mu = 1e-3;
   constexpr double kRejectedMu = 0.1, kMaxMu = 1e6;
   int steps = 0;
   converged = false;
+  no_gain_rise = std::numeric_limits<double>::quiet_NaN();
   // The points (and chi2) one and two accepted steps back, for pattern moves.
   std::vector<double> back1, back2;
   double chi2_back1 = 0, chi2_back2 = 0;
@@ -774,6 +780,7 @@ int levenberg_marquardt(const Fitter& fitter, std::vector<double>& x, const std:
     }
     const size_t m = act.size();
     bool accepted = false;
+    double rise = std::numeric_limits<double>::quiet_NaN();  // of the last step rejected
     while (m && !accepted && mu <= kMaxMu) {
       std::vector<double> step;
       if (!damped_step(cur, act, P, mu, step)) {
@@ -790,6 +797,10 @@ int levenberg_marquardt(const Fitter& fitter, std::vector<double>& x, const std:
       if (!moved) break;
       Evaluation trial = fitter.evaluate(xt, false);
       if (!(trial.chi2 < cur.chi2)) {
+        // (chi2 0: the model is the measurement, an optimum whatever a step does.)
+        rise = !trial.ok       ? std::numeric_limits<double>::infinity()
+               : cur.chi2 > 0 ? (trial.chi2 - cur.chi2) / (cur.chi2 / double(dof_of(cur)))
+                              : 0.0;
         mu = std::max(mu * 4, kRejectedMu);
         continue;
       }
@@ -822,7 +833,7 @@ int levenberg_marquardt(const Fitter& fitter, std::vector<double>& x, const std:
       const double repeat_noise = std::abs(cur.chi2 - trial.chi2);
       if (gain < std::max(1e-3 * cur.chi2 / double(dof_of(cur)), kGainsOfNoise * repeat_noise)) converged = true;
     }
-    if (!accepted) converged = true;  // no step of any damping gains: an optimum, to the model's precision
+    if (!accepted) converged = true, no_gain_rise = rise;  // no step of any damping gains
   }
   return steps;
 }
@@ -951,8 +962,8 @@ CalibrationResult calibrate(const OpticalSystem& start, const std::vector<Measur
     cur = fitter.evaluate(x, true);
     if (k == 0 && options.coarse_levels <= 0) r.chi2_start = cur.chi2;
     r.steps +=
-        levenberg_marquardt(fitter, x, lo, hi, hold, psfs.size(), at, k, r.steps, t0, cur, r.converged, r.stretched,
-                            r.pattern_moves);
+        levenberg_marquardt(fitter, x, lo, hi, hold, psfs.size(), at, k, r.steps, t0, cur, r.converged,
+                            r.no_gain_rise, r.stretched, r.pattern_moves);
     if (k == 0) r.fitted = fitter.system(x);
   }
   r.chi2 = cur.chi2;

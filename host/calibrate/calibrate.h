@@ -58,6 +58,7 @@
 // double-precision CPU reference (engine/ref), which checks them.
 #pragma once
 #include <functional>
+#include <limits>
 #include <string>
 #include <vector>
 
@@ -216,6 +217,11 @@ struct CalibrationResult {
   int stretched = 0;      // of those, taken further along their line where chi2 fell faster than predicted
   int pattern_moves = 0;  // points taken along the last two steps' line (CalibrationOptions::pattern_moves)
   bool converged = false; // at the finest level: the last step gained less than 1e-3 of chi2 / dof, or no step could
+  // Converged because no step of any damping lowered chi2: what the smallest
+  // step tried raised it by, over chi2 / dof (near 0 at an optimum; far
+  // above 1 a jump in the model; infinite: a system it cannot trace). NaN
+  // when a step gained.
+  double no_gain_rise = std::numeric_limits<double>::quiet_NaN();
   double seconds = 0;
   unsigned check_cells = 0;    // cells per 3 mm lenslet of the check's model (0: not checked, or no step found)
   double check_seconds = 0;    // of seconds, the check's

@@ -291,10 +291,21 @@ void run(const CalibrateArgs& a) {
                 "sigma): %s. Add PSFs that show those lenslets (other positions, longer exposures) or leave their "
                 "group out of --fit\n",
                 n_on_bounds, on_bounds.c_str());
+  // Where no step could gain, how the smallest one tried fared tells an
+  // optimum from a cliff in the model (CalibrationResult::no_gain_rise).
+  std::string stop = r.converged ? " (converged)" : " (step limit reached)";
+  if (r.converged && std::isinf(r.no_gain_rise))
+    stop = " (stopped: no step of any damping lowered chi2; the smallest one tried made a system the model cannot "
+           "trace)";
+  else if (r.converged && !std::isnan(r.no_gain_rise))
+    stop = " (stopped: no step of any damping lowered chi2; the smallest one tried raised it by " +
+           format_number(r.no_gain_rise, 3) +
+           " x chi2 / dof: an optimum where that is below 1, a jump in the model where it is far above, "
+           "docs/model.md \"Splatting\")";
   std::printf("chi2 %.6g -> %.6g over %zu pixels of %zu PSFs, chi2 / dof %.4g, %d steps (%d stretched, %d pattern "
               "moves)%s, %.1f s\n",
               r.chi2_start, r.chi2, r.pixels, psfs.size(), r.reduced_chi2(), r.steps, r.stretched, r.pattern_moves,
-              r.converged ? " (converged)" : " (step limit reached)", r.seconds);
+              stop.c_str(), r.seconds);
   // One line says what sigma is made of: the residuals' part (the sandwich,
   // or the bootstrap where larger) and the model's cells' part.
   const std::string residual_part =
